@@ -1,0 +1,1 @@
+"""Datasets: one module per dataset, plus the shared datamodule and transforms."""

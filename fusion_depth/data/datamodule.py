@@ -1,0 +1,82 @@
+"""One LightningDataModule for every dataset: a dataset is a reader config, nothing more."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+SPLITS = ("train", "val", "test")
+
+
+class DepthDataModule(L.LightningDataModule):
+    """Builds split datasets from ``reader(split=...)``, a partial from the dataset config.
+
+    Every reader returns samples ``{"image", "sparse", "depth", "condition"}``, so the model
+    never knows which dataset it trains on.
+    """
+
+    def __init__(
+        self,
+        reader: Callable[..., Dataset],
+        batch_size: int = 2,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        pin_memory: bool | None = None,
+        persistent_workers: bool | None = None,
+    ) -> None:
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"data.batch_size={batch_size}: expected an integer ≥ 1")
+        self.reader = reader
+        self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size or batch_size
+        self.num_workers = num_workers
+        # Pinned memory and persistent workers only pay off when a GPU consumes the batches.
+        self.pin_memory = torch.cuda.is_available() if pin_memory is None else pin_memory
+        self.persistent_workers = (
+            num_workers > 0
+            if persistent_workers is None
+            else persistent_workers and num_workers > 0
+        )
+        self.datasets: dict[str, Dataset] = {}
+
+    def dataset(self, split: str) -> Dataset:
+        """The dataset of one split, built on first use."""
+        if split not in SPLITS:
+            raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
+        if split not in self.datasets:
+            self.datasets[split] = self.reader(split=split)
+        return self.datasets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        needed = {
+            "fit": ("train", "val"),
+            "validate": ("val",),
+            "test": ("test",),
+            "predict": ("test",),
+        }.get(stage or "", SPLITS)
+        for split in needed:
+            self.dataset(split)
+
+    def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+        return DataLoader(
+            self.dataset(split),
+            batch_size=batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.persistent_workers,
+            drop_last=shuffle,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", True, self.batch_size)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", False, self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", False, self.eval_batch_size)

@@ -1,0 +1,43 @@
+"""Batch-level training augmentation (Kornia), run on the device after transfer."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import kornia.augmentation as K
+import torch
+from torch import nn
+
+
+class TrainAugmentation(nn.Module):
+    """The paper's online augmentation: horizontal flip, brightness and contrast jitter.
+
+    The flip moves image, sparse map and depth together; the colour jitter touches the image
+    only. Kornia's ``ColorJitter`` uses the torchvision formulas (multiplicative brightness,
+    contrast blended with the mean), which is what the paper's ranges refer to.
+    """
+
+    def __init__(
+        self,
+        flip_p: float = 0.5,
+        color_p: float = 0.5,
+        brightness: Sequence[float] = (0.75, 1.25),
+        contrast: Sequence[float] = (0.9, 1.1),
+    ) -> None:
+        super().__init__()
+        self.flip = K.RandomHorizontalFlip(p=flip_p)
+        self.color = K.ColorJitter(
+            brightness=tuple(brightness), contrast=tuple(contrast), p=color_p
+        )
+
+    @torch.no_grad()
+    def forward(self, batch: dict) -> dict:
+        image, sparse, depth = batch["image"], batch["sparse"], batch["depth"]
+        stacked = self.flip(torch.cat([image, sparse, depth], dim=1))
+        image, sparse, depth = stacked.split([image.shape[1], 1, 1], dim=1)
+        return {
+            **batch,
+            "image": self.color(image.contiguous()),
+            "sparse": sparse.contiguous(),
+            "depth": depth.contiguous(),
+        }

@@ -1,0 +1,66 @@
+"""Experiment-logger factories that need more than a plain ``_target_``."""
+
+from __future__ import annotations
+
+import netrc
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+from lightning.pytorch.loggers import WandbLogger
+
+
+def wandb_logged_in() -> bool:
+    """True when W&B credentials exist (WANDB_API_KEY or a ``wandb login`` netrc entry)."""
+    if os.environ.get("WANDB_API_KEY"):
+        return True
+    try:
+        path = os.environ.get("NETRC") or str(Path.home() / ".netrc")
+        hosts = netrc.netrc(path).hosts
+    except (FileNotFoundError, netrc.NetrcParseError, OSError):
+        return False
+    return any("wandb" in host for host in hosts)
+
+
+def _hydra_run_identity() -> tuple[str | None, str | None]:
+    """(run name from the overrides, sweep group) of the current Hydra job, if any."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+    except (ImportError, ValueError):
+        return None, None
+    name = hc.job.override_dirname or None
+    group = None
+    if hc.mode == RunMode.MULTIRUN:
+        group = "_".join(Path(hc.sweep.dir).parts[-2:])
+    return name, group
+
+
+def wandb_logger(
+    project: str = "fusion-depth",
+    save_dir: str = ".",
+    offline: bool | None = None,
+    name: str | None = None,
+    group: str | None = None,
+    tags: Sequence[str] = (),
+) -> WandbLogger:
+    """A WandbLogger that is offline unless the user is logged in or asks otherwise.
+
+    Runs are named after their overrides and grouped per sweep, so the W&B UI compares the
+    jobs of one grid side by side.
+    """
+    if offline is None:
+        offline = not wandb_logged_in()
+    auto_name, auto_group = _hydra_run_identity()
+    Path(save_dir).mkdir(parents=True, exist_ok=True)
+    return WandbLogger(
+        project=project,
+        save_dir=save_dir,
+        offline=offline,
+        name=name or auto_name,
+        group=group or auto_group,
+        tags=list(tags),
+        log_model=False,
+    )

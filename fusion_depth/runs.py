@@ -1,0 +1,67 @@
+"""The on-disk record of a run: ``metrics.json`` on success, ``failure.json`` on error."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import traceback
+from pathlib import Path
+from typing import Any
+
+METRICS_FILE = "metrics.json"
+FAILURE_FILE = "failure.json"
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> None:
+    """Write JSON to a temporary sibling, then rename: readers never see a half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, sort_keys=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def record_failure(
+    output_dir: str | os.PathLike, overrides: list[str], error: BaseException
+) -> Path:
+    """Save what failed (overrides, error, traceback) next to the run's other outputs."""
+    output_dir = Path(output_dir)
+    trace = output_dir / "traceback.txt"
+    output_dir.mkdir(parents=True, exist_ok=True)
+    trace.write_text("".join(traceback.format_exception(error)))
+    path = output_dir / FAILURE_FILE
+    write_json_atomic(
+        path,
+        {
+            "status": "failed",
+            "overrides": overrides,
+            "error": f"{type(error).__name__}: {error}",
+            "traceback": str(trace),
+        },
+    )
+    return path
+
+
+def load_runs(root: str | os.PathLike) -> list[dict]:
+    """Every ``metrics.json`` below ``root`` (sorted by path), each with its ``path`` added."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such directory")
+    runs = []
+    for path in sorted(root.rglob(METRICS_FILE)):
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: not valid JSON ({err})") from err
+        if not isinstance(data, dict) or "run" not in data or "test" not in data:
+            raise ValueError(f"{path}: expected a fusion-depth metrics file with 'run' and 'test'")
+        data["path"] = str(path)
+        runs.append(data)
+    return runs

@@ -1,0 +1,135 @@
+"""Tests for fusion_depth.losses: hand-computed values, masking and gradient behaviour."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fusion_depth.losses import (
+    DepthLoss,
+    berhu_loss,
+    edge_loss,
+    masked_ssim_loss,
+    pixel_loss,
+)
+
+# Residuals pred - target of a 2x2 map: 0.1, 0.5, 1.0, -2.0.
+TARGET = torch.tensor([[[[1.0, 1.0], [1.0, 3.0]]]])
+PRED = torch.tensor([[[[1.1, 1.5], [2.0, 1.0]]]])
+MASK_LAST_OUT = torch.tensor([[[[True, True], [True, False]]]])
+
+
+def _random_case(seed: int = 0, size: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    pred = torch.rand(2, 1, size, size, generator=g)
+    target = torch.rand(2, 1, size, size, generator=g)
+    mask = torch.rand(2, 1, size, size, generator=g) < 0.8
+    return pred, target, mask
+
+
+def test_ssim_identical_is_zero_and_different_is_positive() -> None:
+    pred, target, _ = _random_case()
+    assert masked_ssim_loss(pred, pred.clone()).item() == pytest.approx(0.0, abs=1e-6)
+    assert masked_ssim_loss(pred, target).item() > 0.05
+
+
+def test_berhu_matches_formula_on_both_sides_of_c() -> None:
+    # max|x| = 2 -> c = 0.4. |0.1| <= c: 0.1; others (x^2 + c^2) / (2c):
+    # 0.5 -> 0.41/0.8 = 0.5125, 1.0 -> 1.16/0.8 = 1.45, -2.0 -> 4.16/0.8 = 5.2. Mean 7.2625/4.
+    assert berhu_loss(PRED, TARGET).item() == pytest.approx(1.815625, rel=1e-6)
+    # With the -2.0 pixel masked out, c = 0.2 * 1.0 = 0.2 over the valid pixels only:
+    # 0.1 -> 0.1, 0.5 -> 0.29/0.4 = 0.725, 1.0 -> 1.04/0.4 = 2.6. Mean 3.425/3.
+    assert berhu_loss(PRED, TARGET, MASK_LAST_OUT).item() == pytest.approx(3.425 / 3, rel=1e-6)
+    # The threshold is a parameter: 0.5 -> c = 1: 0.1, 0.5, 1.0 (|x| <= c), 5/2 = 2.5. Mean 4.1/4.
+    assert berhu_loss(PRED, TARGET, threshold=0.5).item() == pytest.approx(1.025, rel=1e-6)
+
+
+def test_berhu_zero_residual_is_zero_with_finite_gradient() -> None:
+    pred = TARGET.clone().requires_grad_(True)
+    loss = berhu_loss(pred, TARGET)
+    loss.backward()
+    assert loss.item() == 0.0
+    assert torch.isfinite(pred.grad).all()
+
+
+def test_l1_l2_by_hand() -> None:
+    assert pixel_loss(PRED, TARGET, kind="l1").item() == pytest.approx(3.6 / 4, rel=1e-6)
+    assert pixel_loss(PRED, TARGET, kind="l2").item() == pytest.approx(5.26 / 4, rel=1e-6)
+    assert pixel_loss(PRED, TARGET, MASK_LAST_OUT, "l1").item() == pytest.approx(1.6 / 3, rel=1e-6)
+    assert pixel_loss(PRED, TARGET, MASK_LAST_OUT, "l2").item() == pytest.approx(1.26 / 3, rel=1e-6)
+    assert pixel_loss(PRED, TARGET, kind="berhu").item() == pytest.approx(1.815625, rel=1e-6)
+
+
+def test_edge_loss_by_hand_with_eroded_mask() -> None:
+    # Target is an x-ramp of slope 2, pred is flat. Column 0 is invalid (and holds junk), so the
+    # eroded mask keeps columns 2..4 only. Normalised Sobel dx of the target: 2 inside, 1 on the
+    # replicated right border; dy = 0. Mean over both components: (2 + 2 + 1) / 3 / 2 = 5/6.
+    target = (2.0 * torch.arange(5.0)).expand(5, 5).clone()[None, None]
+    target[..., 0] = 1000.0
+    mask = torch.ones_like(target, dtype=torch.bool)
+    mask[..., 0] = False
+    pred = torch.zeros_like(target)
+    assert edge_loss(pred, target, mask).item() == pytest.approx(5 / 6, rel=1e-6)
+    assert edge_loss(target, target).item() == pytest.approx(0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+def test_masked_target_pixels_do_not_affect_any_term(kind: str) -> None:
+    pred, target, mask = _random_case(seed=1)
+    crit = DepthLoss(pixel=kind)
+    pred_a = pred.clone().requires_grad_(True)
+    pred_b = pred.clone().requires_grad_(True)
+    out_a = crit(pred_a, target, mask)
+    changed = target.clone()
+    changed[~mask] = torch.rand(int((~mask).sum())) * 100.0
+    changed[~mask & (torch.arange(16) % 2 == 0)] = float("nan")
+    out_b = crit(pred_b, changed, mask)
+    for key in ("loss", "ssim", "edge", "pixel"):
+        assert torch.isfinite(out_b[key]), key
+        assert out_b[key].item() == pytest.approx(out_a[key].item(), rel=1e-6, abs=1e-9), key
+    out_a["loss"].backward()
+    out_b["loss"].backward()
+    torch.testing.assert_close(pred_a.grad, pred_b.grad)
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+def test_empty_mask_is_finite_zero(kind: str) -> None:
+    pred, target, _ = _random_case(seed=2)
+    pred.requires_grad_(True)
+    out = DepthLoss(pixel=kind)(pred, target, torch.zeros_like(target, dtype=torch.bool))
+    for key, value in out.items():
+        assert torch.isfinite(value), key
+        assert value.item() == pytest.approx(0.0, abs=1e-6), key
+    out["loss"].backward()
+    assert torch.isfinite(pred.grad).all()
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+def test_gradients_flow_to_pred(kind: str) -> None:
+    pred, target, mask = _random_case(seed=3)
+    pred.requires_grad_(True)
+    out = DepthLoss(pixel=kind)(pred, target, mask)
+    for key in ("ssim", "edge", "pixel"):
+        (grad,) = torch.autograd.grad(out[key], pred, retain_graph=True)
+        assert torch.isfinite(grad).all(), key
+        assert grad.abs().sum() > 0, key
+    out["loss"].backward()
+    assert torch.isfinite(pred.grad).all()
+    assert pred.grad.abs().sum() > 0
+
+
+def test_total_is_weighted_sum() -> None:
+    pred, target, mask = _random_case(seed=4)
+    out = DepthLoss(pixel="berhu", w_ssim=0.5, w_edge=2.0, w_pixel=3.0)(pred, target, mask)
+    expected = 0.5 * out["ssim"] + 2.0 * out["edge"] + 3.0 * out["pixel"]
+    assert out["loss"].item() == pytest.approx(expected.item(), rel=1e-6)
+    assert out["pixel"].item() == pytest.approx(berhu_loss(pred, target, mask).item(), rel=1e-6)
+    custom = DepthLoss(pixel="berhu", berhu_threshold=0.5)(pred, target, mask)["pixel"]
+    assert custom.item() == pytest.approx(berhu_loss(pred, target, mask, 0.5).item(), rel=1e-6)
+
+
+def test_unknown_kind_raises() -> None:
+    with pytest.raises(ValueError, match=r"'huber'.*l1.*l2.*berhu"):
+        pixel_loss(PRED, TARGET, kind="huber")
+    with pytest.raises(ValueError, match=r"'huber'.*l1.*l2.*berhu"):
+        DepthLoss(pixel="huber")

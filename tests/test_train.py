@@ -1,0 +1,73 @@
+"""End to end: one training run, the 9-run smoke grid with its report, a failing job."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from fusion_depth.metrics import METRIC_KEYS
+from fusion_depth.train import train
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cli(args: list[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=dict(os.environ),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_path) -> None:
+    cfg = make_config("experiment=smoke", "fusion=concat")
+    results = train(cfg)
+    out = Path(cfg.paths.output_dir)
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["test"] == results["test"]
+    assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images"}
+    assert saved["test"]["num_images"] == cfg.dataset.reader.num_test
+    assert saved["run"] | {"overrides": None} == {
+        "dataset": "procedural", "sensor": "radar", "backbone": "densenet169",
+        "fusion": "concat", "loss": "l1", "seed": 42, "overrides": None}
+    assert set(saved["test_by_condition"]) <= set(cfg.dataset.conditions)
+    assert saved["global_step"] == cfg.trainer.max_epochs * cfg.trainer.limit_train_batches
+    # The best checkpoint loads without unpickling code and describes its run.
+    ckpt = torch.load(saved["best_checkpoint"], map_location="cpu", weights_only=True)
+    assert ckpt["fusion_depth_config"]["fusion"]["mode"] == "concat"
+    assert any(k.startswith("net.fusion.mix") for k in ckpt["state_dict"])
+    assert list((out / "wandb").glob("offline-run-*")), "W&B must log offline by default"
+
+
+def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
+    sweep = tmp_path / "sweep"
+    result = _cli(["fusion_depth.train", "-m", "experiment=smoke", "logger=csv",
+                   "loss=l1,l2,berhu", "fusion=rgb,concat,add", f"hydra.sweep.dir={sweep}"],
+                  cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "9 ok, 0 failed" in result.stdout
+    assert len(list(sweep.glob("*/metrics.json"))) == 9
+    report = _cli(["fusion_depth.report", str(sweep)], cwd=tmp_path, timeout=120)
+    assert report.returncode == 0, report.stderr
+    rows = [line for line in report.stdout.splitlines() if line.startswith("| RGB")]
+    assert len(rows) == 9
+    combos = {tuple(c.strip() for c in row.split("|")[1:3]) for row in rows}
+    assert combos == {(m, loss) for m in ("RGB", "RGB-Fusion", "RGB-Add")
+                      for loss in ("L1", "L2", "BerHu")}
+
+
+def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
+    sweep = tmp_path / "sweep"
+    result = _cli(["fusion_depth.train", "-m", "experiment=smoke", "logger=none",
+                   "dataset.width=48,96", f"hydra.sweep.dir={sweep}"], cwd=tmp_path)
+    assert result.returncode == 1
+    assert "1 ok, 1 failed" in result.stdout
+    failed = next(line for line in result.stdout.splitlines() if line.strip().startswith("failed"))
+    assert "dataset.width=48" in failed and "multiple of 32" in failed
+    failure = json.loads((sweep / "0" / "failure.json").read_text())
+    assert Path(failure["traceback"]).is_file()
+    assert (sweep / "1" / "metrics.json").is_file()
+    summary = json.loads((sweep / "sweep_summary.json").read_text())
+    assert [job["status"] for job in summary] == ["failed", "ok"]
