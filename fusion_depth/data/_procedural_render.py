@@ -92,10 +92,10 @@ def sample_weather(condition: str, rng: np.random.Generator) -> Weather:
         haze = np.array([0.02, 0.02, 0.03], dtype=F32)
     else:
         visibility = rng.uniform(1000.0, 2500.0)
-        haze = np.array([0.72, 0.80, 0.90] if condition == "day" else [0.75, 0.76, 0.78],
-                        dtype=F32)
-    return Weather(condition, 3.0 / visibility, haze, float(rng.uniform(0.9, 1.1)),
-                   float(visibility))
+        haze = np.array([0.72, 0.80, 0.90] if condition == "day" else [0.75, 0.76, 0.78], dtype=F32)
+    return Weather(
+        condition, 3.0 / visibility, haze, float(rng.uniform(0.9, 1.1)), float(visibility)
+    )
 
 
 _SKY_PALETTE = {  # horizon, zenith, cloud colour, cloud cover range
@@ -105,246 +105,291 @@ _SKY_PALETTE = {  # horizon, zenith, cloud colour, cloud cover range
     "night": ((0.06, 0.05, 0.05), (0.01, 0.015, 0.035), (0.04, 0.04, 0.05), (0.0, 0.6)),
 }
 
+# Per-pixel arrays are channel-first, (3, N) or (3, H, W): numpy broadcasts a length-3 last
+# axis an order of magnitude slower than long rows.
+
+
+def _rgb(*values: float) -> np.ndarray:
+    """A colour shaped (3, 1), to broadcast over (3, N) pixel arrays."""
+    return np.array(values, dtype=F32)[:, None]
+
 
 def _horizon(weather: Weather) -> np.ndarray:
-    """Sky colour at the horizon: what wet roads and windows reflect."""
+    """Sky colour at the horizon (3, 1): what wet roads and windows reflect."""
     if weather.condition == "fog":
-        return weather.haze
-    return np.asarray(_SKY_PALETTE[weather.condition][0], dtype=F32)
+        return weather.haze[:, None]
+    return _rgb(*_SKY_PALETTE[weather.condition][0])
 
 
-def _sky(dirs: np.ndarray, weather: Weather, rng: np.random.Generator) -> np.ndarray:
-    """Sky colour (N, 3) of rays (N, 3) from their elevation, with clouds on a plane overhead."""
-    up = np.clip(dirs[:, 1] / np.linalg.norm(dirs, axis=-1), 0.0, 1.0)
+def _sky(d: np.ndarray, weather: Weather, rng: np.random.Generator) -> np.ndarray:
+    """Sky colour (3, N) of rays (3, N) from their elevation, with clouds on a plane overhead."""
+    up = np.clip(d[1] / np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2), 0.0, 1.0)
     if weather.condition == "fog":
-        return weather.haze * (1 + 0.06 * up[:, None])
-    horizon, zenith, cloud_col, cover_range = (
-        np.asarray(c, dtype=F32) for c in _SKY_PALETTE[weather.condition])
-    s = (np.clip(up / 0.45, 0, 1) ** 0.7)[:, None]
-    sky = horizon * (1 - s) + zenith * s
-    cover = rng.uniform(*cover_range)
-    h = np.maximum(dirs[:, 1], 1e-3)
+        return weather.haze[:, None] * (1 + 0.06 * up)
+    horizon, zenith, cloud_col = (_rgb(*c) for c in _SKY_PALETTE[weather.condition][:3])
+    s = np.clip(up / 0.45, 0, 1) ** 0.7
+    cover = rng.uniform(*_SKY_PALETTE[weather.condition][3])
+    h = np.maximum(d[1], 1e-3)
     shift = rng.uniform(0, 256, 2)
-    cloud = _tex(_NOISE, dirs[:, 0] / h * 6 + shift[0], dirs[:, 2] / h * 6 + shift[1])
-    cloud = (np.clip((cloud + cover - 0.5) * 2.5, 0, 1) * np.clip(up * 8, 0, 1))[:, None]
-    return sky * (1 - cloud) + cloud_col * cloud
+    cloud = _tex(_NOISE, d[0] / h * 6 + shift[0], d[2] / h * 6 + shift[1])
+    cloud = np.clip((cloud + cover - 0.5) * 2.5, 0, 1) * np.clip(up * 8, 0, 1)
+    return horizon + (zenith - horizon) * s + (cloud_col - horizon - (zenith - horizon) * s) * cloud
 
 
-def _face_normals(p: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Axis (0, 1, 2) and sign (+-1) of the box face each ray (direction ``d``) hit at ``p``:
-    the nearest of the three faces turned towards the ray, whose normal opposes the ray."""
+def _face_normals(
+    p: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis (0, 1, 2) and sign (+-1) of the box face each ray (direction ``d``) hit at ``p``
+    (all (3, N)): the nearest of the three faces turned towards the ray, whose normal opposes
+    the ray."""
     dist = np.abs(p - np.where(d > 0, lo, hi))
-    axis = np.where((dist[:, 0] <= dist[:, 1]) & (dist[:, 0] <= dist[:, 2]), 0,
-                    np.where(dist[:, 1] <= dist[:, 2], 1, 2))
-    sign = np.where(np.take_along_axis(d, axis[:, None], 1)[:, 0] > 0, -1, 1)
+    axis = np.where(
+        (dist[0] <= dist[1]) & (dist[0] <= dist[2]), 0, np.where(dist[1] <= dist[2], 1, 2)
+    )
+    sign = np.where(np.take_along_axis(d, axis[None], 0)[0] > 0, -1, 1)
     return axis, sign
 
 
 def _ground(scene: Scene, p: np.ndarray, wet: bool) -> np.ndarray:
     """Asphalt with lane paint on the road, grass or paving beyond the sidewalks."""
-    x, z = p[:, 0], p[:, 2]
-    grey = scene.asphalt * (1 + 0.12 * _tex(_NOISE, x * 3, z * 3) + 0.08 * _tex(_GRAIN, x * 25,
-                                                                            z * 25))
-    albedo = np.repeat(grey[:, None], 3, 1) * np.array([1.0, 1.0, 1.03], dtype=F32)
+    x, z = p[0], p[2]
+    grey = scene.asphalt * (
+        1 + 0.12 * _tex(_NOISE, x * 3, z * 3) + 0.08 * _tex(_GRAIN, x * 25, z * 25)
+    )
+    albedo = _rgb(1.0, 1.0, 1.03) * grey
     wear = 0.75 + 0.25 * _tex(_NOISE, x * 7 + 91, z * 2)
-    for (xc, half, dash, period, phase), color in zip(scene.markings, scene.marking_color,
-                                                      strict=True):
+    for (xc, half, dash, period, phase), color in zip(
+        scene.markings, scene.marking_color, strict=True
+    ):
         on = (np.abs(x - xc) < half) & (np.mod(z - phase, period) < dash)
-        albedo[on] = color * wear[on, None]
+        albedo[:, on] = color[:, None] * wear[on]
     if wet:
         albedo *= 0.55
-    left, right = x < scene.road[0], x > scene.road[1]
-    verge_tex = (1 + 0.25 * _tex(_NOISE, x * 2, z * 2))[:, None]
-    albedo[left] = scene.verge_color[0] * verge_tex[left]
-    albedo[right] = scene.verge_color[1] * verge_tex[right]
+    verge = 1 + 0.25 * _tex(_NOISE, x * 2, z * 2)
+    for side, outside in enumerate((x < scene.road[0], x > scene.road[1])):
+        albedo[:, outside] = scene.verge_color[side][:, None] * verge[outside]
     return albedo
 
 
 def _sidewalk(base: np.ndarray, p: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """Paving slabs with joints on top, a lighter kerb stone on the side."""
-    x, z = p[:, 0], p[:, 2]
+    x, z = p[0], p[2]
     joint = (np.mod(z, 1.5) < 0.05) | (np.mod(x, 1.5) < 0.05)
     shade = 1 + 0.1 * _tex(_NOISE, x * 4, z * 4) - 0.25 * joint
-    shade = np.where(axis == 1, shade, 1.15)
-    return base * shade[:, None]
+    return base * np.where(axis == 1, shade, 1.15)
 
 
 def _building(
-    base: np.ndarray, param: np.ndarray, top: np.ndarray, p: np.ndarray, axis: np.ndarray,
-    edge_lo: np.ndarray, edge_hi: np.ndarray,
+    base: np.ndarray,
+    param: np.ndarray,
+    top: np.ndarray,
+    p: np.ndarray,
+    axis: np.ndarray,
+    edge_lo: np.ndarray,
+    edge_hi: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Facade texture with a grid of windows and an optional shop front.
 
     Returns albedo, a glass mask (reflective) and a per-window random number that decides which
     windows are lit at night.
     """
-    floor_h, win_w, spacing, win_h, shop, _, bid, phase = param.T
-    along = np.where(axis == 0, p[:, 2], p[:, 0])
-    y = p[:, 1]
+    floor_h, win_w, spacing, win_h, shop, _, bid, phase = param
+    along = np.where(axis == 0, p[2], p[0])
+    y = p[1]
     floor_i = np.floor(y / floor_h)
     in_floor = y - floor_i * floor_h
     col_i = np.floor((along - phase) / spacing)
-    in_col = along - phase - col_i * spacing
+    in_col = np.abs(along - phase - col_i * spacing - spacing / 2)
     inside = (np.minimum(along - edge_lo, edge_hi - along) > 0.6) & (axis != 1)
     window = (
-        inside & (floor_i >= 1) & (y < top - 0.8)
-        & (in_floor > 0.3 * floor_h) & (in_floor < 0.3 * floor_h + win_h)
-        & (np.abs(in_col - spacing / 2) < win_w / 2)
+        inside
+        & (floor_i >= 1)
+        & (y < top - 0.8)
+        & (in_floor > 0.3 * floor_h)
+        & (in_floor < 0.3 * floor_h + win_h)
+        & (in_col < win_w / 2)
     )
-    shop_front = inside & (shop > 0) & (floor_i == 0) & (y > 0.4) & (y < 2.6) & (
-        np.abs(in_col - spacing / 2) < spacing / 2 - 0.2)
-    shade = 1 + 0.08 * _tex(_NOISE, along * 2 + bid * 37, y * 2) + 0.04 * _tex(
-        _GRAIN, along * 10, y * 10)
-    shade = np.where(y > top - 0.5, 0.8, shade)  # cornice
-    albedo = base * shade[:, None]
+    shop_front = (
+        inside & (shop > 0) & (floor_i == 0) & (y > 0.4) & (y < 2.6) & (in_col < spacing / 2 - 0.2)
+    )
+    shade = (
+        1
+        + 0.08 * _tex(_NOISE, along * 2 + bid * 37, y * 2)
+        + 0.04 * _tex(_GRAIN, along * 10, y * 10)
+    )
+    albedo = base * np.where(y > top - 0.5, 0.8, shade)  # darker cornice
     glass = window | shop_front
-    albedo[glass] = np.array([0.10, 0.12, 0.15], dtype=F32)
-    rand = _hash01(bid, floor_i, col_i)
-    return albedo, glass, rand
+    albedo[:, glass] = _rgb(0.10, 0.12, 0.15)
+    return albedo, glass, _hash01(bid, floor_i, col_i)
 
 
 def _car(
-    base: np.ndarray, param: np.ndarray, p: np.ndarray, axis: np.ndarray, sign: np.ndarray,
-    lo: np.ndarray, hi: np.ndarray,
+    base: np.ndarray,
+    param: np.ndarray,
+    p: np.ndarray,
+    axis: np.ndarray,
+    sign: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Car body: wheels on the sides, lights, grille, bumper and plate at the ends, glass band
     for vans and buses. Returns albedo, glass mask, headlight mask, tail-light mask."""
-    facing, _, front_z, rear_z, glass_lo, glass_hi, _, wheel = param.T
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    facing, _, front_z, rear_z, glass_lo, glass_hi, wheel, _ = param
+    x, y, z = p
     albedo = base.copy()
-    side = axis == 0
-    tyre = side & (np.minimum((z - front_z) ** 2, (z - rear_z) ** 2) + (y - wheel) ** 2
-                   < wheel**2)
-    albedo[tyre] = 0.05
+    tyre = (axis == 0) & (
+        np.minimum((z - front_z) ** 2, (z - rear_z) ** 2) + (y - wheel) ** 2 < wheel**2
+    )
+    albedo[:, tyre] = 0.05
     end = axis == 2
     is_front = end & (sign == facing)
     is_rear = end & (sign != facing)
-    lateral = np.minimum(x - lo[:, 0], hi[:, 0] - x)
-    centre = np.abs(x - (lo[:, 0] + hi[:, 0]) / 2)
+    lateral = np.minimum(x - lo[0], hi[0] - x)
+    centre = np.abs(x - (lo[0] + hi[0]) / 2)
     head = is_front & (y > 0.58) & (y < 0.76) & (lateral > 0.1) & (lateral < 0.42)
     tail = is_rear & (y > 0.7) & (y < 0.86) & (lateral > 0.06) & (lateral < 0.32)
-    bumper = end & (y < 0.32)
     grille = is_front & (y > 0.4) & (y < 0.56) & (centre < 0.45)
-    plate = end & (y > 0.36) & (y < 0.48) & (centre < 0.26)
-    albedo[bumper | grille] = 0.12
-    albedo[plate] = 0.85
-    albedo[head] = (0.85, 0.85, 0.80)
-    albedo[tail] = (0.55, 0.04, 0.03)
+    albedo[:, (end & (y < 0.32)) | grille] = 0.12  # bumper and grille
+    albedo[:, end & (y > 0.36) & (y < 0.48) & (centre < 0.26)] = 0.85  # number plate
+    albedo[:, head] = _rgb(0.85, 0.85, 0.80)
+    albedo[:, tail] = _rgb(0.55, 0.04, 0.03)
     glass = (glass_hi > 0) & (axis != 1) & (y > glass_lo) & (y < glass_hi)
     glass |= is_front & (glass_hi > 0) & (y > glass_lo - 0.4) & (y < glass_hi)  # windscreen
-    albedo[glass] = (0.08, 0.10, 0.12)
+    albedo[:, glass] = _rgb(0.08, 0.10, 0.12)
     return albedo, glass, head, tail
 
 
-def _surfaces(scene: Scene, p: np.ndarray, d: np.ndarray, ids: np.ndarray,
-              blocks: dict[int, slice], weather: Weather) -> tuple[np.ndarray, ...]:
-    """Albedo, normal, glossiness and emission of hit pixels sorted by material (``blocks``
-    gives each material's contiguous range; ground first), so that every material works on
-    slices instead of scattered pixels."""
+def _surfaces(
+    scene: Scene,
+    p: np.ndarray,
+    d: np.ndarray,
+    ids: np.ndarray,
+    blocks: dict[int, slice],
+    weather: Weather,
+) -> tuple[np.ndarray, ...]:
+    """Albedo, normal, emission (3, N) and glossiness (N,) of hit pixels (points ``p`` and ray
+    directions ``d``, (3, N)) sorted by material: ``blocks`` gives each material's contiguous
+    range, ground first, so that every material works on slices, not scattered pixels."""
     n = len(ids)
     cond = weather.condition
     night = cond == "night"
-    albedo = np.empty((n, 3), dtype=F32)
-    normal = np.zeros((n, 3), dtype=F32)
+    albedo = np.empty((3, n), dtype=F32)
+    normal = np.zeros((3, n), dtype=F32)
     gloss = np.zeros(n, dtype=F32)
-    emit = np.zeros((n, 3), dtype=F32)
+    emit = np.zeros((3, n), dtype=F32)
     g = blocks[GROUND_ID]
-    normal[g, 1] = 1.0
-    albedo[g] = _ground(scene, p[g], cond == "rain")
-    if cond == "rain":  # wet asphalt mirrors the sky, puddles more so
-        x, z = p[g, 0], p[g, 2]
+    normal[1, g] = 1.0
+    albedo[:, g] = _ground(scene, p[:, g], cond == "rain")
+    if cond == "rain":  # wet asphalt mirrors the sky at grazing angles (Fresnel), puddles more
+        x, z = p[0, g], p[2, g]
         puddle = np.clip(_tex(_NOISE, x * 1.5 + 50, z * 0.8) * 2 + 0.5, 0, 1)
-        gloss[g] = np.where((x >= scene.road[0]) & (x <= scene.road[1]), 0.25 + 0.5 * puddle, 0)
+        cos_i = -d[1, g] / np.sqrt(d[0, g] ** 2 + d[1, g] ** 2 + d[2, g] ** 2)
+        fresnel = 0.05 + 0.95 * (1 - cos_i) ** 5
+        on_road = (x >= scene.road[0]) & (x <= scene.road[1])
+        gloss[g] = np.where(on_road, (0.3 + 0.6 * puddle) * fresnel, 0)
 
     off = g.stop  # box pixels follow the ground; their arrays are views from here on
     bid = ids[off:]
-    pb, lo, hi = p[off:], np.take(scene.lo, bid, 0), np.take(scene.hi, bid, 0)
-    axis, sign = _face_normals(pb, d[off:], lo, hi)
-    normal[np.arange(off, n), axis] = sign
-    base = np.take(scene.color, bid, 0)
-    alb, glo, emi = albedo[off:], gloss[off:], emit[off:]
-    alb[:] = base * (1 + 0.06 * _tex(_GRAIN, pb[:, 0] * 9 + pb[:, 2] * 9, pb[:, 1] * 9))[:, None]
+    pb = p[:, off:]
+    lo, hi = np.take(scene.lo.T, bid, 1), np.take(scene.hi.T, bid, 1)
+    axis, sign = _face_normals(pb, d[:, off:], lo, hi)
+    normal[axis, np.arange(off, n)] = sign
+    base = np.take(scene.color.T, bid, 1)
+    alb, glo, emi = albedo[:, off:], gloss[off:], emit[:, off:]
+    alb[:] = base * (1 + 0.06 * _tex(_GRAIN, pb[0] * 9 + pb[2] * 9, pb[1] * 9))
 
     def block(material: int) -> slice:
         s = blocks[material]
         return slice(s.start - off, s.stop - off)
 
     s = block(SIDEWALK)
-    alb[s] = _sidewalk(base[s], pb[s], axis[s])
+    alb[:, s] = _sidewalk(base[:, s], pb[:, s], axis[s])
     s = block(BUILDING)
     if s.stop > s.start:
-        param = np.take(scene.param, bid[s], 0)
-        along_lo = np.where(axis[s] == 0, lo[s, 2], lo[s, 0])
-        along_hi = np.where(axis[s] == 0, hi[s, 2], hi[s, 0])
-        alb[s], glass, rand = _building(base[s], param, hi[s, 1], pb[s], axis[s], along_lo,
-                                        along_hi)
-        glo[s][glass] = 0.35
+        param = np.take(scene.param.T, bid[s], 1)
+        along_lo = np.where(axis[s] == 0, lo[2, s], lo[0, s])
+        along_hi = np.where(axis[s] == 0, hi[2, s], hi[0, s])
+        alb[:, s], glass, rand = _building(
+            base[:, s], param, hi[1, s], pb[:, s], axis[s], along_lo, along_hi
+        )
+        glo[s][glass] = 0.22
         if night:
-            lit = glass & (rand < param[:, 5])
-            emi[s][lit] = np.array([1.0, 0.78, 0.45], dtype=F32) * (
-                0.35 + 0.5 * rand[lit] / param[lit, 5])[:, None]
+            lit = glass & (rand < param[5])
+            emi[:, s][:, lit] = _rgb(1.0, 0.78, 0.45) * (0.35 + 0.5 * rand[lit] / param[5, lit])
     s = block(CAR)
     if s.stop > s.start:
-        param = np.take(scene.param, bid[s], 0)
-        alb[s], glass, head, tail = _car(base[s], param, pb[s], axis[s], sign[s], lo[s], hi[s])
-        glo[s] = np.where(glass, 0.3, 0.06)
-        lights_on = param[:, 1] > 0
+        param = np.take(scene.param.T, bid[s], 1)
+        alb[:, s], glass, head, tail = _car(
+            base[:, s], param, pb[:, s], axis[s], sign[s], lo[:, s], hi[:, s]
+        )
+        glo[s] = np.where(glass, 0.15, 0.05)
+        lights_on = param[1] > 0
         strength = {"night": 3.0, "fog": 1.2, "rain": 1.0}.get(cond, 0.0)
-        emi[s][head & lights_on] = np.array([1.0, 0.97, 0.9], dtype=F32) * strength
-        emi[s][tail & lights_on] = np.array([1.0, 0.08, 0.04], dtype=F32) * strength * 0.6
+        emi[:, s][:, head & lights_on] = _rgb(1.0, 0.97, 0.9) * strength
+        emi[:, s][:, tail & lights_on] = _rgb(1.0, 0.08, 0.04) * strength * 0.6
     s = block(GLASS)
     side = axis[s] != 1  # the cabin roof keeps the body colour
-    alb[s][side] = (0.07, 0.09, 0.11)
-    glo[s][side] = 0.3
+    alb[:, s][:, side] = _rgb(0.07, 0.09, 0.11)
+    glo[s][side] = 0.15
     if night:
-        emi[block(LAMP)] = (2.5, 2.2, 1.6)
+        emi[:, block(LAMP)] = _rgb(2.5, 2.2, 1.6)
     for material in (FOLIAGE, TRUNK):
         s = block(material)
-        leaf = 0.75 + 0.45 * _tex(_NOISE, pb[s, 0] * 6 + pb[s, 2] * 6, pb[s, 1] * 6)
-        alb[s] = base[s] * leaf[:, None]
+        alb[:, s] *= 0.75 + 0.45 * _tex(_NOISE, pb[0, s] * 6 + pb[2, s] * 6, pb[1, s] * 6)
     return albedo, normal, gloss, emit
 
 
 def _night_lights(scene: Scene, pts: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Irradiance (H, W) from street lamps, the headlights of moving cars and the camera car's
-    own headlights (spot lights), each evaluated only within its reach."""
+    """Irradiance (H, W) at points with normals (3, H, W) from street lamps (shining down), the
+    headlights of moving cars and the camera car's own headlights (narrow spots), each evaluated
+    only within its reach."""
     cars = np.flatnonzero((scene.material == CAR) & (scene.param[:, 1] > 0))
     facing = scene.param[cars, 0]
-    front = np.stack([(scene.lo[cars, 0] + scene.hi[cars, 0]) / 2, np.full(len(cars), 0.7),
-                      np.where(facing > 0, scene.hi[cars, 2] + 0.1, scene.lo[cars, 2] - 0.1)], 1)
+    front = np.stack(
+        [
+            (scene.lo[cars, 0] + scene.hi[cars, 0]) / 2,
+            np.full(len(cars), 0.7),
+            np.where(facing > 0, scene.hi[cars, 2] + 0.1, scene.lo[cars, 2] - 0.1),
+        ],
+        1,
+    )
     cam = scene.camera
     ego = np.array([[cam.position[0], 0.7, cam.position[2] + 1.5]])
     pos = np.concatenate([scene.lamps, front, ego]).astype(F32)
-    axis = np.zeros_like(pos)  # zero: an omnidirectional lamp
-    axis[len(scene.lamps):-1, 2] = facing
+    n_lamps = len(scene.lamps)
+    axis = np.zeros_like(pos)
+    axis[:n_lamps, 1] = -1.0
+    axis[n_lamps:-1, 2] = facing
     axis[-1] = (np.sin(cam.yaw), 0.0, np.cos(cam.yaw))
-    axis[len(scene.lamps):, 1] = -0.08  # headlights dip to the road
-    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-6)
-    power = np.r_[np.full(len(scene.lamps), 28.0), np.full(len(cars), 60.0), 90.0]
-    reach = np.r_[np.full(len(scene.lamps), 22.0), np.full(len(cars), 35.0), 50.0]
-    centre = pos + axis * reach[:, None] / 2
-    half = np.where(np.abs(axis) > 0.5, reach[:, None] / 2 + 1, reach[:, None])
-    half[len(scene.lamps):, :2] *= 0.4
-    lo, hi = centre - half, centre + half
-    lo[:, 1] = np.minimum(lo[:, 1], 0.0)
+    axis[n_lamps:, 1] = -0.08  # headlights dip to the road
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    power = np.r_[np.full(n_lamps, 28.0), np.full(len(cars), 60.0), 80.0]
+    reach = np.r_[np.full(n_lamps, 16.0), np.full(len(cars), 35.0), 50.0]
+    cut = np.r_[np.full(n_lamps, -0.2), np.full(len(cars) + 1, 0.9)]  # cone cosine
+    # Boxes bounding what each light reaches: a lamp's pool below it, a headlight's beam ahead.
+    lo = pos - reach[:, None]
+    hi = pos + reach[:, None]
+    lo[:, 1], hi[:, 1] = 0.0, np.maximum(pos[:, 1], 2.5)
+    beam = axis[n_lamps:, [0, 2]] * reach[n_lamps:, None]
+    lo[n_lamps:, [0, 2]] = pos[n_lamps:, [0, 2]] + np.minimum(beam, 0) - 0.4 * reach[n_lamps:, None]
+    hi[n_lamps:, [0, 2]] = pos[n_lamps:, [0, 2]] + np.maximum(beam, 0) + 0.4 * reach[n_lamps:, None]
     win = pixel_windows(box_corners(lo, hi), cam)
-    px, py, pz = (pts[..., a] for a in range(3))
-    nx, ny, nz = (normal[..., a] for a in range(3))
-    total = np.zeros(pts.shape[:2], dtype=F32)
-    for light, direction, watts, radius, (r0, r1, c0, c1) in zip(pos, axis, power, reach, win,
-                                                                 strict=True):
+    total = np.zeros(pts.shape[1:], dtype=F32)
+    for light, direction, watts, radius, cos_cut, (r0, r1, c0, c1) in zip(
+        pos, axis, power, reach, cut, win, strict=True
+    ):
         if r1 <= r0 or c1 <= c0:
             continue
         window = (slice(r0, r1), slice(c0, c1))
-        vx, vy, vz = light[0] - px[window], light[1] - py[window], light[2] - pz[window]
-        d2 = vx * vx + vy * vy + vz * vz + 0.3
+        px, py, pz = pts[(slice(None), *window)]
+        nx, ny, nz = normal[(slice(None), *window)]
+        vx, vy, vz = light[0] - px, light[1] - py, light[2] - pz
+        d2 = vx * vx + vy * vy + vz * vz + 1.0
         inv_d = 1 / np.sqrt(d2)
-        gain = np.maximum(nx[window] * vx + ny[window] * vy + nz[window] * vz, 0) * inv_d
+        gain = np.maximum(nx * vx + ny * vy + nz * vz, 0) * inv_d
         gain *= np.maximum(1 - d2 / radius**2, 0) ** 2 / d2
-        if direction.any():
-            cos_a = -(vx * direction[0] + vy * direction[1] + vz * direction[2]) * inv_d
-            gain *= np.clip((cos_a - 0.9) / 0.1, 0, 1) ** 2
+        cos_a = -(vx * direction[0] + vy * direction[1] + vz * direction[2]) * inv_d
+        gain *= np.clip((cos_a - cos_cut) / (1 - cos_cut), 0, 1) ** 2
         total[window] += watts * gain
     return total
 
@@ -357,13 +402,11 @@ def _glare_sources(scene: Scene, weather: Weather) -> tuple[np.ndarray, np.ndarr
         cars = np.flatnonzero((scene.material == CAR) & (scene.param[:, 1] > 0))
         lo, hi, facing = scene.lo[cars], scene.hi[cars], scene.param[cars, 0]
         strength = {"night": 1.0, "fog": 0.5, "rain": 0.4}[cond]
-        for offset in (0.26, -0.26):
-            x = np.where(offset > 0, lo[:, 0] + offset, hi[:, 0] + offset)
-            oncoming = facing < 0
-            y = np.where(oncoming, 0.67, 0.78)
-            pos.append(np.stack([x, y, lo[:, 2] - 0.02], 1))
-            white = np.array([1.0, 0.97, 0.9], dtype=F32) * strength
-            red = np.array([1.0, 0.1, 0.05], dtype=F32) * strength * 0.5
+        oncoming = facing < 0
+        white = np.array([1.0, 0.97, 0.9], dtype=F32) * strength
+        red = np.array([1.0, 0.1, 0.05], dtype=F32) * strength * 0.5
+        for x in (lo[:, 0] + 0.26, hi[:, 0] - 0.26):
+            pos.append(np.stack([x, np.where(oncoming, 0.67, 0.78), lo[:, 2] - 0.02], 1))
             col.append(np.where(oncoming[:, None], white, red))
             size.append(np.where(oncoming, 0.25, 0.12))
     if cond == "night":
@@ -398,12 +441,12 @@ def _add_glare(image: np.ndarray, depth: np.ndarray, scene: Scene, weather: Weat
         r2 = ((yy + 0.5 - vv) ** 2 + (xx + 0.5 - uu) ** 2).astype(F32)
         glow = np.exp(-r2 / (2 * sigma**2)) + 0.25 * spread * sigma**2 / (r2 + 4 * sigma**2)
         fade = np.exp(-weather.beta * zz * 0.5)
-        image[r0:r1, c0:c1] += glow[..., None] * cc * fade
+        image[:, r0:r1, c0:c1] += (cc * fade)[:, None, None] * glow
 
 
 def _rain_streaks(image: np.ndarray, rng: np.random.Generator) -> None:
     """Bright, slanted motion-blurred drops in front of the camera."""
-    h, w = image.shape[:2]
+    h, w = image.shape[1:]
     count = h * w // 300
     length = rng.uniform(0.05, 0.15, count) * h
     angle = np.radians(rng.uniform(-15, 15)) + rng.normal(0, 0.03, count)
@@ -414,13 +457,19 @@ def _rain_streaks(image: np.ndarray, rng: np.random.Generator) -> None:
     layer = np.zeros((h, w), dtype=F32)
     weight = np.broadcast_to(rng.uniform(0.05, 0.12, count)[:, None], r.shape)
     np.add.at(layer, (r[keep].astype(np.int64), c[keep].astype(np.int64)), weight[keep])
-    alpha = np.clip(layer, 0, 0.35)[..., None]
+    alpha = np.clip(layer, 0, 0.35)
     image *= 1 - alpha
     image += alpha * 0.85
 
 
+def _noise(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Zero-mean, unit-variance sensor noise: uniform, five times cheaper to draw than Gaussian
+    and indistinguishable from it once quantised to 8 bits at these amplitudes."""
+    return (rng.random(shape, dtype=F32) - F32(0.5)) * F32(12**0.5)
+
+
 def _contact_shadows(scene: Scene, pts: np.ndarray, ground: np.ndarray) -> np.ndarray:
-    """Darkening of the ground under cars (ambient occlusion), per pixel (H, W)."""
+    """Darkening (H, W) of the ground under cars (ambient occlusion)."""
     occlusion = np.ones(ground.shape, dtype=F32)
     cars = np.flatnonzero(scene.material == CAR)
     lo, hi = scene.lo[cars] - (0.3, 0, 0.3), scene.hi[cars] + (0.3, 0, 0.3)
@@ -431,22 +480,29 @@ def _contact_shadows(scene: Scene, pts: np.ndarray, ground: np.ndarray) -> np.nd
     for (r0, r1, c0, c1), a, b in zip(win, lo, hi, strict=True):
         if (r1 - r0) * (c1 - c0) < 30:  # too far away to show
             continue
-        p = pts[r0:r1, c0:c1]
-        dx = np.minimum(p[..., 0] - a[0], b[0] - p[..., 0])
-        dz = np.minimum(p[..., 2] - a[2], b[2] - p[..., 2])
-        inside = np.clip(np.minimum(dx, dz) / 0.4, 0, 1) * ground[r0:r1, c0:c1]
+        x, z = pts[0, r0:r1, c0:c1], pts[2, r0:r1, c0:c1]
+        inside = np.minimum(np.minimum(x - a[0], b[0] - x), np.minimum(z - a[2], b[2] - z))
+        inside = np.clip(inside / 0.4, 0, 1) * ground[r0:r1, c0:c1]
         occlusion[r0:r1, c0:c1] *= 1 - 0.6 * inside
     return occlusion
 
 
-def shade(scene: Scene, dirs: np.ndarray, t: np.ndarray, ids: np.ndarray, weather: Weather,
-          rng: np.random.Generator) -> np.ndarray:
-    """RGB image (H, W, 3) in [0, 1] of a ray-cast scene under the given weather."""
+def shade(
+    scene: Scene,
+    dirs: np.ndarray,
+    t: np.ndarray,
+    ids: np.ndarray,
+    weather: Weather,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """RGB image (H, W, 3) in [0, 1] of a ray-cast scene (rays (3, H, W), hits ``t``, ``ids``)
+    under the given weather."""
     cam = scene.camera
     cond = weather.condition
+    h, w = ids.shape
     hit = ids != SKY_ID
     depth = np.where(hit, t, 0).astype(F32)
-    pts = cam.position + dirs * depth[..., None]
+    pts = cam.position[:, None, None] + dirs * depth
 
     # Hit pixels sorted by material: ``pix`` are their flat indices.
     hit_idx = np.flatnonzero(hit)
@@ -455,49 +511,50 @@ def shade(scene: Scene, dirs: np.ndarray, t: np.ndarray, ids: np.ndarray, weathe
     order = np.argsort(key, kind="stable")
     pix, key = hit_idx[order], key[order]
     edges = np.searchsorted(key, np.arange(GROUND_ID, N_MATERIALS + 1))
-    blocks = {m: slice(edges[i], edges[i + 1]) for i, m in enumerate(range(GROUND_ID,
-                                                                          N_MATERIALS))}
-    p = pts.reshape(-1, 3)[pix]
-    albedo, normal, gloss, emit = _surfaces(scene, p, dirs.reshape(-1, 3)[pix], flat_ids[order],
-                                            blocks, weather)
+    blocks = {m: slice(edges[i], edges[i + 1]) for i, m in enumerate(range(GROUND_ID, N_MATERIALS))}
+    flat_dirs = dirs.reshape(3, -1)
+    albedo, normal, gloss, emit = _surfaces(
+        scene, pts.reshape(3, -1)[:, pix], flat_dirs[:, pix], flat_ids[order], blocks, weather
+    )
 
     ambient, sun_power = {
-        "day": ((0.40, 0.45, 0.55), 1.0),
+        "day": ((0.50, 0.55, 0.65), 0.9),
         "cloudy": ((0.80, 0.80, 0.83), 0.18),
         "fog": ((0.82, 0.83, 0.85), 0.10),
         "rain": ((0.60, 0.62, 0.66), 0.06),
         "night": ((0.025, 0.028, 0.045), 0.0),
     }[cond]
-    light = np.asarray(ambient, dtype=F32) * (0.65 + 0.35 * normal[:, 1:2])
+    light = _rgb(*ambient) * (0.65 + 0.35 * normal[1])
     if sun_power:
-        sun_dot = np.clip(normal @ scene.sun, 0, None)
+        sun_dot = np.clip(scene.sun @ normal, 0, None)
         if cond == "day":
             sun_dot *= ~cast_shadows(scene, pts, hit).reshape(-1)[pix]
-        light += (sun_power * np.array([1.05, 1.0, 0.92], dtype=F32)) * sun_dot[:, None]
-    light *= _contact_shadows(scene, pts, ids == GROUND_ID).reshape(-1)[pix, None]
+        light += (sun_power * _rgb(1.05, 1.0, 0.92)) * sun_dot
+    light *= _contact_shadows(scene, pts, ids == GROUND_ID).reshape(-1)[pix]
     if cond == "night":
         normal_img = np.zeros_like(pts)
-        normal_img.reshape(-1, 3)[pix] = normal
-        lamps = _night_lights(scene, pts, normal_img).reshape(-1)[pix]
-        light += lamps[:, None] * np.array([1.0, 0.85, 0.62], dtype=F32)
+        normal_img.reshape(3, -1)[:, pix] = normal
+        light += _rgb(1.0, 0.85, 0.62) * _night_lights(scene, pts, normal_img).reshape(-1)[pix]
     color = albedo * light + emit
-    color += gloss[:, None] * (_horizon(weather) * (0.3 if cond == "night" else 1.0))
-    transmit = np.exp(-weather.beta * (depth * cam.ray_lengths()).reshape(-1)[pix])[:, None]
+    color += (_horizon(weather) * (0.3 if cond == "night" else 1.0)) * gloss
+    transmit = np.exp(-weather.beta * (depth * cam.ray_lengths()).reshape(-1)[pix])
 
-    image = np.empty(pts.shape, dtype=F32)
-    image[~hit] = _sky(dirs[~hit], weather, rng)
-    image.reshape(-1, 3)[pix] = color * transmit + weather.haze * (1 - transmit)
+    image = np.empty((3, h * w), dtype=F32)
+    sky = np.flatnonzero(~hit)
+    image[:, sky] = _sky(flat_dirs[:, sky], weather, rng)
+    image[:, pix] = weather.haze[:, None] + (color - weather.haze[:, None]) * transmit
+    image = image.reshape(3, h, w)
     _add_glare(image, depth, scene, weather)
     if cond == "rain":
         _rain_streaks(image, rng)
     image *= weather.exposure
     if cond == "night":
         image *= rng.uniform(1.1, 1.5)  # auto exposure lifts the dark frame, and its noise
-        sigma = 0.012 + 0.035 * np.sqrt(np.clip(image, 0, 1))
-        image += rng.standard_normal(image.shape, dtype=F32) * sigma
-        image += rng.standard_normal(image.shape[:2] + (1,), dtype=F32) * 0.01
+        sigma = 0.012 + 0.035 * np.sqrt(np.clip(image, 0, 1))  # read + shot noise
+        image += _noise(rng, image.shape) * sigma
+        image += _noise(rng, (1, h, w)) * 0.01  # luminance noise shared by the channels
     else:
-        image += rng.standard_normal(image.shape, dtype=F32) * 0.006
+        image += _noise(rng, image.shape) * 0.006
     if cond == "cloudy":
-        image = 0.8 * image + 0.2 * image.mean(-1, keepdims=True)
-    return np.clip(image, 0.0, 1.0)
+        image = 0.8 * image + 0.2 * image.mean(0)
+    return np.clip(image, 0.0, 1.0).transpose(1, 2, 0)

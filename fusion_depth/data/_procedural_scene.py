@@ -7,6 +7,7 @@ intersected with the slab method, vectorised over the pixels its projection can 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,27 +25,41 @@ N_MATERIALS = 9
 # BUILDING: floor height, window width, window spacing, window height, shop front (0/1),
 #           share of windows lit at night, building id, window phase.
 # CAR (body) and GLASS (cabin): facing (+1 drives away from the camera, -1 towards it),
-#           lights on (0/1), front axle z, rear axle z, glass band low, glass band high, car id,
-#           wheel radius.
+#           lights on (0/1), front axle z, rear axle z, glass band low, glass band high (0: a
+#           car, whose glass is the cabin box), wheel radius.
 N_PARAM = 8
 
 _BUILDING_COLOURS = np.array(
     [
-        [0.76, 0.68, 0.55], [0.56, 0.31, 0.23], [0.60, 0.60, 0.62], [0.85, 0.84, 0.80],
-        [0.36, 0.37, 0.40], [0.82, 0.76, 0.60], [0.46, 0.51, 0.58], [0.70, 0.46, 0.31],
-        [0.66, 0.58, 0.50], [0.52, 0.48, 0.44],
+        [0.76, 0.68, 0.55],
+        [0.56, 0.31, 0.23],
+        [0.60, 0.60, 0.62],
+        [0.85, 0.84, 0.80],
+        [0.36, 0.37, 0.40],
+        [0.82, 0.76, 0.60],
+        [0.46, 0.51, 0.58],
+        [0.70, 0.46, 0.31],
+        [0.66, 0.58, 0.50],
+        [0.52, 0.48, 0.44],
     ],
     dtype=np.float32,
 )
 _CAR_COLOURS = np.array(
     [
-        [0.88, 0.88, 0.88], [0.08, 0.08, 0.09], [0.62, 0.63, 0.65], [0.35, 0.36, 0.38],
-        [0.62, 0.08, 0.07], [0.12, 0.22, 0.50], [0.10, 0.13, 0.25], [0.18, 0.35, 0.22],
-        [0.85, 0.68, 0.12], [0.45, 0.30, 0.20],
+        [0.88, 0.88, 0.88],
+        [0.08, 0.08, 0.09],
+        [0.62, 0.63, 0.65],
+        [0.35, 0.36, 0.38],
+        [0.62, 0.08, 0.07],
+        [0.12, 0.22, 0.50],
+        [0.10, 0.13, 0.25],
+        [0.18, 0.35, 0.22],
+        [0.85, 0.68, 0.12],
+        [0.45, 0.30, 0.20],
     ],
     dtype=np.float32,
 )
-_CAR_COLOUR_P = np.array([0.2, 0.18, 0.17, 0.12, 0.08, 0.08, 0.06, 0.04, 0.03, 0.04])
+_CAR_COLOUR_CDF = np.cumsum([0.2, 0.18, 0.17, 0.12, 0.08, 0.08, 0.06, 0.04, 0.03, 0.04])[:-1]
 _SIGN_COLOURS = np.array(
     [[0.10, 0.25, 0.65], [0.75, 0.10, 0.10], [0.90, 0.90, 0.88], [0.90, 0.70, 0.10]],
     dtype=np.float32,
@@ -64,22 +79,26 @@ class Camera:
     rotation: np.ndarray
     yaw: float
 
-    def rays(self) -> np.ndarray:
-        """World ray directions (H, W, 3) scaled so that the ray parameter is camera z."""
+    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame x/z and y/z of the pixel centres: columns (W,) and rows (H,)."""
         cols = (np.arange(self.width, dtype=np.float32) + 0.5 - self.width / 2) / self.focal
         rows = (np.arange(self.height, dtype=np.float32) + 0.5 - self.height / 2) / self.focal
-        d = np.empty((self.height, self.width, 3), dtype=np.float32)
-        d[..., 0] = cols[None, :]
-        d[..., 1] = rows[:, None]
-        d[..., 2] = 1.0
-        d = d @ self.rotation.T.astype(np.float32)
+        return cols, rows
+
+    def rays(self) -> np.ndarray:
+        """World ray directions (3, H, W) scaled so that the ray parameter is camera z."""
+        cols, rows = self._grid()
+        cam = np.empty((3, self.height, self.width), dtype=np.float32)
+        cam[0] = cols[None, :]
+        cam[1] = rows[:, None]
+        cam[2] = 1.0
+        d = np.einsum("ij,jhw->ihw", self.rotation.astype(np.float32), cam)
         d[np.abs(d) < 1e-6] = 1e-6  # the slab method divides by every component
         return d
 
     def ray_lengths(self) -> np.ndarray:
         """Length (H, W) of the ``rays()`` directions: range = depth * length."""
-        cols = (np.arange(self.width, dtype=np.float32) + 0.5 - self.width / 2) / self.focal
-        rows = (np.arange(self.height, dtype=np.float32) + 0.5 - self.height / 2) / self.focal
+        cols, rows = self._grid()
         return np.sqrt(1 + cols[None, :] ** 2 + rows[:, None] ** 2)
 
     def to_camera(self, points: np.ndarray) -> np.ndarray:
@@ -126,7 +145,14 @@ class _Boxes:
         self.color: list[np.ndarray] = []
         self.param: list[list[float]] = []
 
-    def add(self, lo, hi, material: int, color, param=()) -> None:
+    def add(
+        self,
+        lo: tuple[float, float, float],
+        hi: tuple[float, float, float],
+        material: int,
+        color: Sequence[float] | np.ndarray,
+        param: Sequence[float] = (),
+    ) -> None:
         self.lo.append(lo)
         self.hi.append(hi)
         self.material.append(material)
@@ -153,17 +179,23 @@ def _camera(rng: np.random.Generator, height: int, width: int, fov_deg: float) -
 
 
 def _add_car(
-    boxes: _Boxes, rng: np.random.Generator, x: float, z0: float, facing: int, moving: bool,
-    car_id: int, allow_large: bool,
+    boxes: _Boxes,
+    rng: np.random.Generator,
+    x: float,
+    z0: float,
+    facing: int,
+    moving: bool,
+    allow_large: bool,
 ) -> float:
     """Adds a car, van or bus whose rear-most edge (smallest Z) is at ``z0``; returns its length.
 
     Cars are a body box and a glass cabin box; vans and buses a single tall box whose glass band
     is drawn by the renderer.
     """
-    kind = rng.choice(3, p=(0.8, 0.15, 0.05) if allow_large else (0.88, 0.12, 0.0))
-    color = _CAR_COLOURS[rng.choice(len(_CAR_COLOURS), p=_CAR_COLOUR_P)]
-    color = np.clip(color * rng.uniform(0.9, 1.1), 0, 1)
+    kind_draw, color_draw = rng.random(2)
+    kind = int(kind_draw > 0.8) + int(allow_large and kind_draw > 0.95)  # car, van, bus
+    color = _CAR_COLOURS[np.searchsorted(_CAR_COLOUR_CDF, color_draw)]
+    color = color * rng.uniform(0.9, 1.1)  # palette and jitter keep it within [0, 1]
     if kind == 0:
         length, width = rng.uniform(3.8, 4.9), rng.uniform(1.7, 1.95)
         top, wheel = rng.uniform(0.95, 1.15), 0.32
@@ -179,7 +211,7 @@ def _add_car(
     axle = 0.8 if kind < 2 else 2.2
     x0, x1, z1 = x - width / 2, x + width / 2, z0 + length
     front, rear = (z1 - axle, z0 + axle) if facing > 0 else (z0 + axle, z1 - axle)
-    param = (facing, float(moving), front, rear, glass[0], glass[1], car_id, wheel)
+    param = (facing, float(moving), front, rear, glass[0], glass[1], wheel)
     boxes.add((x0, 0.18, z0), (x1, top, z1), CAR, color, param)
     if kind == 0:
         cabin_len = length * rng.uniform(0.45, 0.58)
@@ -187,13 +219,18 @@ def _add_car(
         c0 = z0 + offset if facing > 0 else z1 - offset - cabin_len
         inset = rng.uniform(0.08, 0.15)
         cabin_top = top + rng.uniform(0.38, 0.55)
-        boxes.add((x0 + inset, top, c0), (x1 - inset, cabin_top, c0 + cabin_len), GLASS, color,
-                  param)
+        boxes.add(
+            (x0 + inset, top, c0), (x1 - inset, cabin_top, c0 + cabin_len), GLASS, color, param
+        )
     return float(length)
 
 
 def _buildings(
-    boxes: _Boxes, rng: np.random.Generator, side: int, edge: float, z_end: float,
+    boxes: _Boxes,
+    rng: np.random.Generator,
+    side: int,
+    edge: float,
+    z_end: float,
     first_id: int,
 ) -> int:
     """A row of facades with varying setback, length, height and gaps along one side of the
@@ -209,7 +246,7 @@ def _buildings(
             continue
         setback = 0.0 if rng.random() < 0.4 else rng.uniform(0.3, 1.0) * setback_scale
         depth = rng.uniform(8.0, 20.0)
-        height = float(np.clip(street_height * rng.uniform(0.5, 1.5), 3.5, 45.0))
+        height = min(max(street_height * rng.uniform(0.5, 1.5), 3.5), 45.0)
         face = edge + side * setback
         x0, x1 = (face - depth, face) if side < 0 else (face, face + depth)
         z1 = min(z + length, z_end)
@@ -219,21 +256,41 @@ def _buildings(
     return bid
 
 
-def _add_building(boxes: _Boxes, rng: np.random.Generator, lo, hi, bid: int) -> None:
+def _add_building(
+    boxes: _Boxes,
+    rng: np.random.Generator,
+    lo: tuple[float, float, float],
+    hi: tuple[float, float, float],
+    bid: int,
+) -> None:
+    """A facade box with its colour and window layout."""
     color = _BUILDING_COLOURS[rng.integers(len(_BUILDING_COLOURS))]
-    color = np.clip(color * rng.uniform(0.85, 1.1) + rng.uniform(-0.04, 0.04, 3), 0.05, 0.95)
+    color = color * rng.uniform(0.85, 1.1) + rng.uniform(-0.04, 0.04, 3)  # stays in (0, 1)
     floor = rng.uniform(2.9, 3.6)
     win_w = rng.uniform(0.7, 1.5)
     spacing = rng.uniform(max(win_w + 0.6, 1.8), 3.8)
     win_h = rng.uniform(1.0, min(1.8, floor - 0.9))
-    param = (floor, win_w, spacing, win_h, float(rng.random() < 0.5), rng.uniform(0.15, 0.6),
-             bid, rng.uniform(0.0, spacing))
+    param = (
+        floor,
+        win_w,
+        spacing,
+        win_h,
+        float(rng.random() < 0.5),
+        rng.uniform(0.15, 0.6),
+        bid,
+        rng.uniform(0.0, spacing),
+    )
     boxes.add(lo, hi, BUILDING, color, param)
 
 
 def _street_furniture(
-    boxes: _Boxes, rng: np.random.Generator, side: int, kerb: float, sidewalk: float,
-    curb: float, lamps: list[tuple[float, float, float]],
+    boxes: _Boxes,
+    rng: np.random.Generator,
+    side: int,
+    kerb: float,
+    sidewalk: float,
+    curb: float,
+    lamps: list[tuple[float, float, float]],
 ) -> None:
     """Street lights, signs and trees on one sidewalk (``side`` -1 left, +1 right)."""
     if rng.random() < 0.85:
@@ -247,8 +304,12 @@ def _street_furniture(
             tip = x - side * arm
             ax0, ax1 = sorted((x, tip))
             boxes.add((ax0, height - 0.12, z - 0.05), (ax1, height, z + 0.05), POLE, grey)
-            boxes.add((tip - 0.3, height - 0.3, z - 0.18), (tip + 0.3, height - 0.05, z + 0.18),
-                      LAMP, grey)
+            boxes.add(
+                (tip - 0.3, height - 0.3, z - 0.18),
+                (tip + 0.3, height - 0.05, z + 0.18),
+                LAMP,
+                grey,
+            )
             lamps.append((tip, height - 0.35, z))
             z += spacing * rng.uniform(0.9, 1.1)
     for _ in range(rng.poisson(1.2)):
@@ -262,11 +323,16 @@ def _street_furniture(
         green = np.array([0.17, 0.32, 0.12]) * rng.uniform(0.8, 1.25, 3)
         while z < 130.0:
             trunk = rng.uniform(2.0, 3.2)
-            boxes.add((x - 0.15, curb, z - 0.15), (x + 0.15, trunk, z + 0.15), TRUNK,
-                      (0.30, 0.22, 0.15))
+            boxes.add(
+                (x - 0.15, curb, z - 0.15), (x + 0.15, trunk, z + 0.15), TRUNK, (0.30, 0.22, 0.15)
+            )
             half = rng.uniform(1.0, min(1.8, sidewalk * 0.8))
-            boxes.add((x - half, trunk, z - half), (x + half, trunk + rng.uniform(2.0, 4.0),
-                      z + half), FOLIAGE, green)
+            boxes.add(
+                (x - half, trunk, z - half),
+                (x + half, trunk + rng.uniform(2.0, 4.0), z + half),
+                FOLIAGE,
+                green,
+            )
             z += rng.uniform(7.0, 15.0)
 
 
@@ -317,10 +383,10 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
     bid = _buildings(boxes, rng, 1, road[1] + walks[1], street_end, bid)
     if junction:  # a T-junction: the street ends at a facade across it
         boxes.add((-80.0, 0.0, z_end - 3.0), (80.0, curb, z_end), SIDEWALK, concrete)
-        _add_building(boxes, rng, (-80.0, 0.0, z_end), (80.0, rng.uniform(8.0, 35.0),
-                      z_end + 20.0), bid)
+        _add_building(
+            boxes, rng, (-80.0, 0.0, z_end), (80.0, rng.uniform(8.0, 35.0), z_end + 20.0), bid
+        )
 
-    car_id = 0
     for side, kerb in ((-1, road[0]), (1, road[1])):
         if not park[(side + 1) // 2]:
             continue
@@ -333,9 +399,8 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
             usual = side if n_opp > 0 else 1
             facing = usual if rng.random() < 0.85 else -usual
             x = kerb - side * (0.25 + 0.95)
-            z += _add_car(boxes, rng, x, z, facing, False, car_id, False)
+            z += _add_car(boxes, rng, x, z, facing, False, False)
             z += rng.uniform(0.6, 2.5)
-            car_id += 1
     gap_scale = rng.uniform(10.0, 50.0)  # light or dense traffic
     for k in range(-n_opp, n_same):
         facing = 1 if k >= 0 else -1
@@ -343,9 +408,8 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         z = rng.uniform(7.0, 30.0) if k == ego else rng.uniform(-4.0, 30.0)
         while z < min(180.0, street_end - 12.0):
             x = x_lane + rng.uniform(-0.25, 0.25)
-            z += _add_car(boxes, rng, x, z, facing, True, car_id, True)
+            z += _add_car(boxes, rng, x, z, facing, True, True)
             z += rng.uniform(5.0, 1.0 + 2.0 * gap_scale)
-            car_id += 1
 
     for side, kerb in ((-1, road[0]), (1, road[1])):
         _street_furniture(boxes, rng, side, kerb, walks[(side + 1) // 2], curb, lamps)
@@ -355,8 +419,14 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         dtype=np.float32,
     ) * rng.uniform(0.8, 1.15)
     elevation, azimuth = np.radians(rng.uniform(20.0, 65.0)), rng.uniform(0.0, 2 * np.pi)
-    sun = np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation),
-                    np.cos(elevation) * np.cos(azimuth)], dtype=np.float32)
+    sun = np.array(
+        [
+            np.cos(elevation) * np.sin(azimuth),
+            np.sin(elevation),
+            np.cos(elevation) * np.cos(azimuth),
+        ],
+        dtype=np.float32,
+    )
     sun[np.abs(sun) < 1e-4] = 1e-4
     return Scene(
         camera=camera,
@@ -419,24 +489,30 @@ def pixel_windows(points: np.ndarray, camera: Camera) -> np.ndarray:
     return np.clip(win, 0, [h, h, w, w]).astype(np.int64)
 
 
+SMALL_WINDOW = 1024  # boxes covering fewer pixels are cast together, not one by one
+
+
 def cast_primary(scene: Scene, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit per pixel: camera z ``t`` (inf for sky) and hit id (box index, GROUND_ID or
-    SKY_ID). Nothing beyond MAX_DEPTH is hit.
+    SKY_ID) of rays (3, H, W). Nothing beyond MAX_DEPTH is hit.
 
-    Slab method with the camera outside every box: along an axis where the camera lies outside
-    the slab, the entry/exit planes are known without comparing (a ray going the wrong way gets
-    a negative exit and misses); where it lies inside, only the exit matters.
+    Slab method with the camera outside every box. Boxes covering a large window are cast one
+    at a time: along an axis where the camera lies outside the slab, the entry/exit planes are
+    known without comparing (a ray going the wrong way gets a negative exit and misses); where
+    it lies inside, only the exit matters. The many small, distant boxes are cast in one
+    vectorised batch of (pixel, box) pairs, which saves the per-box overhead.
     """
     origin = scene.camera.position
-    dy = dirs[..., 1]
+    dy = dirs[1]
     with np.errstate(divide="ignore"):
         t_ground = -origin[1] / dy
     t = np.where((dy < 0) & (t_ground <= MAX_DEPTH), t_ground, np.inf).astype(np.float32)
     ids = np.where(np.isfinite(t), GROUND_ID, SKY_ID).astype(np.int32)
-    inv = [np.ascontiguousarray(1.0 / dirs[..., a]) for a in range(3)]
+    inv = 1.0 / dirs
     rel_lo, rel_hi = scene.lo - origin, scene.hi - origin
     win = pixel_windows(box_corners(scene.lo, scene.hi), scene.camera)
-    for k in np.flatnonzero((win[:, 1] > win[:, 0]) & (win[:, 3] > win[:, 2])):
+    area = np.maximum(win[:, 1] - win[:, 0], 0) * np.maximum(win[:, 3] - win[:, 2], 0)
+    for k in np.flatnonzero(area > SMALL_WINDOW):
         r0, r1, c0, c1 = win[k]
         t_near = t_far = None
         for a in range(3):
@@ -454,13 +530,54 @@ def cast_primary(scene: Scene, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray
         if hit.any():
             t_box[hit] = t_near[hit]
             ids[r0:r1, c0:c1][hit] = k
+    _cast_small(
+        t, ids, inv, rel_lo, rel_hi, win, np.flatnonzero((area > 0) & (area <= SMALL_WINDOW))
+    )
     far = t > MAX_DEPTH
     t[far], ids[far] = np.inf, SKY_ID
     return t, ids
 
 
+def _cast_small(
+    t: np.ndarray,
+    ids: np.ndarray,
+    inv: np.ndarray,
+    rel_lo: np.ndarray,
+    rel_hi: np.ndarray,
+    win: np.ndarray,
+    boxes: np.ndarray,
+) -> None:
+    """Casts the rays of every pixel in the windows of ``boxes`` against its box at once and
+    keeps, per pixel, the nearest hit if it beats the current ``t`` (updated in place)."""
+    if not len(boxes):
+        return
+    r0, r1, c0, c1 = win[boxes].T
+    widths, areas = c1 - c0, (r1 - r0) * (c1 - c0)
+    owner = np.repeat(boxes, areas)
+    local = np.arange(areas.sum()) - np.repeat(np.cumsum(areas) - areas, areas)
+    width = np.repeat(widths, areas)
+    pix = (
+        (np.repeat(r0, areas) + local // width) * t.shape[1] + np.repeat(c0, areas) + local % width
+    )
+    t_near, t_far = None, None
+    for a in range(3):
+        iv = inv[a].reshape(-1)[pix]
+        t1, t2 = rel_lo[owner, a] * iv, rel_hi[owner, a] * iv
+        enter, leave = np.minimum(t1, t2), np.maximum(t1, t2)
+        t_near = enter if t_near is None else np.maximum(t_near, enter)
+        t_far = leave if t_far is None else np.minimum(t_far, leave)
+    hit = np.flatnonzero((t_near <= t_far) & (t_near > NEAR))
+    order = hit[np.lexsort((t_near[hit], pix[hit]))]  # by pixel, nearest first
+    first = order[np.r_[True, pix[order][1:] != pix[order][:-1]]]
+    pix, t_near, owner = pix[first], t_near[first], owner[first]
+    flat_t, flat_ids = t.reshape(-1), ids.reshape(-1)
+    better = t_near < flat_t[pix]
+    flat_t[pix[better]] = t_near[better]
+    flat_ids[pix[better]] = owner[better]
+
+
 def cast_shadows(scene: Scene, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Which surface points (H, W, 3) are in a box's shadow from the sun.
+    """Which surface points (3, H, W) are in a box's shadow from the sun.
 
     Only pixels inside the projected hull of a box and its ground shadow are tested against it,
     which bounds every point that box can shade. The sun's direction is the same for every
@@ -470,16 +587,16 @@ def cast_shadows(scene: Scene, points: np.ndarray, valid: np.ndarray) -> np.ndar
     corners = box_corners(scene.lo, scene.hi)
     ground = corners - sun * (corners[..., 1:2] / sun[1])
     win = pixel_windows(np.concatenate([corners, ground], 1), scene.camera)
-    coords = [np.ascontiguousarray(points[..., a]) for a in range(3)]
     shadow = np.zeros(valid.shape, dtype=bool)
     for k in np.flatnonzero((win[:, 1] > win[:, 0]) & (win[:, 3] > win[:, 2])):
         r0, r1, c0, c1 = win[k]
         t_near = t_far = None
         for a in range(3):
             inv = 1.0 / sun[a]
-            near, far = (scene.lo[k, a], scene.hi[k, a]) if inv > 0 else (
-                scene.hi[k, a], scene.lo[k, a])
-            p = coords[a][r0:r1, c0:c1]
+            near, far = (
+                (scene.lo[k, a], scene.hi[k, a]) if inv > 0 else (scene.hi[k, a], scene.lo[k, a])
+            )
+            p = points[a, r0:r1, c0:c1]
             enter, leave = (near - p) * inv, (far - p) * inv
             t_near = enter if t_near is None else np.maximum(t_near, enter)
             t_far = leave if t_far is None else np.minimum(t_far, leave)

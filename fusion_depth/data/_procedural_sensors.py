@@ -14,7 +14,6 @@ from fusion_depth.data._procedural_scene import (
     CAR,
     NEAR,
     POLE,
-    SIGN,
     TRUNK,
     Camera,
     Scene,
@@ -27,9 +26,9 @@ LIDAR_ELEVATIONS_DEG = np.linspace(2.0, -24.9, 64)  # HDL-64-like beam layout
 LIDAR_AZIMUTH_STEP_DEG = 0.3
 LIDAR_RANGE = 120.0
 # A pixel gets a lidar return when its ray lies within this angle of a beam/azimuth grid point,
-# i.e. the full-resolution projection subsampled to the output size: the density (~2-3 % of
+# i.e. the full-resolution projection subsampled to the output size: the density (~1.5-2 % of
 # pixels) does not grow as the image shrinks, as with strided KITTI sparse depth.
-LIDAR_TOLERANCE_DEG = 0.04
+LIDAR_TOLERANCE_DEG = 0.03
 
 
 def _splat(points: np.ndarray, camera: Camera) -> np.ndarray:
@@ -42,8 +41,9 @@ def _splat(points: np.ndarray, camera: Camera) -> np.ndarray:
     return out
 
 
-def _occluded(origin: np.ndarray, targets: np.ndarray, lo: np.ndarray, hi: np.ndarray
-              ) -> np.ndarray:
+def _occluded(
+    origin: np.ndarray, targets: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
     """Whether the horizontal segment origin -> target (X, Z) crosses any box footprint before
     the last 5 cm (so the box a target lies on does not hide it)."""
     d = targets - origin
@@ -57,28 +57,41 @@ def _occluded(origin: np.ndarray, targets: np.ndarray, lo: np.ndarray, hi: np.nd
     return ((t_near <= t_far) & (t_far > 0) & (t_near < end)).any(1)
 
 
-def _visible_edge_points(origin: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                         rng: np.random.Generator) -> np.ndarray:
-    """A random point on a footprint edge (X, Z rectangle) that faces the radar."""
-    edges = []
-    if origin[0] < lo[0]:
-        edges.append(((lo[0], lo[1]), (lo[0], hi[1])))
-    if origin[0] > hi[0]:
-        edges.append(((hi[0], lo[1]), (hi[0], hi[1])))
-    if origin[1] < lo[1]:
-        edges.append(((lo[0], lo[1]), (hi[0], lo[1])))
-    if origin[1] > hi[1]:
-        edges.append(((lo[0], hi[1]), (hi[0], hi[1])))
-    a, b = (np.asarray(e) for e in edges[rng.integers(len(edges))])
-    return a + (b - a) * rng.random()
+def _surface_points(
+    origin: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    counts: np.ndarray,
+    margin: np.ndarray,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Random points on the footprint edges (X, Z rectangles) that face the radar: ``counts[k]``
+    on footprint k, favouring long edges seen head-on and keeping ``margin[k]`` (a fraction)
+    off the corners. Returns the points (M, 2) and the footprint each belongs to."""
+    (x0, z0), (x1, z1) = lo.T, hi.T
+    start = np.stack([np.c_[x0, z0], np.c_[x1, z0], np.c_[x0, z0], np.c_[x0, z1]], 1)
+    end = np.stack([np.c_[x0, z1], np.c_[x1, z1], np.c_[x1, z0], np.c_[x1, z1]], 1)
+    # How far the radar is in front of each edge (x0, x1, z0, z1); > 0: the edge faces it.
+    front = np.c_[x0 - origin[0], origin[0] - x1, z0 - origin[1], origin[1] - z1]
+    length = np.linalg.norm(end - start, axis=-1)
+    distance = np.linalg.norm((start + end) / 2 - origin, axis=-1)
+    weight = np.where(front > 0, (length + 1e-3) * front / distance, 0.0)
+    owner = np.repeat(np.arange(len(lo)), counts)
+    cumulative = np.cumsum(weight, 1)[owner]
+    draw = rng.random(len(owner)) * cumulative[:, -1]
+    edge = np.minimum((draw[:, None] > cumulative).sum(1), 3)
+    where = margin[owner] + (1 - 2 * margin[owner]) * rng.random(len(owner))
+    a, b = start[owner, edge], end[owner, edge]
+    return a + (b - a) * where[:, None], owner
 
 
 def radar_points(scene: Scene, rng: np.random.Generator, weather: Weather) -> np.ndarray:
     """World points (N, 3) of one radar scan.
 
-    Returns come mostly from cars (strong reflectors, several points each), some from poles,
-    trunks, signs and facades, plus clutter; each is measured as (range, azimuth) with noise and
-    placed at the radar's mounting height, because the radar has no elevation resolution.
+    Returns come mostly from cars (strong reflectors, several points each), some from facades,
+    lamp and sign posts and tree trunks (whatever stands at the radar's height), plus clutter.
+    Each is measured as (range, azimuth) with noise and placed at the radar's mounting height,
+    because the radar has no elevation resolution.
     """
     cam = scene.camera
     origin = np.array([cam.position[0], cam.position[2]])
@@ -86,38 +99,34 @@ def radar_points(scene: Scene, rng: np.random.Generator, weather: Weather) -> np
     lo2, hi2 = scene.lo[:, [0, 2]], scene.hi[:, [0, 2]]
     blocking = (scene.lo[:, 1] <= RADAR_HEIGHT) & (scene.hi[:, 1] >= RADAR_HEIGHT)
 
-    cand: list[np.ndarray] = []
-    p_det: list[float] = []
-    for k in np.flatnonzero(blocking & np.isin(scene.material, (CAR, POLE, TRUNK, SIGN,
-                                                                BUILDING))):
-        nearest = np.clip(origin, lo2[k], hi2[k])
-        rng_k = float(np.hypot(*(nearest - origin)))
-        if rng_k < 1.0 or rng_k > RADAR_RANGE:
-            continue
-        fall = (rng_k / RADAR_RANGE) ** 2
-        mat = scene.material[k]
-        if mat == CAR:
-            cand.append(nearest)
-            p_det.append(0.97 - 0.35 * fall)
-            for _ in range(min(3, rng.poisson(1.6 if rng_k < 40 else 0.8))):
-                cand.append(_visible_edge_points(origin, lo2[k], hi2[k], rng))
-                p_det.append(0.8 - 0.4 * fall)
-        elif mat == BUILDING:
-            for _ in range(rng.poisson(1.2)):
-                cand.append(_visible_edge_points(origin, lo2[k], hi2[k], rng))
-                p_det.append(0.45 - 0.35 * fall)
-        else:
-            cand.append(nearest)
-            p_det.append({POLE: 0.6, SIGN: 0.5, TRUNK: 0.3}[int(mat)] - 0.3 * fall)
-    points = np.asarray(cand, dtype=np.float64).reshape(-1, 2)
+    # Reflectors within range, with how many returns each may give and how likely each is.
+    dist = np.linalg.norm(np.clip(origin, lo2, hi2) - origin, axis=1)
+    strength = {CAR: 0.95, BUILDING: 0.6, POLE: 0.35, TRUNK: 0.2}
+    keys = np.array(list(strength))
+    objs = np.flatnonzero(
+        blocking & np.isin(scene.material, keys) & (dist >= 1.0) & (dist <= RADAR_RANGE)
+    )
+    mat, fall = scene.material[objs], (dist[objs] / RADAR_RANGE) ** 2
+    car, building = mat == CAR, mat == BUILDING
+    counts = np.where(car, 1 + np.minimum(6, rng.poisson(np.where(dist[objs] < 40, 4.0, 2.0))), 1)
+    counts = np.where(building, rng.poisson(3.0, len(objs)), counts)
+    base = np.array([strength[m] for m in mat.tolist()])
+    prob_first = np.where(car | building, base - 0.35 * fall, base * (1 - fall))
+    prob_more = np.where(car, 0.8 - 0.4 * fall, prob_first)
+    margin = np.select([car, building], [0.15, 0.05], 0.5)
+    points, owner = _surface_points(origin, lo2[objs], hi2[objs], counts, margin, rng)
+    first = np.r_[True, owner[1:] != owner[:-1]] if len(owner) else np.zeros(0, bool)
+    prob = np.where(first, prob_first[owner], prob_more[owner])
+
     offset = points - origin
     azimuth = np.degrees(np.arctan2(offset[:, 0], offset[:, 1]) - heading)
     in_view = (np.hypot(offset[:, 0], offset[:, 1]) <= RADAR_RANGE) & (
-        np.abs((azimuth + 180) % 360 - 180) <= RADAR_FOV_DEG)
-    points, prob = points[in_view], np.asarray(p_det)[in_view]
+        np.abs((azimuth + 180) % 360 - 180) <= RADAR_FOV_DEG
+    )
+    points, prob = points[in_view], prob[in_view]
     if len(points):
         blocked = _occluded(origin, points, lo2[blocking], hi2[blocking])
-        prob = np.where(blocked, 0.15 * prob, prob)  # multipath still sees some hidden cars
+        prob = np.where(blocked, 0.04 * prob, prob)  # multipath sees a few hidden objects
         points = points[rng.random(len(points)) < prob]
 
     offset = points - origin
@@ -146,20 +155,24 @@ def radar_map(scene: Scene, rng: np.random.Generator, weather: Weather) -> np.nd
     return _splat(radar_points(scene, rng, weather), scene.camera)
 
 
-def lidar_map(camera: Camera, dirs: np.ndarray, depth: np.ndarray, rng: np.random.Generator,
-              weather: Weather) -> np.ndarray:
+def lidar_map(
+    camera: Camera, dirs: np.ndarray, depth: np.ndarray, rng: np.random.Generator, weather: Weather
+) -> np.ndarray:
     """Sparse lidar depth (H, W): exact depth plus small range noise at the pixels whose rays
     fall on the beam/azimuth grid of a level lidar at the camera; fog drops far returns."""
     c, s = np.cos(camera.yaw), np.sin(camera.yaw)
-    x_h = c * dirs[..., 0] - s * dirs[..., 2]
-    z_h = s * dirs[..., 0] + c * dirs[..., 2]
+    x_h = c * dirs[0] - s * dirs[2]
+    z_h = s * dirs[0] + c * dirs[2]
     azimuth = np.degrees(np.arctan2(x_h, z_h))
-    elevation = np.degrees(np.arctan2(dirs[..., 1], np.hypot(x_h, z_h)))
+    elevation = np.degrees(np.arctan2(dirs[1], np.hypot(x_h, z_h)))
     tol = min(LIDAR_TOLERANCE_DEG, 0.5 * np.degrees(1.0 / camera.focal))
     top, spacing = LIDAR_ELEVATIONS_DEG[0], LIDAR_ELEVATIONS_DEG[0] - LIDAR_ELEVATIONS_DEG[1]
     beam = np.round((top - elevation) / spacing)
-    on_beam = (beam >= 0) & (beam < len(LIDAR_ELEVATIONS_DEG)) & (
-        np.abs(top - beam * spacing - elevation) < tol)
+    on_beam = (
+        (beam >= 0)
+        & (beam < len(LIDAR_ELEVATIONS_DEG))
+        & (np.abs(top - beam * spacing - elevation) < tol)
+    )
     step = LIDAR_AZIMUTH_STEP_DEG
     on_column = np.abs(azimuth - np.round(azimuth / step) * step) < tol
     ranges = depth * camera.ray_lengths()

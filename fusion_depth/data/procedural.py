@@ -17,8 +17,14 @@ files that ``__getitem__`` memory-maps:
 * ``sparse.npy`` uint16 (N, H, W), same encoding (0 = no return)
 * ``conditions.json`` the condition of every frame
 
-``root/<hash>/meta.json`` records the parameters. Run ``python -m fusion_depth.data.procedural
---out preview.png`` to look at one frame per condition.
+``<hash>`` covers every parameter and ``GENERATOR_VERSION``, so a change renders into a new
+folder and leaves the old one alone; ``root/<hash>/meta.json`` records the parameters. Only the
+requested split is rendered. It is written into a temporary sibling folder and renamed into place
+when complete, so an interrupted run leaves nothing a later run would read, and of two processes
+rendering the same split the first rename wins (both produce identical frames).
+
+Run ``python -m fusion_depth.data.procedural --out preview.png`` to look at one frame per
+condition.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
 from fusion_depth.data._procedural_sensors import lidar_map, radar_map
 
-GENERATOR_VERSION = 1  # bump whenever rendering changes, so old caches are not reused
+GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SPLITS = ("train", "val", "test")
 SENSORS = ("radar", "lidar")
 CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
@@ -53,8 +59,14 @@ log = logging.getLogger(__name__)
 
 
 def render_frame(
-    seed: int, split: str, index: int, height: int, width: int, fov_deg: float,
-    condition: str, sparse: str,
+    seed: int,
+    split: str,
+    index: int,
+    height: int,
+    width: int,
+    fov_deg: float,
+    condition: str,
+    sparse: str,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame ``index`` of ``split``: image uint8 (H, W, 3), depth and sparse float32 (H, W).
 
@@ -116,8 +128,10 @@ class ProceduralDepth(Dataset):
             _check_choice("condition", condition, CONDITIONS)
         for name, size in (("height", height), ("width", width)):
             if int(size) != size or size <= 0 or size % 32:
-                raise ValueError(f"{name}={size}: must be a positive multiple of 32 (the network "
-                                 "downsamples by 32)")
+                raise ValueError(
+                    f"{name}={size}: must be a positive multiple of 32 (the network "
+                    "downsamples by 32)"
+                )
         counts = {"train": num_train, "val": num_val, "test": num_test}
         for name, count in counts.items():
             if int(count) != count or count < 1:
@@ -125,8 +139,9 @@ class ProceduralDepth(Dataset):
         if int(seed) != seed or seed < 0:
             raise ValueError(f"seed={seed}: expected a non-negative integer")
         if not 10.0 <= fov_deg <= 150.0:
-            raise ValueError(f"fov_deg={fov_deg}: expected a horizontal field of view in "
-                             "[10, 150] degrees")
+            raise ValueError(
+                f"fov_deg={fov_deg}: expected a horizontal field of view in [10, 150] degrees"
+            )
 
         self.split = split
         self.params = {
@@ -164,8 +179,7 @@ class ProceduralDepth(Dataset):
             out = {
                 "image": np.lib.format.open_memmap(tmp / "image.npy", "w+", np.uint8, (n, h, w, 3)),
                 "depth": np.lib.format.open_memmap(tmp / "depth.npy", "w+", np.uint16, (n, h, w)),
-                "sparse": np.lib.format.open_memmap(tmp / "sparse.npy", "w+", np.uint16,
-                                                    (n, h, w)),
+                "sparse": np.lib.format.open_memmap(tmp / "sparse.npy", "w+", np.uint16, (n, h, w)),
             }
             conditions = [p["conditions"][i % len(p["conditions"])] for i in range(n)]
             for i, condition in enumerate(conditions):
@@ -185,7 +199,14 @@ class ProceduralDepth(Dataset):
         seconds = time.perf_counter() - start
         log.info(
             "generated %d procedural %s frames (%dx%d, %s) in %.1f s (%.1f frames/s) into %s",
-            n, self.split, h, w, p["sparse"], seconds, n / seconds, self.split_dir,
+            n,
+            self.split,
+            h,
+            w,
+            p["sparse"],
+            seconds,
+            n / seconds,
+            self.split_dir,
         )
 
     def _open(self) -> dict[str, np.ndarray]:
@@ -220,9 +241,10 @@ class ProceduralDepth(Dataset):
 
 def _complete(split_dir: Path) -> bool:
     """A split folder only appears by an atomic rename of a finished one."""
-    return all((split_dir / f"{name}.npy").is_file() for name in _ARRAYS) and (
-        split_dir / "conditions.json"
-    ).is_file()
+    return (
+        all((split_dir / f"{name}.npy").is_file() for name in _ARRAYS)
+        and (split_dir / "conditions.json").is_file()
+    )
 
 
 def _publish(tmp: Path, split_dir: Path) -> None:
@@ -257,15 +279,17 @@ def preview(height: int, width: int, sparse: str, seed: int, fov_deg: float) -> 
     """A grid with one row per condition: image | colourised depth | sparse points on the image
     (frames 0-4 of the train split, i.e. what the dataset serves first)."""
     rows = []
-    radius = max(1, height // 96)
+    radius = max(1, height // 96) if sparse == "radar" else 0  # lidar is dense enough as is
     for i, condition in enumerate(CONDITIONS):
-        image, depth, sparse_map = render_frame(seed, "train", i, height, width, fov_deg,
-                                                condition, sparse)
+        image, depth, sparse_map = render_frame(
+            seed, "train", i, height, width, fov_deg, condition, sparse
+        )
         overlay = (image * 0.5).astype(np.uint8)
         colours = _colorize(sparse_map)
         for r, c in zip(*np.nonzero(sparse_map), strict=True):
-            overlay[max(0, r - radius):r + radius + 1, max(0, c - radius):c + radius + 1] = (
-                colours[r, c])
+            overlay[max(0, r - radius) : r + radius + 1, max(0, c - radius) : c + radius + 1] = (
+                colours[r, c]
+            )
         gap = np.full((height, 4, 3), 255, dtype=np.uint8)
         rows.append(np.concatenate([image, gap, _colorize(depth), gap, overlay], 1))
         rows.append(np.full((4, rows[-1].shape[1], 3), 255, dtype=np.uint8))

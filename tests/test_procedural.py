@@ -1,0 +1,246 @@
+"""Tests of the built-in procedural dataset (tiny frames, so the module runs in seconds)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from fusion_depth.data import procedural
+from fusion_depth.data.procedural import CONDITIONS, ProceduralDepth, render_frame
+
+H, W = 64, 96
+SMALL = {"height": H, "width": W, "num_train": 10, "num_val": 5, "num_test": 5}
+
+
+def _arrays(ds: ProceduralDepth) -> dict[str, np.ndarray]:
+    return {name: np.load(ds.split_dir / f"{name}.npy") for name in ("image", "depth", "sparse")}
+
+
+def _stack(ds: ProceduralDepth, key: str) -> np.ndarray:
+    return np.stack([ds[i][key][0].numpy() for i in range(len(ds))])
+
+
+@pytest.fixture(scope="module")
+def radar_train(tmp_path_factory) -> ProceduralDepth:
+    return ProceduralDepth("train", tmp_path_factory.mktemp("radar"), **SMALL)
+
+
+@pytest.fixture(scope="module")
+def lidar_train(tmp_path_factory) -> ProceduralDepth:
+    return ProceduralDepth("train", tmp_path_factory.mktemp("lidar"), sparse="lidar", **SMALL)
+
+
+def test_same_seed_same_arrays_different_seed_differs(tmp_path, radar_train):
+    again = _arrays(ProceduralDepth("train", tmp_path / "b", **SMALL))
+    for name, array in _arrays(radar_train).items():
+        assert np.array_equal(array, again[name]), name
+    other = _arrays(ProceduralDepth("train", tmp_path / "c", seed=1, **SMALL))
+    assert not np.array_equal(other["image"], again["image"])
+    assert not np.array_equal(other["depth"], again["depth"])
+
+
+def test_splits_use_different_streams(tmp_path, radar_train):
+    val = ProceduralDepth("val", radar_train.cache_dir.parent, **SMALL)
+    assert val.cache_dir == radar_train.cache_dir
+    assert not torch.equal(val[0]["depth"], radar_train[0]["depth"])
+
+
+def test_sample_format(radar_train):
+    assert len(radar_train) == SMALL["num_train"]
+    sample = radar_train[0]
+    assert set(sample) == {"image", "sparse", "depth", "condition"}
+    assert sample["image"].shape == (3, H, W) and sample["image"].dtype == torch.float32
+    for key in ("sparse", "depth"):
+        assert sample[key].shape == (1, H, W) and sample[key].dtype == torch.float32
+        assert sample[key].min() >= 0
+    assert 0 <= sample["image"].min() and sample["image"].max() <= 1
+    assert sample["image"].std() > 0.02  # a picture, not a blank frame
+    assert sample["depth"].max() > 20  # the street recedes into the distance
+    assert sample["condition"] in CONDITIONS
+    assert torch.equal(radar_train[-1]["depth"], radar_train[len(radar_train) - 1]["depth"])
+    with pytest.raises(IndexError):
+        radar_train[len(radar_train)]
+
+
+def test_radar_is_sparse_and_near_the_true_depth(radar_train):
+    sparse, depth = _stack(radar_train, "sparse"), _stack(radar_train, "depth")
+    counts = (sparse > 0).sum(axis=(1, 2))
+    assert counts.min() >= 5 and counts.max() <= 100, counts
+    hit = sparse > 0
+    err = np.abs(sparse[hit] - depth[hit])
+    # Range/azimuth noise, clutter and multipath: most, not all, returns match the surface.
+    assert np.mean(err <= np.maximum(1.0, 0.1 * depth[hit])) > 0.5
+
+
+def test_lidar_is_sparse_denser_than_radar_and_accurate(lidar_train, radar_train):
+    sparse, depth = _stack(lidar_train, "sparse"), _stack(lidar_train, "depth")
+    counts = (sparse > 0).sum(axis=(1, 2))
+    assert counts.max() < 0.05 * H * W, counts
+    radar_counts = (_stack(radar_train, "sparse") > 0).sum(axis=(1, 2))
+    assert counts.mean() > 2 * radar_counts.mean()
+    hit = sparse > 0
+    assert np.all(depth[hit] > 0)  # lidar returns only where there is a surface
+    assert np.mean(np.abs(sparse[hit] - depth[hit]) < 0.1 + 0.01 * depth[hit]) > 0.95
+    # The same frames with radar show the same street: only the sparse input differs.
+    assert torch.equal(lidar_train[3]["image"], radar_train[3]["image"])
+
+
+def test_sky_has_zero_depth_and_ground_is_valid(radar_train):
+    depth = _stack(radar_train, "depth")
+    images = np.stack([radar_train[i]["image"].numpy() for i in range(len(radar_train))])
+    assert np.mean(depth[:, H // 2 + 8 :] > 0) > 0.99  # below the horizon: road and objects
+    assert np.mean(depth > 0) > 0.7
+    day = [i for i in range(len(radar_train)) if radar_train.conditions[i] == "day"]
+    sky = depth[day] == 0
+    assert sky.sum() > 20
+    rows = np.nonzero(sky)[1]
+    assert np.all(rows < H // 2 + 8)  # no invalid depth down on the road
+    rgb = images[day].transpose(0, 2, 3, 1)[sky]
+    assert rgb[:, 2].mean() > rgb[:, 0].mean() + 0.05  # and those pixels are blue sky
+
+
+def test_depth_is_camera_z_of_the_first_surface_hit():
+    from fusion_depth.data._procedural_scene import GROUND_ID, SKY_ID, cast_primary, sample_scene
+
+    scene = sample_scene(np.random.default_rng(3), H, W, 70.0)
+    rays = scene.camera.rays()
+    t, ids = cast_primary(scene, rays)
+    hit = ids != SKY_ID
+    points = scene.camera.position[:, None, None] + rays * np.where(hit, t, 0)
+    z = scene.camera.to_camera(points.reshape(3, -1).T)[:, 2].reshape(t.shape)
+    np.testing.assert_allclose(z[hit], t[hit], atol=1e-3)  # z, not Euclidean range
+    np.testing.assert_allclose(points[1][ids == GROUND_ID], 0.0, atol=1e-3)  # on the road
+    boxes = ids >= 0
+    p = points[:, boxes].T
+    lo, hi = scene.lo[ids[boxes]], scene.hi[ids[boxes]]
+    assert np.all((p > lo - 1e-3) & (p < hi + 1e-3))  # on the box it reports
+    assert np.all(np.minimum(np.abs(p - lo), np.abs(p - hi)).min(1) < 1e-3)  # on its surface
+
+
+def test_every_condition_in_every_split(radar_train, tmp_path):
+    assert sorted(set(radar_train.conditions)) == sorted(CONDITIONS)
+    assert {radar_train.conditions.count(c) for c in CONDITIONS} == {2}
+    assert [radar_train[i]["condition"] for i in range(5)] == list(CONDITIONS)
+    val = ProceduralDepth("val", tmp_path, conditions=("fog", "night"), **SMALL)
+    assert set(val.conditions) == {"fog", "night"}
+
+
+def test_fog_hides_far_contrast():
+    for index in range(3):
+        clear, depth, _ = render_frame(0, "test", index, H, W, 70.0, "day", "radar")
+        foggy, same_depth, _ = render_frame(0, "test", index, H, W, 70.0, "fog", "radar")
+        assert np.array_equal(depth, same_depth)  # weather never moves the geometry
+        far = depth > 40
+        assert far.sum() > 20
+        assert foggy[far].std() < 0.5 * clear[far].std()
+        assert foggy[far].std() < 10  # nearly uniform fog colour (uint8 levels)
+
+
+def test_radar_sees_cars_through_fog():
+    counts = [
+        (render_frame(0, "test", i, H, W, 70.0, "fog", "radar")[2] > 0).sum() for i in range(3)
+    ]
+    assert min(counts) >= 5
+
+
+def test_changing_a_parameter_makes_a_new_cache_and_keeps_the_old(tmp_path):
+    first = ProceduralDepth("val", tmp_path, **SMALL)
+    before = {p: p.stat().st_mtime_ns for p in first.split_dir.iterdir()}
+    second = ProceduralDepth("val", tmp_path, **{**SMALL, "num_val": 6})
+    third = ProceduralDepth("val", tmp_path, sparse="lidar", **SMALL)
+    assert len({first.cache_dir, second.cache_dir, third.cache_dir}) == 3
+    assert len(second) == 6
+    assert {p: p.stat().st_mtime_ns for p in first.split_dir.iterdir()} == before
+    meta = json.loads((second.cache_dir / "meta.json").read_text())
+    assert meta["num_val"] == 6 and meta["generator_version"] == procedural.GENERATOR_VERSION
+
+
+def test_cache_is_reused_and_only_the_requested_split_is_built(tmp_path, monkeypatch, caplog):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.data.procedural"):
+        first = ProceduralDepth("val", tmp_path, **SMALL)
+    lines = [r.getMessage() for r in caplog.records if "generated" in r.getMessage()]
+    assert len(lines) == 1 and "5 procedural val frames" in lines[0]
+    assert not (first.cache_dir / "train").exists()
+    assert not (first.cache_dir / "test").exists()
+    mtime = (first.split_dir / "image.npy").stat().st_mtime_ns
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the cache should have been reused")
+
+    monkeypatch.setattr(procedural, "render_frame", fail)
+    again = ProceduralDepth("val", tmp_path, **SMALL)
+    assert (again.split_dir / "image.npy").stat().st_mtime_ns == mtime
+    assert torch.equal(again[2]["image"], first[2]["image"])
+
+
+def test_interrupted_generation_leaves_nothing_to_read(tmp_path, monkeypatch):
+    real = procedural.render_frame
+    calls = []
+
+    def crash_after_two(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(procedural, "render_frame", crash_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        ProceduralDepth("test", tmp_path, **SMALL)
+    (cache,) = tmp_path.iterdir()
+    assert [p.name for p in cache.iterdir()] == ["meta.json"]  # no split, no temporary folder
+    monkeypatch.setattr(procedural, "render_frame", real)
+    assert len(ProceduralDepth("test", tmp_path, **SMALL)) == SMALL["num_test"]
+
+
+def test_losing_a_generation_race_is_harmless(tmp_path):
+    first = ProceduralDepth("val", tmp_path, **SMALL)
+    before = _arrays(first)
+    late = ProceduralDepth("val", tmp_path, **SMALL)
+    late._generate()  # a second process that finishes after the first has published
+    for name, array in _arrays(late).items():
+        assert np.array_equal(array, before[name]), name
+    assert sorted(p.name for p in first.cache_dir.iterdir()) == ["meta.json", "val"]
+
+
+def test_pickles_without_the_arrays(radar_train):
+    radar_train[0]  # open the memory maps
+    clone = pickle.loads(pickle.dumps(radar_train))
+    assert len(pickle.dumps(radar_train)) < 10_000
+    assert torch.equal(clone[1]["sparse"], radar_train[1]["sparse"])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "value"),
+    [
+        ({"split": "training"}, "training"),
+        ({"sparse": "sonar"}, "sonar"),
+        ({"height": 100}, "100"),
+        ({"width": 0}, "0"),
+        ({"conditions": ("day", "snow")}, "snow"),
+    ],
+)
+def test_invalid_arguments_name_the_value(tmp_path, kwargs, value):
+    args = {"split": "train", "root": tmp_path, **SMALL, **kwargs}
+    with pytest.raises(ValueError, match=value):
+        ProceduralDepth(**args)
+    assert not any(tmp_path.iterdir())  # rejected before anything is written
+
+
+def test_height_error_explains_the_multiple_of_32(tmp_path):
+    with pytest.raises(ValueError, match="multiple of 32"):
+        ProceduralDepth("train", tmp_path, **{**SMALL, "height": 48})
+
+
+def test_preview_cli_writes_a_grid(tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "preview.png"
+    procedural.main(["--out", str(out), "--height", "64", "--width", "96"])
+    with Image.open(out) as image:
+        assert image.size[1] == 5 * 64 + 4 * 4  # one row per condition
+        assert image.size[0] == 3 * 96 + 2 * 4  # image | depth | sparse
