@@ -14,6 +14,7 @@ from torch import nn
 from fusion_depth.losses import DepthLoss
 from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
+from fusion_depth.visualize import depth_panel
 
 
 def downsample_depth(
@@ -121,8 +122,6 @@ class DepthModule(L.LightningModule):
         self._collect_panels(batch, reciprocal)
 
     def _collect_panels(self, batch: dict, reciprocal: torch.Tensor) -> None:
-        from fusion_depth.visualize import depth_panel
-
         wanted = self.hparams.num_val_panels - len(self.val_panels)
         for i in range(min(wanted, len(batch["image"]))):
             self.val_panels.append(

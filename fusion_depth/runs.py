@@ -11,21 +11,26 @@ from typing import Any
 
 METRICS_FILE = "metrics.json"
 FAILURE_FILE = "failure.json"
+RESOLVED_CONFIG_FILE = "config_resolved.yaml"
 
 
-def write_json_atomic(path: str | os.PathLike, data: Any) -> None:
-    """Write JSON to a temporary sibling, then rename: readers never see a half-written file."""
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write to a temporary sibling, then rename: readers never see a half-written file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, sort_keys=False)
-            f.write("\n")
+            f.write(text)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> None:
+    """``data`` as indented JSON, written atomically."""
+    write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def record_failure(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import hydra
@@ -24,9 +25,20 @@ import fusion_depth
 from fusion_depth.config import validate_config
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.report import format_table
-from fusion_depth.runs import METRICS_FILE, record_failure, write_json_atomic
+from fusion_depth.runs import (
+    METRICS_FILE,
+    RESOLVED_CONFIG_FILE,
+    record_failure,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 log = logging.getLogger(__name__)
+
+# Not actionable for users: the augmentation hook is meant to live on the module, and the
+# pytree notice is Lightning's own use of a deprecated torch API.
+warnings.filterwarnings("ignore", message=".*overridden `on_after_batch_transfer`.*")
+warnings.filterwarnings("ignore", message=".*isinstance\\(treespec, LeafSpec\\)` is deprecated.*")
 
 TABLE_COLUMNS = (
     ("rmse", "RMSE"),
@@ -77,13 +89,14 @@ def train(cfg: DictConfig) -> dict:
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), **cfg.data)
     model = instantiate(cfg.model, _convert_="all")
     run_config = OmegaConf.to_container(cfg, resolve=True)
+    write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(run_config))
     model.run_config = run_config
     logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
-    if not logger:  # Lightning refuses a learning-rate monitor with nothing to log to
-        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
     if logger:
         logger.log_hyperparams(run_config)
+    else:  # Lightning refuses a learning-rate monitor with nothing to log to
+        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
     progress = cfg.trainer.enable_progress_bar
     trainer = instantiate(
         cfg.trainer,

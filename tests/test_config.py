@@ -20,7 +20,11 @@ REPO = Path(__file__).resolve().parents[1]
 def test_defaults_reproduce_the_paper_setup(make_config) -> None:
     cfg = make_config()
     assert (cfg.fusion.mode, cfg.loss.pixel, cfg.backbone.name, cfg.dataset.name) == (
-        "rgb", "l1", "densenet169", "procedural")
+        "rgb",
+        "l1",
+        "densenet169",
+        "procedural",
+    )
     assert cfg.optimizer._target_ == "torch.optim.Adam"
     assert cfg.optimizer.lr == 1e-4 and list(cfg.optimizer.betas) == [0.9, 0.999]
     assert cfg.data.batch_size == 2 and cfg.trainer.max_epochs == 20
@@ -31,13 +35,18 @@ def test_defaults_reproduce_the_paper_setup(make_config) -> None:
     assert cfg.backbone.pretrained is False  # built-in dataset: from scratch, no network
 
 
-@pytest.mark.parametrize("group,choice,key,value", [
-    ("fusion", "concat", "fusion.mode", "concat"), ("fusion", "add", "fusion.mode", "add"),
-    ("loss", "l2", "loss.pixel", "l2"), ("loss", "berhu", "loss.pixel", "berhu"),
-    ("backbone", "resnet50", "backbone.name", "resnet50"),
-    ("logger", "csv", "logger._target_", "lightning.pytorch.loggers.CSVLogger"),
-    ("logger", "none", "logger._target_", None),
-])
+@pytest.mark.parametrize(
+    "group,choice,key,value",
+    [
+        ("fusion", "concat", "fusion.mode", "concat"),
+        ("fusion", "add", "fusion.mode", "add"),
+        ("loss", "l2", "loss.pixel", "l2"),
+        ("loss", "berhu", "loss.pixel", "berhu"),
+        ("backbone", "resnet50", "backbone.name", "resnet50"),
+        ("logger", "csv", "logger._target_", "lightning.pytorch.loggers.CSVLogger"),
+        ("logger", "none", "logger._target_", None),
+    ],
+)
 def test_group_choices_compose(make_config, group, choice, key, value) -> None:
     cfg = make_config(f"{group}={choice}")
     node = cfg
@@ -63,12 +72,15 @@ def test_wrong_choice_names_group_and_options(make_config) -> None:
     assert all(option in message for option in ("rgb", "concat", "add"))
 
 
-@pytest.mark.parametrize("override,match", [
-    ("dataset.height=50", "dataset.height=50"),
-    ("dataset.width=0", "dataset.width=0"),
-    ("dataset.min_depth=90", "min_depth"),
-    ("data.batch_size=0", "data.batch_size=0"),
-])
+@pytest.mark.parametrize(
+    "override,match",
+    [
+        ("dataset.height=50", "dataset.height=50"),
+        ("dataset.width=0", "dataset.width=0"),
+        ("dataset.min_depth=90", "min_depth"),
+        ("data.batch_size=0", "data.batch_size=0"),
+    ],
+)
 def test_invalid_values_fail_naming_the_key(make_config, override, match) -> None:
     with pytest.raises(ValueError, match=match):
         validate_config(make_config(override))
@@ -83,7 +95,12 @@ def test_cli_rejects_bad_choice_before_touching_data(tmp_path: Path) -> None:
     env = {**os.environ, "FUSION_DEPTH_CACHE": str(tmp_path / "cache")}
     result = subprocess.run(
         [sys.executable, "-m", "fusion_depth.train", "loss=huber", f"hydra.run.dir={tmp_path}/run"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode != 0
     assert "loss" in result.stderr and "berhu" in result.stderr
     assert not (tmp_path / "cache").exists()

@@ -27,8 +27,12 @@ def test_downsample_keeps_sparse_points_undiluted() -> None:
 
 def _batch() -> dict:
     torch.manual_seed(0)
-    return {"image": torch.rand(2, 3, 8, 12) * 0.5 + 0.25, "sparse": torch.rand(2, 1, 8, 12) * 10,
-            "depth": torch.rand(2, 1, 8, 12) * 50, "condition": ["day", "fog"]}
+    return {
+        "image": torch.rand(2, 3, 8, 12) * 0.5 + 0.25,
+        "sparse": torch.rand(2, 1, 8, 12) * 10,
+        "depth": torch.rand(2, 1, 8, 12) * 50,
+        "condition": ["day", "fog"],
+    }
 
 
 def test_flip_moves_image_sparse_and_depth_together() -> None:

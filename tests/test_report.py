@@ -15,10 +15,23 @@ from fusion_depth.runs import write_json_atomic
 def _write_run(root, name, fusion, loss, seed, rmse, delta1=0.8, extra=()):
     test = {k: 0.1 for k in METRIC_KEYS} | {"rmse": rmse, "delta1": delta1, "num_images": 10}
     overrides = [f"fusion={fusion}", f"loss={loss}", f"seed={seed}", *extra]
-    write_json_atomic(root / name / "metrics.json", {
-        "status": "ok", "test": test, "test_by_condition": {},
-        "run": {"dataset": "procedural", "sensor": "radar", "backbone": "densenet169",
-                "fusion": fusion, "loss": loss, "seed": seed, "overrides": overrides}})
+    write_json_atomic(
+        root / name / "metrics.json",
+        {
+            "status": "ok",
+            "test": test,
+            "test_by_condition": {},
+            "run": {
+                "dataset": "procedural",
+                "sensor": "radar",
+                "backbone": "densenet169",
+                "fusion": fusion,
+                "loss": loss,
+                "seed": seed,
+                "overrides": overrides,
+            },
+        },
+    )
 
 
 def test_seeds_are_averaged_and_best_is_marked(tmp_path, capsys) -> None:
@@ -36,14 +49,19 @@ def test_seeds_are_averaged_and_best_is_marked(tmp_path, capsys) -> None:
 
 
 def test_paper_order_loss_then_modality(tmp_path) -> None:
-    for i, (fusion, loss) in enumerate([("add", "berhu"), ("rgb", "l2"), ("concat", "l1"),
-                                        ("rgb", "l1")]):
+    for i, (fusion, loss) in enumerate(
+        [("add", "berhu"), ("rgb", "l2"), ("concat", "l1"), ("rgb", "l1")]
+    ):
         _write_run(tmp_path, str(i), fusion, loss, 0, rmse=1.0 + i)
     from fusion_depth.runs import load_runs
 
     groups = group_runs(load_runs(tmp_path))
     assert [(g["loss"], g["fusion"]) for g in groups] == [
-        ("l1", "rgb"), ("l1", "concat"), ("l2", "rgb"), ("berhu", "add")]
+        ("l1", "rgb"),
+        ("l1", "concat"),
+        ("l2", "rgb"),
+        ("berhu", "add"),
+    ]
 
 
 def test_other_overrides_are_not_averaged_together(tmp_path) -> None:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.train import train
@@ -17,8 +18,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _cli(args: list[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=dict(os.environ),
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", *args],
+        cwd=cwd,
+        env=dict(os.environ),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_path) -> None:
@@ -30,8 +37,14 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images"}
     assert saved["test"]["num_images"] == cfg.dataset.reader.num_test
     assert saved["run"] | {"overrides": None} == {
-        "dataset": "procedural", "sensor": "radar", "backbone": "densenet169",
-        "fusion": "concat", "loss": "l1", "seed": 42, "overrides": None}
+        "dataset": "procedural",
+        "sensor": "radar",
+        "backbone": "densenet169",
+        "fusion": "concat",
+        "loss": "l1",
+        "seed": 42,
+        "overrides": None,
+    }
     assert set(saved["test_by_condition"]) <= set(cfg.dataset.conditions)
     assert saved["global_step"] == cfg.trainer.max_epochs * cfg.trainer.limit_train_batches
     # The best checkpoint loads without unpickling code and describes its run.
@@ -39,13 +52,24 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     assert ckpt["fusion_depth_config"]["fusion"]["mode"] == "concat"
     assert any(k.startswith("net.fusion.mix") for k in ckpt["state_dict"])
     assert list((out / "wandb").glob("offline-run-*")), "W&B must log offline by default"
+    resolved = OmegaConf.load(out / "config_resolved.yaml")
+    assert resolved.model.loss.max_val == cfg.dataset.depth_scale / cfg.dataset.min_depth
 
 
 def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     sweep = tmp_path / "sweep"
-    result = _cli(["fusion_depth.train", "-m", "experiment=smoke", "logger=csv",
-                   "loss=l1,l2,berhu", "fusion=rgb,concat,add", f"hydra.sweep.dir={sweep}"],
-                  cwd=tmp_path)
+    result = _cli(
+        [
+            "fusion_depth.train",
+            "-m",
+            "experiment=smoke",
+            "logger=csv",
+            "loss=l1,l2,berhu",
+            "fusion=rgb,concat,add",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "9 ok, 0 failed" in result.stdout
     assert len(list(sweep.glob("*/metrics.json"))) == 9
@@ -54,14 +78,24 @@ def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     rows = [line for line in report.stdout.splitlines() if line.startswith("| RGB")]
     assert len(rows) == 9
     combos = {tuple(c.strip() for c in row.split("|")[1:3]) for row in rows}
-    assert combos == {(m, loss) for m in ("RGB", "RGB-Fusion", "RGB-Add")
-                      for loss in ("L1", "L2", "BerHu")}
+    assert combos == {
+        (m, loss) for m in ("RGB", "RGB-Fusion", "RGB-Add") for loss in ("L1", "L2", "BerHu")
+    }
 
 
 def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     sweep = tmp_path / "sweep"
-    result = _cli(["fusion_depth.train", "-m", "experiment=smoke", "logger=none",
-                   "dataset.width=48,96", f"hydra.sweep.dir={sweep}"], cwd=tmp_path)
+    result = _cli(
+        [
+            "fusion_depth.train",
+            "-m",
+            "experiment=smoke",
+            "logger=none",
+            "dataset.width=48,96",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+    )
     assert result.returncode == 1
     assert "1 ok, 1 failed" in result.stdout
     failed = next(line for line in result.stdout.splitlines() if line.strip().startswith("failed"))
