@@ -8,7 +8,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-SPLITS = ("train", "val", "test")
+from fusion_depth.data import SPLITS
 
 
 class DepthDataModule(L.LightningDataModule):

@@ -44,12 +44,12 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from fusion_depth.data import SPLITS
 from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
 from fusion_depth.data._procedural_sensors import lidar_map, radar_map
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
-SPLITS = ("train", "val", "test")
 SENSORS = ("radar", "lidar")
 CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
 DEPTH_SCALE = 256.0  # cache stores uint16 depth * 256
