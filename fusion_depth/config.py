@@ -19,13 +19,14 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("fd.cache_dir", _cache_dir, replace=True)
 
 
-def validate_config(cfg: DictConfig) -> None:
+def validate_config(cfg: DictConfig) -> dict:
     """Fail before touching data: missing values, and values the network cannot take.
 
     Hydra already rejects unknown group choices with the list of options; this catches
-    ``???`` values anywhere and the numeric constraints, each naming the key.
+    ``???`` values anywhere and the numeric constraints, each naming the key. Returns the
+    resolved config as plain data.
     """
-    OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     ds = cfg.dataset
     for key in ("height", "width"):
         value = ds[key]
@@ -41,3 +42,4 @@ def validate_config(cfg: DictConfig) -> None:
         )
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size={cfg.data.batch_size}: expected an integer ≥ 1")
+    return resolved

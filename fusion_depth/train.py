@@ -83,12 +83,11 @@ def metric_table(overall: dict, by_condition: dict) -> str:
 
 def train(cfg: DictConfig) -> dict:
     """Fit, test the best checkpoint, write ``metrics.json``; returns its contents."""
-    validate_config(cfg)
+    run_config = validate_config(cfg)
     L.seed_everything(cfg.seed, workers=True)
     output_dir = Path(cfg.paths.output_dir)
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), **cfg.data)
     model = instantiate(cfg.model, _convert_="all")
-    run_config = OmegaConf.to_container(cfg, resolve=True)
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(run_config))
     model.run_config = run_config
     logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
