@@ -56,18 +56,36 @@ def test_output_shape_every_fusion_and_backbone(backbone: str, fusion: str) -> N
     assert depth.min() >= 0.5 and depth.max() <= 80.0
 
 
-def test_concat_starts_as_identity_and_learns_from_sparse() -> None:
+def test_concat_starts_as_add_and_learns_from_sparse() -> None:
     image, sparse = torch.rand(2, 3, 32, 32), torch.rand(2, 1, 32, 32) * 40
-    concat, rgb = InputFusion("concat", max_depth=80.0), InputFusion("rgb", max_depth=80.0)
-    torch.testing.assert_close(concat(image, sparse), rgb(image))
+    sparse[:, :, :16] = 0  # no return in the top half
+    concat, add = InputFusion("concat", max_depth=80.0), InputFusion("add", max_depth=80.0)
+    rgb = InputFusion("rgb", max_depth=80.0)
+    torch.testing.assert_close(concat(image, sparse), add(image, sparse))
+    # Where there is no return the image passes through untouched.
+    torch.testing.assert_close(concat(image, sparse)[..., :16, :], rgb(image)[..., :16, :])
     concat(image, sparse).square().sum().backward()
     assert concat.mix.weight.grad[:, 3].abs().sum() > 0, "sparse channel must reach the 1x1 conv"
 
 
-def test_add_adds_normalised_sparse_to_every_channel() -> None:
+def test_add_adds_sparse_to_every_channel_before_normalisation() -> None:
     image, sparse = torch.rand(1, 3, 8, 8), torch.rand(1, 1, 8, 8) * 40
-    diff = InputFusion("add", max_depth=80.0)(image, sparse) - InputFusion("rgb")(image)
-    torch.testing.assert_close(diff, (sparse / 80.0).expand(1, 3, 8, 8))
+    fusion = InputFusion("add", max_depth=80.0)
+    diff = fusion(image, sparse) - InputFusion("rgb")(image)
+    torch.testing.assert_close(diff, fusion.encode_sparse(sparse) / fusion.std)
+
+
+def test_sparse_encodings_keep_zero_as_no_return() -> None:
+    depth = torch.tensor([0.0, 0.2, 0.5, 5.0, 80.0, 300.0])
+    log = InputFusion("add", max_depth=80.0, min_depth=0.5).encode_sparse(depth)
+    expected = torch.log(depth[3] / 0.5) / torch.log(torch.tensor(160.0))
+    torch.testing.assert_close(log, torch.tensor([0.0, 1 / 256, 1 / 256, expected, 1.0, 1.0]))
+    linear = InputFusion("add", max_depth=80.0, sparse_encoding="linear").encode_sparse(depth)
+    torch.testing.assert_close(linear, torch.tensor([0.0, 0.0025, 0.00625, 0.0625, 1.0, 1.0]))
+    # The log code keeps a near return clearly visible; the linear one nearly loses it.
+    assert log[3] > 0.4 > 0.1 > linear[3]
+    with pytest.raises(ValueError, match="sparse_encoding='sqrt'"):
+        InputFusion("add", sparse_encoding="sqrt")
 
 
 def test_rgb_ignores_sparse_and_fusion_needs_it() -> None:

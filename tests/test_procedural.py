@@ -148,6 +148,30 @@ def test_radar_sees_cars_through_fog():
     assert min(counts) >= 5
 
 
+def test_radar_height_extension_draws_each_return_as_a_vertical_line():
+    focal = W / 2 / np.tan(np.radians(70.0) / 2)
+    checked = 0
+    for i in range(4):
+        raw = render_frame(0, "test", i, H, W, 70.0, "day", "radar")[2]
+        lines = render_frame(0, "test", i, H, W, 70.0, "day", "radar", 2.0)[2]
+        assert (lines[raw > 0] > 0).all(), "every return keeps its pixel"
+        assert (lines > 0).sum() > 3 * (raw > 0).sum()
+        for col in np.flatnonzero((raw > 0).sum(0) == 1)[1:-1]:
+            # The line spans the rows between the ground and 2 m at the return's depth (the
+            # camera's roll may move part of it into a neighbouring column).
+            z = raw[:, col].max()
+            near_z = np.abs(lines[:, col - 1 : col + 2] - z) < 0.1
+            rows = np.flatnonzero(near_z.any(1))
+            if rows.max() == H - 1 or rows.min() == 0:
+                continue  # cut by the image border
+            assert len(rows) == rows.max() - rows.min() + 1, "one unbroken line"
+            assert abs(len(rows) - focal * 2.0 / z) <= 2.5
+            checked += 1
+    assert checked >= 5
+    with pytest.raises(ValueError, match="radar_height_extension=-1"):
+        ProceduralDepth("train", "unused", radar_height_extension=-1, **SMALL)
+
+
 def test_changing_a_parameter_makes_a_new_cache_and_keeps_the_old(tmp_path):
     first = ProceduralDepth("val", tmp_path, **SMALL)
     before = {p: p.stat().st_mtime_ns for p in first.split_dir.iterdir()}

@@ -67,6 +67,7 @@ def render_frame(
     fov_deg: float,
     condition: str,
     sparse: str,
+    radar_height_extension: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frame ``index`` of ``split``: image uint8 (H, W, 3), depth and sparse float32 (H, W).
 
@@ -82,7 +83,7 @@ def render_frame(
     weather = sample_weather(condition, weather_rng)
     image = shade(scene, dirs, t, ids, weather, weather_rng)
     if sparse == "radar":
-        sparse_map = radar_map(scene, sensor_rng, weather)
+        sparse_map = radar_map(scene, sensor_rng, weather, radar_height_extension)
     else:
         sparse_map = lidar_map(scene.camera, dirs, depth, sensor_rng, weather)
     return (image * 255 + 0.5).astype(np.uint8), depth, sparse_map
@@ -118,6 +119,7 @@ class ProceduralDepth(Dataset):
         conditions: Sequence[str] = CONDITIONS,
         seed: int = 0,
         fov_deg: float = 70.0,
+        radar_height_extension: float = 0.0,
     ) -> None:
         _check_choice("split", split, SPLITS)
         _check_choice("sparse", sparse, SENSORS)
@@ -143,6 +145,12 @@ class ProceduralDepth(Dataset):
                 f"fov_deg={fov_deg}: expected a horizontal field of view in [10, 150] degrees"
             )
 
+        if not 0.0 <= radar_height_extension <= 10.0:
+            raise ValueError(
+                f"radar_height_extension={radar_height_extension}: expected a height in [0, 10] "
+                "metres (0 keeps each radar return a single pixel)"
+            )
+
         self.split = split
         self.params = {
             "generator_version": GENERATOR_VERSION,
@@ -156,6 +164,8 @@ class ProceduralDepth(Dataset):
             "seed": int(seed),
             "fov_deg": float(fov_deg),
         }
+        if sparse == "radar":
+            self.params["radar_height_extension"] = float(radar_height_extension)
         text = json.dumps(self.params, sort_keys=True)
         self.cache_dir = Path(root) / hashlib.sha256(text.encode()).hexdigest()[:12]
         self.split_dir = self.cache_dir / split
@@ -184,7 +194,15 @@ class ProceduralDepth(Dataset):
             conditions = [p["conditions"][i % len(p["conditions"])] for i in range(n)]
             for i, condition in enumerate(conditions):
                 image, depth, sparse = render_frame(
-                    p["seed"], self.split, i, h, w, p["fov_deg"], condition, p["sparse"]
+                    p["seed"],
+                    self.split,
+                    i,
+                    h,
+                    w,
+                    p["fov_deg"],
+                    condition,
+                    p["sparse"],
+                    p.get("radar_height_extension", 0.0),
                 )
                 out["image"][i] = image
                 out["depth"][i] = _encode_depth(depth)
@@ -275,14 +293,22 @@ def _colorize(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
     return (rgb * 255).astype(np.uint8)
 
 
-def preview(height: int, width: int, sparse: str, seed: int, fov_deg: float) -> np.ndarray:
+def preview(
+    height: int,
+    width: int,
+    sparse: str,
+    seed: int,
+    fov_deg: float,
+    radar_height_extension: float = 0.0,
+) -> np.ndarray:
     """A grid with one row per condition: image | colourised depth | sparse points on the image
     (frames 0-4 of the train split, i.e. what the dataset serves first)."""
     rows = []
-    radius = max(1, height // 96) if sparse == "radar" else 0  # lidar is dense enough as is
+    # Single radar pixels are hard to see at preview size; lines and lidar are dense enough.
+    radius = max(1, height // 96) if sparse == "radar" and not radar_height_extension else 0
     for i, condition in enumerate(CONDITIONS):
         image, depth, sparse_map = render_frame(
-            seed, "train", i, height, width, fov_deg, condition, sparse
+            seed, "train", i, height, width, fov_deg, condition, sparse, radar_height_extension
         )
         overlay = (image * 0.5).astype(np.uint8)
         colours = _colorize(sparse_map)
@@ -307,8 +333,21 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--sparse", choices=SENSORS, default="radar")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fov-deg", type=float, default=70.0)
+    parser.add_argument(
+        "--radar-height-extension",
+        type=float,
+        default=0.0,
+        help="draw each radar return as a vertical line from the ground to this height (m)",
+    )
     args = parser.parse_args(argv)
-    grid = preview(args.height, args.width, args.sparse, args.seed, args.fov_deg)
+    grid = preview(
+        args.height,
+        args.width,
+        args.sparse,
+        args.seed,
+        args.fov_deg,
+        args.radar_height_extension,
+    )
     Image.fromarray(grid).save(args.out)
     print(f"wrote {args.out} ({', '.join(CONDITIONS)} from top to bottom)")
 

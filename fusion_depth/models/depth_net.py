@@ -26,6 +26,7 @@ class DepthNet(nn.Module):
         min_depth: float = 0.5,
         max_depth: float = 80.0,
         depth_scale: float = 10.0,
+        sparse_encoding: str = "log",
     ) -> None:
         super().__init__()
         if not 0 < min_depth < max_depth:
@@ -37,7 +38,12 @@ class DepthNet(nn.Module):
             raise ValueError(f"depth_scale={depth_scale}: expected a positive number")
         self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights)
         self.fusion = InputFusion(
-            fusion, max_depth=max_depth, mean=self.encoder.mean, std=self.encoder.std
+            fusion,
+            max_depth=max_depth,
+            min_depth=min_depth,
+            sparse_encoding=sparse_encoding,
+            mean=self.encoder.mean,
+            std=self.encoder.std,
         )
         self.decoder = DenseDepthDecoder(self.encoder.channels)
         self.min_depth, self.max_depth, self.depth_scale = min_depth, max_depth, depth_scale
