@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -39,6 +40,18 @@ def validate_config(cfg: DictConfig) -> dict:
         raise ValueError(
             f"dataset.min_depth={ds.min_depth}, dataset.max_depth={ds.max_depth}: "
             "expected 0 < min_depth < max_depth"
+        )
+    needs = ds.get("requires")
+    if needs is not None and importlib.util.find_spec(needs.module) is None:
+        raise ImportError(
+            f"dataset={ds.name} needs {needs.package} (module {needs.module!r}), which is not "
+            f"installed: {needs.install}"
+        )
+    allowed = ds.get("fusions")
+    if allowed is not None and cfg.fusion.mode not in allowed:
+        raise ValueError(
+            f"fusion={cfg.fusion.mode}: dataset={ds.name} has no sparse sensor input, so only "
+            f"fusion={'/'.join(allowed)} is possible (dataset.fusions)"
         )
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size={cfg.data.batch_size}: expected an integer ≥ 1")

@@ -55,7 +55,7 @@ def _run_identity(cfg: DictConfig) -> dict:
     overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
     return {
         "dataset": cfg.dataset.name,
-        "sensor": cfg.dataset.reader.get("sparse"),
+        "sensor": cfg.dataset.get("sensor"),
         "backbone": cfg.backbone.name,
         "fusion": cfg.fusion.mode,
         "loss": cfg.loss.pixel,

@@ -1,0 +1,117 @@
+"""Helpers shared by the folder-based synthetic datasets (``carla``, ``topview``).
+
+Resizing keeps the depth values exact: images are resampled, depth maps only ever sampled, so
+evaluation scores depths that really were rendered and never a blend across an object edge.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
+
+# The prepared cache stores uint16 depth × 256, so nothing beyond this fits.
+CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE
+
+
+def check_size(height: int, width: int) -> tuple[int, int]:
+    """The network downsamples by 32, so both sides must be positive multiples of 32."""
+    for name, size in (("height", height), ("width", width)):
+        if int(size) != size or size <= 0 or size % 32:
+            raise ValueError(
+                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
+                "downsamples by 32)"
+            )
+    return int(height), int(width)
+
+
+def check_split(split: str) -> str:
+    if split not in SPLITS:
+        raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
+    return split
+
+
+def check_max_range(max_range: float) -> float:
+    """Depths are cached as uint16 1/256 m, so a valid range must stay below 256 m."""
+    if not 0 < max_range <= CACHE_MAX_DEPTH:
+        raise ValueError(
+            f"dataset.reader.max_range={max_range}: expected metres in (0, {CACHE_MAX_DEPTH:.2f}] "
+            "(the prepared cache stores depth as uint16 in 1/256 m)"
+        )
+    return float(max_range)
+
+
+def require_root(root: str | os.PathLike, layout: str) -> Path:
+    """The dataset folder, resolved; a missing one fails naming it and the layout expected."""
+    if str(root) in ("", "???", "None"):
+        raise ValueError(f"dataset.root is not set: expected the folder holding {layout}")
+    path = Path(root).expanduser().resolve()
+    if not path.is_dir():
+        raise FileNotFoundError(f"dataset.root={path}: no such folder; expected {layout}")
+    return path
+
+
+def require_dir(path: Path, what: str) -> Path:
+    if not path.is_dir():
+        parent = path.parent
+        found = sorted(p.name for p in parent.iterdir()) if parent.is_dir() else []
+        raise FileNotFoundError(
+            f"{path}: missing folder, expected {what} (found in {parent}: {found or 'nothing'})"
+        )
+    return path
+
+
+def list_files(folder: Path, suffixes: Sequence[str]) -> dict[str, os.DirEntry]:
+    """``stem -> entry`` of the plain files in ``folder`` whose suffix (lower case) is in
+    ``suffixes``; hidden files (e.g. temporary ``.name.tmp``) are skipped."""
+    files: dict[str, os.DirEntry] = {}
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            if entry.name.startswith(".") or not entry.is_file():
+                continue
+            stem, suffix = os.path.splitext(entry.name)
+            if suffix.lower() in suffixes:
+                if stem in files:
+                    raise ValueError(
+                        f"{folder}: {files[stem].name} and {entry.name} share the frame name "
+                        f"{stem!r}; expected one file per frame"
+                    )
+                files[stem] = entry
+    return files
+
+
+def fingerprint(entries: Iterable[os.DirEntry]) -> str:
+    """A digest of names, sizes and modification times: a changed dataset gets a new cache."""
+    digest = hashlib.sha256()
+    for entry in entries:
+        stat = entry.stat()
+        digest.update(json.dumps([entry.path, stat.st_size, stat.st_mtime_ns]).encode())
+    return digest.hexdigest()[:16]
+
+
+def resize_rgb(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """uint8 (H, W, 3) to (height, width, 3). Pillow's bilinear filter widens with the scale
+    factor, so shrinking averages over each target pixel's area instead of aliasing."""
+    if image.shape[:2] == (height, width):
+        return image
+    resized = Image.fromarray(image).resize((width, height), Image.Resampling.BILINEAR)
+    return np.asarray(resized)
+
+
+def resize_depth_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) to (height, width) by taking the source pixel under each target pixel's centre:
+    every value is one that was rendered (no blending of foreground and background)."""
+    h, w = depth.shape
+    if (h, w) == (height, width):
+        return depth
+    rows = ((np.arange(height) + 0.5) * h / height).astype(np.int64)
+    cols = ((np.arange(width) + 0.5) * w / width).astype(np.int64)
+    return depth[rows[:, None], cols[None, :]]

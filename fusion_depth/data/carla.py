@@ -1,0 +1,503 @@
+"""``dataset=carla``: CARLA recordings, the paper's synthetic camera + radar set.
+
+Folder format
+-------------
+Written as-is by a CARLA client (``scripts/record_carla.py`` does exactly this); one folder per
+split, one file per sensor and frame, all named by the frame's name (CARLA's frame number,
+zero-padded, e.g. ``00012345``)::
+
+    <root>/
+      train/  val/  test/               the three splits, each laid out as
+        rgb/<frame>.png                 camera image, 8-bit RGB or RGBA PNG
+        depth/<frame>.png               depth camera, CARLA's raw encoding (see below)
+        radar/<frame>.csv               radar detections, header ``depth,azimuth,altitude,velocity``
+        meta/<frame>.json               field of view, radar pose, weather; written last
+
+* **rgb**: what ``carla.Image.save_to_disk(path)`` writes for ``sensor.camera.rgb``. The sensor's
+  ``raw_data`` is BGRA; ``save_to_disk`` (and the recorder) store it as a PNG in the usual RGB
+  channel order. Alpha, if present, is ignored.
+* **depth**: ``sensor.camera.depth`` at the RGB camera's pose, resolution and field of view, saved
+  *without* a colour converter (``save_to_disk(path)`` or ``carla.ColorConverter.Raw``; the
+  ``Depth``/``LogarithmicDepth`` converters produce lossy grey images and are rejected). Metres
+  are ``1000 * (R + G*256 + B*256**2) / (256**3 - 1)``: planar depth along the camera's forward
+  axis, 1000 m at the far plane (the sky).
+* **radar**: one row per ``carla.RadarDetection``, values as CARLA gives them: ``depth`` (m,
+  range from the sensor), ``azimuth`` and ``altitude`` (radians), ``velocity`` (m/s, as CARLA
+  reports it; kept, not used by the network). A header-only file is a frame without detections.
+* **meta**: ``{"fov": 90.0, "condition": "ClearNoon", "radar_to_camera": {"location": {"x", "y",
+  "z"}, "rotation": {"pitch", "yaw", "roll"}}}``: ``fov`` is the camera's horizontal field of
+  view in degrees (its ``fov`` attribute); ``condition`` is the weather preset's name (or a plain
+  condition name, see :func:`condition_of`); ``radar_to_camera`` is the radar's pose in the
+  camera's frame as a ``carla.Transform`` (metres and degrees), i.e. the transform whose matrix
+  maps radar-frame points to camera-frame points. Other keys are ignored.
+
+Frames are the ``meta/*.json`` files; a frame whose image, depth or radar file is missing is an
+error naming it. Files starting with ``.`` (temporary files) are ignored.
+
+Geometry
+--------
+CARLA (Unreal Engine 4) is left-handed: x forward, y right, z up, in metres. A detection at
+``(depth d, azimuth az, altitude alt)`` sits at ``x = d cos(alt) cos(az)``, ``y = d cos(alt)
+sin(az)``, ``z = d sin(alt)`` in the radar frame (positive azimuth: to the right; positive
+altitude: up). ``radar_to_camera`` maps it to the camera frame with the matrix of
+``carla.Transform.get_matrix()`` (:func:`transform_matrix`; pitch about y, nose up positive; yaw
+about z, to the right positive; roll about x; degrees). The camera is a pinhole with square
+pixels: focal ``f = W / (2 tan(fov / 2))``, principal point at the image centre ``(W/2, H/2)``, and
+a camera-frame point lands at ``u = W/2 + f y / x`` (right), ``v = H/2 - f z / x`` (down), in pixel
+``(floor(v), floor(u))``, with depth ``x``: the same forward distance the depth camera encodes.
+Points behind the camera, at or beyond ``max_range``, or outside the image are dropped; where two
+detections land on one pixel the nearer wins.
+
+Conditions
+----------
+:func:`condition_of` maps CARLA's weather presets onto the platform's five conditions by the words
+in their names, first match wins:
+
+* ``Night`` -> night (``ClearNight``, ``HardRainNight``: darkness changes the image most)
+* ``Fog``, ``Foggy``, ``Dust``, ``Mist`` -> fog (``FoggyNoon``, the recorder's; ``DustStorm``)
+* ``Rain``, ``Rainy`` -> rain (``HardRainNoon``, ``MidRainyNoon``, ``SoftRainSunset``)
+* ``Cloudy``, ``Overcast`` -> cloudy (``CloudyNoon``, ``WetCloudySunset``)
+* ``Clear``, ``Wet``, ``Noon``, ``Sunset``, ``Morning``, ``Day`` -> day (``ClearNoon``,
+  ``WetSunset``: a wet road in daylight is still day)
+
+The plain names ``day``, ``night``, ``fog``, ``rain``, ``cloudy`` are accepted too, in any case.
+Only frames whose condition is in ``conditions`` are used.
+
+Preparing
+---------
+Every split is turned once into the shared prepared cache (:mod:`fusion_depth.data.prepared`)
+under ``<cache_root>/carla/<hash>/``, at ``height x width``: the image resized bilinearly (area
+averaging when shrinking), the depth map sampled at the nearest source pixel (exact rendered
+depths, never a blend across an edge), and the radar projected with the intrinsics scaled to the
+new size (``f_x = f W'/W``, ``f_y = f H'/H``), so sparse depths stay exact. Ground truth at or
+beyond ``max_range`` (default 250 m: the sky at 1000 m, and the cache's 256 m ceiling) is
+invalid (0). The hash covers these settings and every file's name, size and modification time,
+so a changed recording gets a new cache. The first split built prepares all three, so a bad file
+anywhere fails before training starts; the recording itself is only ever read.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import re
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data._folders import (
+    check_max_range,
+    check_size,
+    check_split,
+    fingerprint,
+    list_files,
+    require_dir,
+    require_root,
+    resize_depth_nearest,
+    resize_rgb,
+)
+from fusion_depth.data.depth_io import read_rgb
+from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
+
+FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
+CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
+SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
+RADAR_COLUMNS = ("depth", "azimuth", "altitude", "velocity")
+DEPTH_FAR = 1000.0  # metres at CARLA's depth code 256**3 - 1
+DEPTH_CODES = 256**3 - 1
+DEPTH_STEP = DEPTH_FAR / DEPTH_CODES  # metres per code: about 0.06 mm
+LAYOUT = "a CARLA recording laid out as <root>/{train,val,test}/{rgb,depth,radar,meta}/<frame>.*"
+
+# First match wins: darkness and fog change the image most, then precipitation, then cloud.
+_CONDITION_WORDS: tuple[tuple[str, frozenset[str]], ...] = (
+    ("night", frozenset({"night"})),
+    ("fog", frozenset({"fog", "foggy", "dust", "mist", "misty"})),
+    ("rain", frozenset({"rain", "rainy"})),
+    ("cloudy", frozenset({"cloudy", "overcast"})),
+    ("day", frozenset({"clear", "wet", "noon", "sunset", "morning", "day"})),
+)
+
+log = logging.getLogger(__name__)
+
+
+def condition_of(name: str) -> str:
+    """The platform condition of a CARLA weather preset name (see the module docstring)."""
+    text = str(name).strip()
+    if text.lower() in CONDITIONS:
+        return text.lower()
+    words = {w.lower() for w in re.findall(r"[A-Z]+(?![a-z])|[A-Z]?[a-z]+|\d+", text)}
+    for condition, keys in _CONDITION_WORDS:
+        if words & keys:
+            return condition
+    raise ValueError(
+        f"condition {name!r}: expected a CARLA weather preset name (e.g. ClearNoon, "
+        f"WetCloudySunset, HardRainNoon, ClearNight) or one of {list(CONDITIONS)}"
+    )
+
+
+def decode_carla_depth(rgb: np.ndarray) -> np.ndarray:
+    """CARLA's raw depth encoding, uint8 (H, W, 3) in R, G, B order, to float64 metres."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"expected uint8 (H, W, 3) R, G, B codes, got {rgb.dtype} {rgb.shape}")
+    code = (
+        rgb[..., 0].astype(np.int64)
+        + rgb[..., 1].astype(np.int64) * 256
+        + rgb[..., 2].astype(np.int64) * 65536
+    )
+    return code * DEPTH_STEP
+
+
+def encode_carla_depth(depth: np.ndarray) -> np.ndarray:
+    """Metres to CARLA's raw encoding, uint8 (H, W, 3) R, G, B (the inverse of the decoder,
+    for writing test fixtures and synthetic frames; clipped to [0, 1000] m)."""
+    code = np.round(np.clip(np.asarray(depth, dtype=np.float64), 0, DEPTH_FAR) / DEPTH_STEP)
+    code = code.astype(np.int64)
+    return np.stack([code & 255, (code >> 8) & 255, code >> 16], axis=-1).astype(np.uint8)
+
+
+def read_carla_depth(path: str | os.PathLike) -> np.ndarray:
+    """A depth camera PNG saved without a colour converter, as float64 (H, W) metres."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing CARLA depth PNG")
+    try:
+        image = Image.open(path)
+        image.load()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise ValueError(f"{path}: unreadable CARLA depth PNG ({err})") from err
+    if image.mode not in ("RGB", "RGBA"):
+        raise ValueError(
+            f"{path}: expected CARLA's raw depth encoding, an 8-bit RGB(A) PNG, got mode "
+            f"{image.mode!r} (save the depth camera without a ColorConverter)"
+        )
+    rgb = np.asarray(image)[..., :3]
+    grey = (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all()
+    if grey and np.unique(rgb[..., 0]).size > 1:
+        raise ValueError(
+            f"{path}: a grey image, i.e. saved with ColorConverter.Depth or LogarithmicDepth, "
+            "which loses precision; expected the raw encoding (save_to_disk without a converter)"
+        )
+    return decode_carla_depth(rgb)
+
+
+def _field(obj: Any, key: str) -> Any:
+    """``obj[key]`` for the JSON form, ``obj.key`` for a ``carla.Transform``-like object."""
+    return obj[key] if isinstance(obj, Mapping) else getattr(obj, key)
+
+
+def transform_matrix(transform: Any) -> np.ndarray:
+    """The 4x4 matrix of a ``carla.Transform`` (or its JSON form ``{"location": {x, y, z},
+    "rotation": {pitch, yaw, roll}}``), as ``carla.Transform.get_matrix()`` builds it: it maps
+    points in the transform's local frame to its parent's frame. Degrees; UE4 axes."""
+    location, rotation = _field(transform, "location"), _field(transform, "rotation")
+    x, y, z = (float(_field(location, k)) for k in ("x", "y", "z"))
+    pitch, yaw, roll = (math.radians(float(_field(rotation, k))) for k in ("pitch", "yaw", "roll"))
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return np.array(
+        [
+            [cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr, x],
+            [cp * sy, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr, y],
+            [sp, -cp * sr, cp * cr, z],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def matrix_to_transform(matrix: np.ndarray) -> dict[str, dict[str, float]]:
+    """The inverse of :func:`transform_matrix`: the JSON form of a rigid 4x4 matrix."""
+    m = np.asarray(matrix, dtype=np.float64)
+    pitch = math.asin(max(-1.0, min(1.0, m[2, 0])))
+    if abs(math.cos(pitch)) > 1e-9:
+        yaw = math.atan2(m[1, 0], m[0, 0])
+        roll = math.atan2(-m[2, 1], m[2, 2])
+    else:  # gimbal lock: only yaw - roll (or yaw + roll) is defined, put it all in yaw
+        yaw, roll = math.atan2(-m[0, 1], m[1, 1]), 0.0
+    return {
+        "location": {"x": float(m[0, 3]), "y": float(m[1, 3]), "z": float(m[2, 3])},
+        "rotation": {
+            "pitch": math.degrees(pitch),
+            "yaw": math.degrees(yaw),
+            "roll": math.degrees(roll),
+        },
+    }
+
+
+def relative_transform(camera: Any, radar: Any) -> dict[str, dict[str, float]]:
+    """The radar's pose in the camera frame, from both sensors' poses in a common frame (e.g.
+    the vehicle's, as they were attached): ``inverse(M_camera) @ M_radar``, in JSON form."""
+    return matrix_to_transform(np.linalg.inv(transform_matrix(camera)) @ transform_matrix(radar))
+
+
+def detections_to_points(detections: np.ndarray) -> np.ndarray:
+    """(N, >=3) rows of ``depth, azimuth, altitude`` (m, rad, rad) to (N, 3) radar-frame x, y, z."""
+    d, az, alt = (np.asarray(detections, dtype=np.float64)[:, i] for i in range(3))
+    return np.stack(
+        [d * np.cos(alt) * np.cos(az), d * np.cos(alt) * np.sin(az), d * np.sin(alt)], axis=1
+    )
+
+
+def project_radar(
+    detections: np.ndarray,
+    radar_to_camera: np.ndarray,
+    fov_deg: float,
+    source_size: tuple[int, int],
+    size: tuple[int, int],
+    max_range: float = math.inf,
+) -> np.ndarray:
+    """Radar detections to a float32 (height, width) sparse depth map in metres (0 = none).
+
+    ``source_size`` is the recorded camera's (height, width), which with ``fov_deg`` fixes the
+    intrinsics; ``size`` the output's, to which they are scaled per axis. See the module
+    docstring for the conventions.
+    """
+    (src_h, src_w), (height, width) = source_size, size
+    sparse = np.full((height, width), np.inf)
+    detections = np.asarray(detections, dtype=np.float64).reshape(-1, len(RADAR_COLUMNS))
+    detections = detections[np.isfinite(detections[:, :3]).all(axis=1)]
+    if len(detections):
+        focal = src_w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+        fx, fy = focal * width / src_w, focal * height / src_h
+        points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
+        points += radar_to_camera[:3, 3]
+        x, y, z = points.T
+        ahead = (x > 0) & (x < max_range)
+        x, y, z = x[ahead], y[ahead], z[ahead]
+        cols = np.floor(width / 2.0 + fx * y / x).astype(np.int64)
+        rows = np.floor(height / 2.0 - fy * z / x).astype(np.int64)
+        inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+        np.minimum.at(sparse, (rows[inside], cols[inside]), x[inside])
+    sparse[np.isinf(sparse)] = 0.0
+    return sparse.astype(np.float32)
+
+
+def read_radar_csv(path: str | os.PathLike) -> np.ndarray:
+    """A radar file as float64 (N, 4): ``depth, azimuth, altitude, velocity`` per detection."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing radar file")
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise ValueError(f"{path}: unreadable radar file ({err})") from err
+    header = [c.strip() for c in rows[0]] if rows else []
+    if header != list(RADAR_COLUMNS):
+        raise ValueError(
+            f"{path}: expected the header {','.join(RADAR_COLUMNS)} (one row per "
+            f"carla.RadarDetection), got {','.join(header) or 'an empty file'}"
+        )
+    values = np.zeros((0, len(RADAR_COLUMNS)))
+    if len(rows) > 1:
+        try:
+            values = np.array([[float(v) for v in row] for row in rows[1:] if row], dtype=float)
+        except ValueError as err:
+            raise ValueError(f"{path}: a detection that is not 4 numbers ({err})") from err
+        if values.ndim != 2 or values.shape[1] != len(RADAR_COLUMNS):
+            raise ValueError(f"{path}: expected {len(RADAR_COLUMNS)} values on every row")
+    return values.reshape(-1, len(RADAR_COLUMNS))
+
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """The per-frame metadata, validated."""
+
+    fov: float  # horizontal field of view, degrees
+    condition: str  # the platform condition
+    weather: str  # the name as recorded
+    radar_to_camera: np.ndarray  # 4x4
+
+
+def read_frame_meta(path: str | os.PathLike) -> FrameMeta:
+    """Reads and checks ``meta/<frame>.json``; every problem names the file and the key."""
+    path = Path(path)
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable frame metadata ({err})") from err
+    expected = (
+        '{"fov": degrees, "condition": weather preset, "radar_to_camera": {"location": '
+        '{"x", "y", "z"}, "rotation": {"pitch", "yaw", "roll"}}}'
+    )
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object {expected}")
+    for key in ("fov", "condition", "radar_to_camera"):
+        if key not in meta:
+            raise ValueError(f"{path}: missing key {key!r}; expected {expected}")
+    fov = meta["fov"]
+    if isinstance(fov, bool) or not isinstance(fov, int | float) or not 0 < fov < 180:
+        raise ValueError(f"{path}: fov={fov!r}, expected a horizontal field of view in (0, 180)°")
+    try:
+        condition = condition_of(meta["condition"])
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from err
+    try:
+        matrix = transform_matrix(meta["radar_to_camera"])
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise ValueError(
+            f"{path}: radar_to_camera={meta['radar_to_camera']!r} is not a transform; expected "
+            '{"location": {"x", "y", "z"} metres, "rotation": {"pitch", "yaw", "roll"} degrees}'
+        ) from err
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"{path}: radar_to_camera has non-finite values")
+    return FrameMeta(float(fov), condition, str(meta["condition"]), matrix)
+
+
+@dataclass(frozen=True)
+class CarlaFrame:
+    """One recorded frame: its files and metadata."""
+
+    id: str  # "<split>/<frame>"
+    rgb: Path
+    depth: Path
+    radar: Path
+    meta: FrameMeta
+
+
+def scan_recording(
+    root: Path, conditions: Sequence[str] = CONDITIONS
+) -> tuple[dict[str, list[CarlaFrame]], str]:
+    """Every split's frames (checked for missing files and bad metadata, filtered by condition)
+    and a fingerprint of their files. Cheap: lists folders and reads the small JSON files."""
+    frames: dict[str, list[CarlaFrame]] = {}
+    entries: list[os.DirEntry] = []
+    for split in SPLITS:
+        split_dir = require_dir(root / split, f"the {split} split of {LAYOUT}")
+        listed = {}
+        for sensor, suffix in SENSOR_DIRS.items():
+            folder = require_dir(split_dir / sensor, f"{split_dir}/{sensor}/<frame>{suffix} files")
+            listed[sensor] = list_files(folder, (suffix,))
+        if not listed["meta"]:
+            raise ValueError(
+                f"{split_dir / 'meta'}: no frames, the {split} split is empty; expected one "
+                "<frame>.json per recorded frame (written last by scripts/record_carla.py)"
+            )
+        kept, skipped = [], Counter()
+        for stem in sorted(listed["meta"]):
+            meta_entry = listed["meta"][stem]
+            for sensor, suffix in SENSOR_DIRS.items():
+                if stem not in listed[sensor]:
+                    raise FileNotFoundError(
+                        f"{split_dir / sensor / (stem + suffix)}: missing {sensor} file of frame "
+                        f"{stem} (its {meta_entry.path} exists)"
+                    )
+            meta = read_frame_meta(meta_entry.path)
+            if meta.condition not in conditions:
+                skipped[meta.condition] += 1
+                continue
+            files = {sensor: listed[sensor][stem] for sensor in SENSOR_DIRS}
+            entries += files.values()
+            kept.append(
+                CarlaFrame(
+                    f"{split}/{stem}",
+                    Path(files["rgb"].path),
+                    Path(files["depth"].path),
+                    Path(files["radar"].path),
+                    meta,
+                )
+            )
+        if skipped:
+            log.info(
+                "carla %s: left out %d frames whose condition is not in %s (%s)",
+                split,
+                sum(skipped.values()),
+                list(conditions),
+                dict(skipped),
+            )
+        if not kept:
+            raise ValueError(
+                f"{split_dir}: none of its {sum(skipped.values())} frames has a condition in "
+                f"dataset.conditions={list(conditions)} (found {dict(skipped)})"
+            )
+        frames[split] = kept
+    return frames, fingerprint(entries)
+
+
+def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> PreparedFrame:
+    """Decodes, projects and resizes one recorded frame."""
+    image = read_rgb(frame.rgb)
+    depth = read_carla_depth(frame.depth)
+    if depth.shape != image.shape[:2]:
+        raise ValueError(
+            f"{frame.depth}: depth image is {depth.shape[1]}x{depth.shape[0]}, expected the "
+            f"camera image's {image.shape[1]}x{image.shape[0]} ({frame.rgb})"
+        )
+    depth = np.where(depth < max_range, depth, 0.0).astype(np.float32)
+    sparse = project_radar(
+        read_radar_csv(frame.radar),
+        frame.meta.radar_to_camera,
+        frame.meta.fov,
+        image.shape[:2],
+        (height, width),
+        max_range,
+    )
+    return PreparedFrame(
+        image=resize_rgb(image, height, width),
+        sparse=sparse,
+        depth=resize_depth_nearest(depth, height, width),
+        condition=frame.meta.condition,
+    )
+
+
+class CarlaDepth(PreparedSplit):
+    """One split of a CARLA recording (format: the module docstring), served from the prepared
+    cache. Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict."""
+
+    def __init__(
+        self,
+        split: str,
+        root: str | os.PathLike,
+        cache_root: str | os.PathLike,
+        height: int = 480,
+        width: int = 640,
+        conditions: Sequence[str] = CONDITIONS,
+        max_range: float = 250.0,
+    ) -> None:
+        check_split(split)
+        height, width = check_size(height, width)
+        conditions = [str(c) for c in conditions]
+        unknown = [c for c in conditions if c not in CONDITIONS]
+        if not conditions or unknown:
+            raise ValueError(
+                f"dataset.conditions={conditions}: expected a non-empty subset of "
+                f"{list(CONDITIONS)}"
+            )
+        max_range = check_max_range(max_range)
+        root = require_root(root, LAYOUT)
+        frames, files = scan_recording(root, conditions)
+        params = {
+            "format_version": FORMAT_VERSION,
+            "root": str(root),
+            "height": height,
+            "width": width,
+            "conditions": conditions,
+            "max_range": max_range,
+            "files": files,
+        }
+        cache = cache_dir(Path(cache_root).expanduser(), "carla", params).resolve()
+        if cache.is_relative_to(root):
+            raise ValueError(
+                f"cache {cache} is inside dataset.root={root}; the dataset folder is only read: "
+                "point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
+            )
+        for name in SPLITS:
+            by_id = {frame.id: frame for frame in frames[name]}
+            prepare_split(
+                cache,
+                name,
+                list(by_id),
+                lambda frame_id, by_id=by_id: load_frame(by_id[frame_id], height, width, max_range),
+                params,
+            )
+        super().__init__(cache / split)

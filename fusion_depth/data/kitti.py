@@ -1,0 +1,504 @@
+"""``dataset=kitti``: the KITTI depth completion benchmark, camera + Velodyne lidar.
+
+Read exactly as KITTI publishes it on the depth completion benchmark page:
+
+* ``<root>/data_depth_annotated/{train,val}/<drive>/proj_depth/groundtruth/image_0{2,3}/``
+  ``<frame>.png``: the semi-dense ground truth (11 lidar scans accumulated and cleaned),
+* ``<root>/data_depth_velodyne/{train,val}/<drive>/proj_depth/velodyne_raw/image_0{2,3}/``
+  ``<frame>.png``: one raw Velodyne scan projected into the camera, the sparse input,
+* ``<raw_root>/<date>/<drive>/image_0{2,3}/data/<frame>.png`` the RGB frames of the raw drives,
+
+with ``<drive>`` like ``2011_09_26_drive_0001_sync``, ``<date>`` its first 10 characters and
+``<frame>`` a 10-digit index. Depth PNGs are uint16 holding metres x 256, 0 = no measurement.
+``image_02`` is the left colour camera, ``image_03`` the right; both are used.
+
+Splits. ``train`` and ``val`` are KITTI's own, every frame of both cameras (``train_stride``
+keeps every n-th frame of each drive and camera for training: 10 gives the paper's ~9k frames
+instead of ~86k). KITTI publishes no test ground truth, so ``test`` is ``val`` (prepared once,
+shared). With ``split_file`` the test split is the frames that file lists instead (e.g. the 652
+Eigen et al. test frames that have annotated depth), found in either ``train`` or ``val``; with
+``exclude_test_drives`` (default) their drives are dropped from ``train`` so the network never
+trains on a test scene. ``val`` stays KITTI's: it only selects the checkpoint, and many of its
+drives are Eigen test drives, so dropping them would leave little of it.
+
+A split file has one frame per line, either
+
+* ``2011_09_26/2011_09_26_drive_0002_sync 69 l`` (Eigen/monodepth2 split files: drive, frame
+  index, ``l`` = image_02 or ``r`` = image_03), or
+* a relative path naming drive, camera and frame, e.g.
+  ``train/2011_09_26_drive_0001_sync/proj_depth/groundtruth/image_02/0000000005.png`` or
+  ``2011_09_26/2011_09_26_drive_0002_sync/image_02/data/0000000069.png`` (first token of the line);
+
+blank lines and ``#`` comments are skipped.
+
+Frames. The input is ``height`` x ``width`` (the paper: 384 x 1248, KITTI's ~375 x 1242 padded
+to multiples of 32). A side longer than that is cropped, keeping the bottom rows (the top of a
+KITTI frame is sky without lidar) and the horizontal centre; a shorter side is padded at the
+bottom/right, the image by repeating its edge, depth and sparse maps with 0 (= invalid, so
+padding is never scored). ``sparse_points`` keeps that many of the Velodyne returns (sparse-to-
+dense's 200/500-sample experiments), chosen at random but the same every time for a frame.
+``fill`` densifies the *training* ground truth (:mod:`fusion_depth.data.filling`); validation and
+test always score the measured annotated points, only those inside ``eval_crop`` (``garg`` or
+``eigen``, taken on the full frame) when set. Every frame is condition ``day``.
+
+All of it happens once, in the prepared cache ``<cache_root>/kitti/<hash>/`` (see
+:mod:`fusion_depth.data.prepared`; ``python -m fusion_depth.prepare dataset=kitti ...``). Every
+split is prepared on first use, before any training, so a missing or corrupt file anywhere
+fails at once, naming the file. The dataset folders are only ever read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import re
+import zlib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from itertools import groupby
+from pathlib import Path
+
+import numpy as np
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data.depth_io import read_depth_png, read_rgb
+from fusion_depth.data.filling import FILL_METHODS, fill_depth
+from fusion_depth.data.prepared import (
+    PreparedFrame,
+    PreparedSplit,
+    cache_dir,
+    is_prepared,
+    prepare_split,
+)
+
+SUBSETS: tuple[str, ...] = ("train", "val")  # what KITTI publishes ground truth for
+CAMERAS: dict[str, str] = {"l": "image_02", "r": "image_03"}
+CONDITION = "day"
+ANNOTATED = "data_depth_annotated"
+VELODYNE = "data_depth_velodyne"
+KITTI_VERSION = 1  # bump when the frame processing changes, so old caches are not reused
+# Evaluation crops as fractions of the full frame, (top, bottom, left, right), as monodepth2
+# writes them: Garg et al.'s (ECCV 2016) and Eigen et al.'s (NIPS 2014).
+EVAL_CROPS: dict[str, tuple[float, float, float, float] | None] = {
+    "none": None,
+    "garg": (0.40810811, 0.99189189, 0.03594771, 0.96405229),
+    "eigen": (0.3324324, 0.91351351, 0.0359477, 0.96405229),
+}
+
+_DRIVE = r"\d{4}_\d{2}_\d{2}_drive_\d{4}_sync"
+_DRIVE_RE = re.compile(rf"^{_DRIVE}$")
+_EIGEN_LINE = re.compile(rf"^(?:\d{{4}}_\d{{2}}_\d{{2}}/)?({_DRIVE})$")
+_PATH_LINE = re.compile(rf"(?:^|/)({_DRIVE})/(?:.*/)?(image_0[23])/(?:.*/)?(\d+)(?:\.png)?$")
+_SHOWN = 5  # how many missing files an error message lists
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, order=True)
+class KittiFrame:
+    """One camera frame: where its three files are."""
+
+    subset: str  # the data_depth_* folder holding it: train | val
+    drive: str  # e.g. 2011_09_26_drive_0001_sync
+    camera: str  # image_02 | image_03
+    frame: str  # 10 digits
+
+    @property
+    def id(self) -> str:
+        return f"{self.subset}/{self.drive}/{self.camera}/{self.frame}"
+
+    @classmethod
+    def from_id(cls, frame_id: str) -> KittiFrame:
+        subset, drive, camera, frame = frame_id.split("/")
+        return cls(subset, drive, camera, frame)
+
+    def groundtruth(self, root: Path) -> Path:
+        folder = root / ANNOTATED / self.subset / self.drive / "proj_depth" / "groundtruth"
+        return folder / self.camera / f"{self.frame}.png"
+
+    def velodyne(self, root: Path) -> Path:
+        folder = root / VELODYNE / self.subset / self.drive / "proj_depth" / "velodyne_raw"
+        return folder / self.camera / f"{self.frame}.png"
+
+    def image(self, raw_root: Path) -> Path:
+        return raw_root / self.drive[:10] / self.drive / self.camera / "data" / f"{self.frame}.png"
+
+
+# --- layout -----------------------------------------------------------------------------------
+
+
+def check_layout(root: Path, raw_root: Path) -> None:
+    """The published top-level folders exist, or an error saying which and what was expected."""
+    if not root.is_dir():
+        raise FileNotFoundError(
+            f"dataset.root={root}: no such folder; expected the KITTI depth completion folder "
+            f"holding {ANNOTATED}/ and {VELODYNE}/"
+        )
+    if root.name in (ANNOTATED, VELODYNE):
+        raise ValueError(
+            f"dataset.root={root}: this is the {root.name} folder itself; pass its parent, "
+            f"the folder holding both {ANNOTATED}/ and {VELODYNE}/"
+        )
+    for name, below in ((ANNOTATED, "groundtruth"), (VELODYNE, "velodyne_raw")):
+        if not (root / name).is_dir():
+            raise FileNotFoundError(
+                f"{root / name}: missing; expected the KITTI depth completion layout "
+                f"<root>/{name}/{{train,val}}/<drive>/proj_depth/{below}/image_0{{2,3}}/<frame>.png"
+            )
+    if not raw_root.is_dir():
+        raise FileNotFoundError(
+            f"dataset.raw_root={raw_root}: no such folder; expected the KITTI raw data, "
+            "<raw_root>/<date>/<drive>/image_0{2,3}/data/<frame>.png"
+        )
+
+
+def list_subset(root: Path, subset: str) -> list[KittiFrame]:
+    """Every annotated frame of one of KITTI's subsets, in a fixed order."""
+    folder = root / ANNOTATED / subset
+    expected = "<drive>/proj_depth/groundtruth/image_0{2,3}/<frame>.png"
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: missing; expected {folder}/{expected}")
+    drives = sorted(p for p in folder.iterdir() if p.is_dir() and _DRIVE_RE.match(p.name))
+    if not drives:
+        raise ValueError(
+            f"{folder}: no drive folders like 2011_09_26_drive_0001_sync; expected "
+            f"{folder}/{expected}"
+        )
+    frames = []
+    for drive in drives:
+        gt = drive / "proj_depth" / "groundtruth"
+        cameras = [c for c in sorted(CAMERAS.values()) if (gt / c).is_dir()]
+        if not cameras:
+            raise FileNotFoundError(
+                f"{gt}: expected the folders image_02/ and image_03/ of annotated depth PNGs"
+            )
+        for camera in cameras:
+            frames += [
+                KittiFrame(subset, drive.name, camera, png.stem)
+                for png in sorted((gt / camera).glob("*.png"))
+            ]
+    if not frames:
+        raise ValueError(f"{folder}: no annotated depth PNGs; expected {folder}/{expected}")
+    return frames
+
+
+def parse_split_file(path: Path) -> list[tuple[str, str, str]]:
+    """``(drive, camera, 10-digit frame)`` per listed frame, in file order, duplicates dropped."""
+    if not path.is_file():
+        raise FileNotFoundError(f"dataset.split_file={path}: no such file")
+    entries: dict[tuple[str, str, str], None] = {}
+    for number, raw in enumerate(path.read_text().splitlines(), 1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        entry = _parse_split_line(line)
+        if entry is None:
+            raise ValueError(
+                f"{path}, line {number}: {raw.strip()!r}: expected '<date>/<drive> <frame> l|r' "
+                "(e.g. '2011_09_26/2011_09_26_drive_0002_sync 69 l') or a relative path naming "
+                "drive, camera and frame (e.g. '2011_09_26_drive_0002_sync/proj_depth/"
+                "groundtruth/image_02/0000000069.png')"
+            )
+        entries[entry] = None
+    if not entries:
+        raise ValueError(f"dataset.split_file={path}: lists no frames")
+    return list(entries)
+
+
+def _parse_split_line(line: str) -> tuple[str, str, str] | None:
+    tokens = line.replace("\\", "/").split()
+    eigen = _EIGEN_LINE.match(tokens[0])
+    if eigen and len(tokens) == 3 and tokens[1].isdigit() and tokens[2] in CAMERAS:
+        return eigen.group(1), CAMERAS[tokens[2]], f"{int(tokens[1]):010d}"
+    path = _PATH_LINE.search(tokens[0])
+    if path:
+        return path.group(1), path.group(2), f"{int(path.group(3)):010d}"
+    return None
+
+
+def locate_listed(
+    root: Path, listed: Iterable[tuple[str, str, str]], source: Path
+) -> list[KittiFrame]:
+    """The split file's frames in KITTI's train or val subset; all must have annotated depth."""
+    frames, missing = [], []
+    for drive, camera, frame in listed:
+        subset = next((s for s in SUBSETS if (root / ANNOTATED / s / drive).is_dir()), None)
+        found = KittiFrame(subset or SUBSETS[0], drive, camera, frame)
+        if subset is None or not found.groundtruth(root).is_file():
+            missing.append(found)
+        else:
+            frames.append(found)
+    if missing:
+        shown = "\n  ".join(str(f.groundtruth(root)) for f in missing[:_SHOWN])
+        raise FileNotFoundError(
+            f"dataset.split_file={source}: {len(missing)} of {len(missing) + len(frames)} listed "
+            f"frames have no annotated depth in {root / ANNOTATED}/{{train,val}}, e.g.\n  {shown}\n"
+            "(the 697-frame Eigen test list has 45 such frames; use the 652-frame list of those "
+            "with annotated depth, monodepth2's splits/eigen_benchmark/test_files.txt)"
+        )
+    return frames
+
+
+def check_files(frames: Sequence[KittiFrame], root: Path, raw_root: Path, split: str) -> None:
+    """Every frame's sparse input and RGB image exist, before anything is prepared."""
+    for what, locate in (
+        ("velodyne_raw depth PNG", lambda f: f.velodyne(root)),
+        ("raw RGB image", lambda f: f.image(raw_root)),
+    ):
+        missing = [locate(f) for f in frames if not locate(f).is_file()]
+        if missing:
+            shown = "\n  ".join(str(p) for p in missing[:_SHOWN])
+            raise FileNotFoundError(
+                f"{split} split: {len(missing)} of {len(frames)} frames have no {what}, e.g.\n"
+                f"  {shown}"
+            )
+
+
+# --- one frame --------------------------------------------------------------------------------
+
+
+def crop_or_pad(array: np.ndarray, height: int, width: int, pad_mode: str) -> np.ndarray:
+    """To ``height`` x ``width``: keep the bottom rows and the centre columns of a larger frame,
+    pad a smaller one at the bottom/right (``pad_mode`` "edge" for images, "zero" for depth)."""
+    h, w = array.shape[:2]
+    top = max(h - height, 0)
+    left = max((w - width) // 2, 0)
+    array = array[top : top + height, left : left + width]
+    pad = [(0, height - array.shape[0]), (0, width - array.shape[1])] + [(0, 0)] * (array.ndim - 2)
+    if pad_mode == "edge":
+        return np.pad(array, pad, mode="edge")
+    return np.pad(array, pad, mode="constant")
+
+
+def subsample(sparse: np.ndarray, points: int | None, seed: int, frame_id: str) -> np.ndarray:
+    """Keep ``points`` of the measured pixels (all if fewer), the same ones every time for a
+    frame: the choice is seeded by ``seed`` and a checksum of the frame id."""
+    if points is None:
+        return sparse
+    measured = np.flatnonzero(sparse > 0)
+    if len(measured) <= points:
+        return sparse
+    rng = np.random.default_rng([seed, zlib.crc32(frame_id.encode())])
+    keep = rng.choice(measured, size=points, replace=False)
+    out = np.zeros_like(sparse)
+    out.flat[keep] = sparse.flat[keep]
+    return out
+
+
+@dataclass(frozen=True)
+class FrameSettings:
+    root: Path
+    raw_root: Path
+    height: int
+    width: int
+    sparse_points: int | None
+    fill: str
+    seed: int
+    eval_crop: str = "none"
+
+
+def eval_crop_mask(shape: tuple[int, int], crop: str) -> np.ndarray:
+    """True inside ``EVAL_CROPS[crop]`` of a full frame of ``shape`` (all True for "none")."""
+    mask = np.ones(shape, dtype=bool)
+    fractions = EVAL_CROPS[crop]
+    if fractions is not None:
+        h, w = shape
+        top, bottom, left, right = (
+            int(f * size) for f, size in zip(fractions, (h, h, w, w), strict=True)
+        )
+        mask[:] = False
+        mask[top:bottom, left:right] = True
+    return mask
+
+
+def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> PreparedFrame:
+    """Reads one frame's three files and turns them into the network's input size: a training
+    frame gets its filled ground truth, an evaluation frame its evaluation crop."""
+    s = settings
+    paths = {
+        "image": frame.image(s.raw_root),
+        "groundtruth": frame.groundtruth(s.root),
+        "velodyne_raw": frame.velodyne(s.root),
+    }
+    image = read_rgb(paths["image"])
+    depth = read_depth_png(paths["groundtruth"])
+    sparse = read_depth_png(paths["velodyne_raw"])
+    for name in ("groundtruth", "velodyne_raw"):
+        shape = depth.shape if name == "groundtruth" else sparse.shape
+        if shape != image.shape[:2]:
+            raise ValueError(
+                f"{paths[name]}: {shape[0]}x{shape[1]} depth map, expected the size of its "
+                f"image {paths['image']} ({image.shape[0]}x{image.shape[1]})"
+            )
+    if not training:
+        depth = np.where(eval_crop_mask(depth.shape, s.eval_crop), depth, 0.0)
+    # Crop first (filling then sees exactly the kept pixels), pad last (padding stays invalid).
+    crop_h, crop_w = min(s.height, image.shape[0]), min(s.width, image.shape[1])
+    image, depth, sparse = (crop_or_pad(a, crop_h, crop_w, "zero") for a in (image, depth, sparse))
+    sparse = subsample(sparse, s.sparse_points, s.seed, frame.id)
+    dense = fill_depth(depth, image, s.fill) if training and s.fill != "none" else None
+    return PreparedFrame(
+        image=crop_or_pad(image, s.height, s.width, "edge"),
+        sparse=crop_or_pad(sparse, s.height, s.width, "zero"),
+        depth=crop_or_pad(depth, s.height, s.width, "zero"),
+        condition=CONDITION,
+        filled=None if dense is None else crop_or_pad(dense, s.height, s.width, "zero"),
+    )
+
+
+# --- the dataset ------------------------------------------------------------------------------
+
+
+class KittiDepth(PreparedSplit):
+    """One split of KITTI depth completion, prepared on first use (see the module docstring).
+
+    Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; ``depth`` is
+    the filled ground truth in the train split when ``fill`` is set, the measured one otherwise.
+    """
+
+    def __init__(
+        self,
+        split: str,
+        root: str | os.PathLike,
+        raw_root: str | os.PathLike,
+        cache_root: str | os.PathLike,
+        height: int = 384,
+        width: int = 1248,
+        sparse_points: int | None = None,
+        fill: str = "none",
+        split_file: str | os.PathLike | None = None,
+        exclude_test_drives: bool = True,
+        eval_crop: str = "none",
+        train_stride: int = 1,
+        seed: int = 0,
+    ) -> None:
+        if split not in SPLITS:
+            raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
+        settings = _settings(root, raw_root, height, width, sparse_points, fill, eval_crop, seed)
+        cache_root = Path(cache_root).expanduser().resolve()
+        for name, folder in (("root", settings.root), ("raw_root", settings.raw_root)):
+            if cache_root == folder or folder in cache_root.parents:
+                raise ValueError(
+                    f"paths.cache_dir={cache_root} is inside dataset.{name}={folder}: the "
+                    "dataset folder is only ever read; set FUSION_DEPTH_CACHE elsewhere"
+                )
+        check_layout(settings.root, settings.raw_root)
+        if int(train_stride) != train_stride or train_stride < 1:
+            raise ValueError(
+                f"dataset.train_stride={train_stride}: expected an integer >= 1 (every n-th frame)"
+            )
+        split_path = None if split_file is None else Path(split_file).expanduser().resolve()
+        frames = split_frames(settings.root, split_path, exclude_test_drives, int(train_stride))
+        params = {
+            "kitti_version": KITTI_VERSION,
+            "root": str(settings.root),
+            "raw_root": str(settings.raw_root),
+            "height": settings.height,
+            "width": settings.width,
+            "sparse_points": settings.sparse_points,
+            "fill": settings.fill,
+            "eval_crop": settings.eval_crop,
+            "seed": settings.seed,
+            "split_file": None if split_path is None else str(split_path),
+            "exclude_test_drives": bool(exclude_test_drives),
+            "train_stride": int(train_stride),
+            "frames": _digest(frames),
+        }
+        self.cache = cache_dir(cache_root, "kitti", params)
+        folders = {name: name for name in frames}
+        if split_path is None:
+            folders["test"] = "val"  # the same frames: prepared once
+        needed = list(dict.fromkeys(folders[name] for name in SPLITS))  # train, val[, test]
+        if not all(is_prepared(self.cache, name) for name in needed):
+            for name in needed:
+                check_files(frames[name], settings.root, settings.raw_root, name)
+            for name in needed:
+                training = name == "train"
+                prepare_split(
+                    self.cache,
+                    name,
+                    [f.id for f in frames[name]],
+                    lambda i, t=training: load_frame(KittiFrame.from_id(i), settings, t),
+                    params,
+                )
+        super().__init__(
+            self.cache / folders[split], use_filled=split == "train" and settings.fill != "none"
+        )
+
+
+def _settings(
+    root: str | os.PathLike,
+    raw_root: str | os.PathLike,
+    height: int,
+    width: int,
+    sparse_points: int | None,
+    fill: str,
+    eval_crop: str,
+    seed: int,
+) -> FrameSettings:
+    for name, size in (("height", height), ("width", width)):
+        if int(size) != size or size <= 0 or size % 32:
+            raise ValueError(
+                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
+                "downsamples by 32; the paper uses 384x1248)"
+            )
+    if sparse_points is not None and (int(sparse_points) != sparse_points or sparse_points < 1):
+        raise ValueError(
+            f"dataset.sparse_points={sparse_points}: expected null (every Velodyne return) or a "
+            "number of points >= 1"
+        )
+    if fill not in FILL_METHODS:
+        raise ValueError(f"dataset.fill={fill!r}: expected one of {list(FILL_METHODS)}")
+    if eval_crop not in EVAL_CROPS:
+        raise ValueError(f"dataset.eval_crop={eval_crop!r}: expected one of {list(EVAL_CROPS)}")
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"dataset.seed={seed}: expected a non-negative integer")
+    return FrameSettings(
+        root=Path(root).expanduser().resolve(),
+        raw_root=Path(raw_root).expanduser().resolve(),
+        height=int(height),
+        width=int(width),
+        sparse_points=None if sparse_points is None else int(sparse_points),
+        fill=fill,
+        seed=int(seed),
+        eval_crop=eval_crop,
+    )
+
+
+def split_frames(
+    root: Path, split_file: Path | None, exclude_test_drives: bool = True, train_stride: int = 1
+) -> dict[str, list[KittiFrame]]:
+    """The frames of every split (see the module docstring for what each one holds)."""
+    train, val = (list_subset(root, subset) for subset in SUBSETS)
+    train = [
+        frame
+        for _, sequence in groupby(train, key=lambda f: (f.drive, f.camera))
+        for frame in list(sequence)[::train_stride]
+    ]
+    if split_file is None:
+        return {"train": train, "val": val, "test": val}
+    test = locate_listed(root, parse_split_file(split_file), split_file)
+    if exclude_test_drives:
+        drives = {f.drive for f in test}
+        kept = [f for f in train if f.drive not in drives]
+        if not kept:
+            raise ValueError(
+                f"train split: every drive of {root / ANNOTATED / 'train'} is a test drive of "
+                f"dataset.split_file={split_file}, nothing is left to train on (set "
+                "dataset.exclude_test_drives=false to keep them)"
+            )
+        log.info(
+            "kitti: %d train frames of %d test drives left out (dataset.exclude_test_drives)",
+            len(train) - len(kept),
+            len(drives),
+        )
+        train = kept
+    return {"train": train, "val": val, "test": test}
+
+
+def _digest(frames: dict[str, list[KittiFrame]]) -> str:
+    """A checksum of every split's frame list: new or removed files give a new cache."""
+    text = json.dumps({name: [f.id for f in split] for name, split in frames.items()})
+    return hashlib.sha256(text.encode()).hexdigest()[:16]

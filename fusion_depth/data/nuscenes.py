@@ -1,0 +1,730 @@
+"""``dataset=nuscenes``: the paper's real camera + radar set, read with the official devkit.
+
+Needs the optional extra ``pip install -e ".[nuscenes]"`` (the ``nuscenes-devkit`` package; it pins
+numpy < 2, so it is not a core dependency). Without it, choosing this dataset fails at once with
+that command.
+
+Layout
+------
+The folder as nuScenes publishes it (https://www.nuscenes.org/nuscenes#download: the metadata
+archive plus the sensor blobs, unpacked into one folder)::
+
+    <root>/
+      maps/*.png                  map masks (the devkit checks they exist)
+      samples/CAM_FRONT/*.jpg     keyframe images, 1600x900
+      samples/RADAR_FRONT/*.pcd   keyframe radar returns (also RADAR_FRONT_LEFT, ...)
+      samples/LIDAR_TOP/*.pcd.bin keyframe lidar sweeps
+      sweeps/<CHANNEL>/...        the non-keyframe sweeps (needed when accumulating sweeps)
+      v1.0-trainval/*.json        the 13 tables (or v1.0-mini/, v1.0-test/)
+
+Frames
+------
+One frame per keyframe ``sample`` of the chosen scenes (in scene-name order, then time order):
+
+* **image**: ``CAM_FRONT``.
+* **sparse**: the radar returns of ``radar_channels`` (default ``RADAR_FRONT``; ``RADAR_FRONT_LEFT``
+  and ``RADAR_FRONT_RIGHT`` can be added), each accumulated over ``radar_nsweeps`` sweeps (the
+  keyframe's and the ones before it) and filtered by the devkit's ``RadarPointCloud`` states:
+  ``radar_filters=default`` (``RadarPointCloud.default_filters()``: valid clusters, unambiguous
+  Doppler, not ``stopped``), ``off`` (``disable_filters()``: every return), or ``custom`` with the
+  three lists ``radar_invalid_states``, ``radar_dynprop_states``, ``radar_ambig_states``.
+* **depth** (ground truth): ``LIDAR_TOP``, accumulated over ``lidar_nsweeps`` sweeps (default 1:
+  accumulating smears moving objects).
+* **filled** (training ground truth, ``fill=colorization|linear|none``): the lidar map densified by
+  :func:`fusion_depth.data.filling.fill_depth`, as the paper does with Levin et al.'s colorization.
+  Only the train split has it; validation and test always score the measured lidar points.
+
+Geometry
+--------
+The devkit does it: ``from_file_multisweep(nusc, sample, channel, "CAM_FRONT", nsweeps,
+min_distance)`` takes every sweep from its sensor through the ego pose at the sweep's timestamp
+into the global frame and back through the ego pose at the camera's timestamp into the camera
+(the chain of ``NuScenesExplorer.map_pointcloud_to_image``), and ``view_points`` projects with the
+intrinsics. A point lands in pixel ``(floor(v), floor(u))`` with its camera-frame ``z`` as depth.
+Points with ``z < min_distance`` (default 1 m; the devkit also drops points within that distance
+of their own sensor), outside the image, or beyond the cache's 255.99 m ceiling are dropped; where
+two points land on one pixel the nearer wins.
+
+Resolution: the image is scaled uniformly (bilinear; area-averaging when shrinking) until it covers
+``height x width``, then cropped: centred horizontally, from the top vertically (sky, where lidar
+never returns). The default 448x800 is 1600x900 halved with 2 rows cut from the top. Sparse maps
+are never resampled: points are projected with the intrinsics scaled and shifted the same way
+(``f_x, c_x`` times ``W'/W``, minus the crop offset), so every depth stays a measured one.
+
+Splits and conditions
+---------------------
+``train``/``val`` are the devkit's official scene splits (``create_splits_scenes()``:
+``train``/``val`` for v1.0-trainval, ``mini_train``/``mini_val`` for v1.0-mini). nuScenes' test
+scenes have no public annotations, but their lidar is public, so depth ground truth exists:
+``test_split=val`` (default) tests on the val scenes, as nuScenes depth papers do (the val
+frames are prepared once and shared); ``test_split=test`` tests on the official test scenes read
+from ``<root>/v1.0-test``, so model selection and testing use disjoint scenes. ``stride=n`` keeps
+every n-th keyframe of each scene (e.g. 8 gives about 3.5k train frames of v1.0-trainval, the
+size of the paper's set). A frame's ``condition`` comes from its scene description: ``night``
+if it mentions night (night wins over rain), else ``rain`` if it mentions rain, else ``day``;
+``conditions`` keeps only frames of the listed ones.
+
+Preparing
+---------
+The first split requested prepares all three into the shared cache
+(:mod:`fusion_depth.data.prepared`) under ``<cache_root>/nuscenes/<hash>/``, so a bad file
+anywhere fails before training. The hash covers every setting above plus the tables' names,
+sizes and modification times; val/test do not depend on ``fill``, so changing it re-prepares
+only the train split. Every file a frame needs is checked before the first frame is written;
+the dataset folder is only ever read. Loading the v1.0-trainval tables takes the devkit about a
+minute and a few GB of memory, once per prepare.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, read_rgb
+from fusion_depth.data.filling import FILL_METHODS, fill_depth
+from fusion_depth.data.prepared import (
+    PreparedFrame,
+    PreparedSplit,
+    cache_dir,
+    is_prepared,
+    prepare_split,
+)
+
+FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
+INSTALL = 'pip install -e ".[nuscenes]"'
+CAMERA = "CAM_FRONT"
+LIDAR = "LIDAR_TOP"
+RADAR_CHANNELS = (
+    "RADAR_FRONT",
+    "RADAR_FRONT_LEFT",
+    "RADAR_FRONT_RIGHT",
+    "RADAR_BACK_LEFT",
+    "RADAR_BACK_RIGHT",
+)
+# version -> the devkit's split names (create_splits_scenes) of its train and val scenes
+VERSIONS = {"v1.0-trainval": ("train", "val"), "v1.0-mini": ("mini_train", "mini_val")}
+TEST_VERSION = "v1.0-test"
+TEST_SPLITS = ("val", "test")
+TABLES = (
+    "category",
+    "attribute",
+    "visibility",
+    "instance",
+    "sensor",
+    "calibrated_sensor",
+    "ego_pose",
+    "log",
+    "scene",
+    "sample",
+    "sample_data",
+    "sample_annotation",
+    "map",
+)
+CONDITIONS = ("day", "night", "rain")
+RADAR_FILTERS = ("default", "off", "custom")
+# The state values each RadarPointCloud filter can take (what disable_filters() allows).
+RADAR_STATE_RANGES = {"invalid_states": 18, "dynprop_states": 8, "ambig_states": 5}
+CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE  # 255.99 m, the cache's ceiling
+LIDAR_POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring index
+LAYOUT = (
+    "the nuScenes folder as published: samples/, sweeps/, maps/ and the table folder "
+    "<version>/ (v1.0-trainval, v1.0-mini or v1.0-test) side by side"
+)
+_FORMATS = {
+    "radar": "a nuScenes radar PCD file (v0.7 header, 18 binary fields per return) as the "
+    "devkit's RadarPointCloud.from_file reads it",
+    "lidar": "a nuScenes lidar .pcd.bin file (float32 x, y, z, intensity, ring index per point)",
+}
+_NIGHT = re.compile(r"\bnight", re.IGNORECASE)
+_RAIN = re.compile(r"\brain", re.IGNORECASE)  # rain, rainy, raining; not train, drain, terrain
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Devkit:
+    """The parts of ``nuscenes-devkit`` this module uses."""
+
+    NuScenes: type
+    RadarPointCloud: type
+    LidarPointCloud: type
+    view_points: Callable[..., np.ndarray]
+    create_splits_scenes: Callable[..., dict]
+
+
+def require_devkit() -> Devkit:
+    """Imports the devkit, or fails with the install command (it is an optional extra)."""
+    try:
+        from nuscenes.nuscenes import NuScenes
+        from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud
+        from nuscenes.utils.geometry_utils import view_points
+        from nuscenes.utils.splits import create_splits_scenes
+    except ImportError as err:
+        raise ImportError(
+            "dataset=nuscenes reads nuScenes with the official nuscenes-devkit, which could not "
+            f"be imported ({err}). Install the optional extra: {INSTALL} in the fusion-depth "
+            "checkout (or pip install nuscenes-devkit). It pins numpy<2, which is why it is not "
+            "a core dependency."
+        ) from err
+    return Devkit(NuScenes, RadarPointCloud, LidarPointCloud, view_points, create_splits_scenes)
+
+
+def condition_from_description(description: str) -> str:
+    """``night`` / ``rain`` / ``day`` from a scene description (night wins over rain)."""
+    if _NIGHT.search(description):
+        return "night"
+    if _RAIN.search(description):
+        return "rain"
+    return "day"
+
+
+def resize_and_crop(
+    image: np.ndarray, intrinsic: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scales ``image`` uniformly to cover ``height x width`` and crops it (centred horizontally,
+    from the top vertically); returns it with the intrinsics that project into the result.
+
+    Pixel ``i`` covers ``[i, i + 1)``, so scaling by ``s`` maps ``u`` to ``s u``: the intrinsics
+    scale by the same factors (per axis, after rounding the resized size) and shift by the crop.
+    """
+    h0, w0 = image.shape[:2]
+    scale = max(width / w0, height / h0)
+    new_w = max(width, round(w0 * scale))
+    new_h = max(height, round(h0 * scale))
+    if (new_w, new_h) != (w0, h0):
+        resized = Image.fromarray(image).resize((new_w, new_h), Image.Resampling.BILINEAR)
+        image = np.asarray(resized)
+    left, top = (new_w - width) // 2, new_h - height
+    k = np.asarray(intrinsic, dtype=np.float64).copy()
+    k[0] *= new_w / w0
+    k[1] *= new_h / h0
+    k[0, 2] -= left
+    k[1, 2] -= top
+    return np.ascontiguousarray(image[top : top + height, left : left + width]), k
+
+
+def project_points(
+    points: np.ndarray,
+    intrinsic: np.ndarray,
+    height: int,
+    width: int,
+    min_distance: float,
+) -> np.ndarray:
+    """Camera-frame points ``(3, N)`` to a float32 ``(height, width)`` depth map (0 = none).
+
+    Drops points with depth ``z < min_distance`` (behind the camera included), beyond the cache's
+    ceiling, or outside the image; the nearest point wins a shared pixel.
+    """
+    depth_map = np.zeros((height, width), dtype=np.float32)
+    points = np.asarray(points, dtype=np.float64)[:3]
+    z = points[2]
+    keep = np.isfinite(points).all(0) & (z >= min_distance) & (z <= CACHE_MAX_DEPTH)
+    points = points[:, keep]
+    if not points.shape[1]:
+        return depth_map
+    uv = require_devkit().view_points(points, np.asarray(intrinsic, np.float64), normalize=True)
+    col, row = np.floor(uv[0]), np.floor(uv[1])
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    flat = row[inside].astype(np.int64) * width + col[inside].astype(np.int64)
+    z = points[2, inside]
+    order = np.lexsort((z, flat))  # by pixel, nearest first within a pixel
+    _, first = np.unique(flat[order], return_index=True)
+    depth_map.flat[flat[order][first]] = z[order][first]
+    return depth_map
+
+
+def radar_filter_states(
+    mode: str,
+    invalid_states: Sequence[int] = (0,),
+    dynprop_states: Sequence[int] = tuple(range(7)),
+    ambig_states: Sequence[int] = (3,),
+) -> dict[str, list[int]]:
+    """The states a radar return must have to be kept, as the devkit's filter attributes.
+
+    ``default`` and ``off`` are the devkit's own ``RadarPointCloud.default_filters()`` and
+    ``disable_filters()``; ``custom`` takes the three lists.
+    """
+    if mode not in RADAR_FILTERS:
+        raise ValueError(f"dataset.reader.radar_filters={mode!r}: expected one of {RADAR_FILTERS}")
+    if mode == "custom":
+        states = {
+            "invalid_states": invalid_states,
+            "dynprop_states": dynprop_states,
+            "ambig_states": ambig_states,
+        }
+        for name, values in states.items():
+            limit = RADAR_STATE_RANGES[name]
+            values = list(values) if values is not None else []
+            if not values or any(int(v) != v or not 0 <= v < limit for v in values):
+                raise ValueError(
+                    f"dataset.reader.radar_{name}={values}: expected a non-empty list of integers "
+                    f"in [0, {limit - 1}] (or radar_filters=off to keep every return)"
+                )
+        return {name: sorted({int(v) for v in values}) for name, values in states.items()}
+    filters = type("RadarFilters", (require_devkit().RadarPointCloud,), {})
+    if mode == "default":
+        filters.default_filters()
+    else:
+        filters.disable_filters()
+    return {name: sorted(int(v) for v in getattr(filters, name)) for name in RADAR_STATE_RANGES}
+
+
+def _radar_class(devkit: Devkit, states: dict[str, list[int]]) -> type:
+    """A ``RadarPointCloud`` with these filter states as its class attributes: the devkit's
+    ``from_file_multisweep`` applies them, and the devkit's global defaults stay untouched."""
+    return type("FilteredRadarPointCloud", (devkit.RadarPointCloud,), dict(states))
+
+
+@dataclass(frozen=True)
+class FrameSettings:
+    """What turns one keyframe into a prepared frame."""
+
+    height: int
+    width: int
+    radar_channels: tuple[str, ...]
+    radar_nsweeps: int
+    radar_states: dict
+    lidar_nsweeps: int
+    min_distance: float
+    fill: str  # "none" for val/test
+
+
+def _channel_token(sample: dict, channel: str) -> str:
+    try:
+        return sample["data"][channel]
+    except KeyError:
+        raise ValueError(
+            f"sample {sample['token']}: no {channel} sample_data among its keyframe data "
+            f"{sorted(sample['data'])}; expected every nuScenes sensor channel"
+        ) from None
+
+
+def _sweep_chain(nusc: Any, sample: dict, channel: str, nsweeps: int) -> list[dict]:
+    """The sample_data records ``from_file_multisweep`` reads: the keyframe and those before."""
+    record = nusc.get("sample_data", _channel_token(sample, channel))
+    chain = [record]
+    while len(chain) < nsweeps and record["prev"]:
+        record = nusc.get("sample_data", record["prev"])
+        chain.append(record)
+    return chain
+
+
+def frame_files(nusc: Any, sample: dict, settings: FrameSettings) -> list[tuple[Path, str]]:
+    """Every file one frame reads, with what it should be."""
+    root = Path(nusc.dataroot)
+    cam = nusc.get("sample_data", _channel_token(sample, CAMERA))
+    files = [(root / cam["filename"], f"{CAMERA} image")]
+    for channel in settings.radar_channels:
+        for record in _sweep_chain(nusc, sample, channel, settings.radar_nsweeps):
+            files.append((root / record["filename"], f"{channel} radar point cloud"))
+    for record in _sweep_chain(nusc, sample, LIDAR, settings.lidar_nsweeps):
+        files.append((root / record["filename"], f"{LIDAR} lidar point cloud"))
+    return files
+
+
+def check_files(nusc: Any, tokens: Sequence[str], settings: FrameSettings) -> None:
+    """Fails before any frame is prepared if a file is missing (or a lidar file is cut short)."""
+    missing: list[tuple[Path, str, str]] = []
+    total = 0
+    for token in tokens:
+        for path, what in frame_files(nusc, nusc.get("sample", token), settings):
+            total += 1
+            try:
+                size = path.stat().st_size
+            except OSError:
+                missing.append((path, what, token))
+                continue
+            if path.name.endswith(".bin") and size % LIDAR_POINT_BYTES:
+                raise ValueError(
+                    f"{path}: {size} bytes, not a whole number of {LIDAR_POINT_BYTES}-byte points; "
+                    f"expected {_FORMATS['lidar']}"
+                )
+    if missing:
+        path, what, token = missing[0]
+        raise FileNotFoundError(
+            f"{path}: missing {what} of sample {token}; {len(missing)} of the {total} files these "
+            f"frames need are missing under {nusc.dataroot} (expected every samples/ and sweeps/ "
+            f"blob of {nusc.version} unpacked there)"
+        )
+
+
+def _camera_points(
+    cloud: type, nusc: Any, sample: dict, channel: str, nsweeps: int, min_distance: float, what: str
+) -> np.ndarray:
+    """``(3, N)`` camera-frame points of ``channel``'s last ``nsweeps`` sweeps, via the devkit."""
+    try:
+        pc, _ = cloud.from_file_multisweep(
+            nusc, sample, channel, CAMERA, nsweeps=nsweeps, min_distance=min_distance
+        )
+    except Exception as err:  # the devkit's readers fail with assertions, struct or numpy errors
+        paths = [
+            Path(nusc.dataroot) / r["filename"]
+            for r in _sweep_chain(nusc, sample, channel, nsweeps)
+        ]
+        for path in paths:  # find the culprit; only on this error path
+            try:
+                cloud.from_file(str(path))
+            except Exception as file_err:
+                raise ValueError(
+                    f"{path}: unreadable {channel} {what} point cloud "
+                    f"({type(file_err).__name__}: {file_err}); expected {_FORMATS[what]}"
+                ) from err
+        raise ValueError(
+            f"sample {sample['token']}: the devkit could not accumulate {channel} from "
+            f"{[str(p) for p in paths]} ({type(err).__name__}: {err})"
+        ) from err
+    return np.asarray(pc.points[:3], dtype=np.float64)
+
+
+def _intrinsic(calibration: dict, image_path: Path) -> np.ndarray:
+    k = np.asarray(calibration.get("camera_intrinsic") or [], dtype=np.float64)
+    if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise ValueError(
+            f"calibrated_sensor {calibration['token']} ({image_path.name}): camera_intrinsic "
+            f"{calibration.get('camera_intrinsic')!r}; expected a 3x3 pinhole matrix"
+        )
+    return k
+
+
+def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -> PreparedFrame:
+    """One keyframe sample: image, projected radar and lidar, and the filled lidar map."""
+    sample = nusc.get("sample", token)
+    cam = nusc.get("sample_data", _channel_token(sample, CAMERA))
+    image_path = Path(nusc.dataroot) / cam["filename"]
+    image = read_rgb(image_path)
+    h0, w0 = image.shape[:2]
+    if cam.get("width") and cam.get("height") and (cam["width"], cam["height"]) != (w0, h0):
+        raise ValueError(
+            f"{image_path}: image is {w0}x{h0}, expected {cam['width']}x{cam['height']} as "
+            "sample_data.json records it (the camera intrinsics are for that size)"
+        )
+    intrinsic = _intrinsic(
+        nusc.get("calibrated_sensor", cam["calibrated_sensor_token"]), image_path
+    )
+    image, intrinsic = resize_and_crop(image, intrinsic, settings.height, settings.width)
+    size = (settings.height, settings.width)
+
+    radar_cloud = _radar_class(devkit, settings.radar_states)
+    radar = [
+        _camera_points(
+            radar_cloud,
+            nusc,
+            sample,
+            channel,
+            settings.radar_nsweeps,
+            settings.min_distance,
+            "radar",
+        )
+        for channel in settings.radar_channels
+    ]
+    sparse = project_points(np.concatenate(radar, 1), intrinsic, *size, settings.min_distance)
+    lidar = _camera_points(
+        devkit.LidarPointCloud,
+        nusc,
+        sample,
+        LIDAR,
+        settings.lidar_nsweeps,
+        settings.min_distance,
+        "lidar",
+    )
+    depth = project_points(lidar, intrinsic, *size, settings.min_distance)
+    scene = nusc.get("scene", sample["scene_token"])
+    return PreparedFrame(
+        image=image,
+        sparse=sparse,
+        depth=depth,
+        condition=condition_from_description(scene.get("description", "")),
+        filled=None if settings.fill == "none" else fill_depth(depth, image, settings.fill),
+    )
+
+
+def split_frames(
+    nusc: Any, scene_names: Sequence[str], conditions: Sequence[str], stride: int, what: str
+) -> list[str]:
+    """Sample tokens of the named scenes (scene-name order, then time order), every
+    ``stride``-th keyframe of each, only scenes whose condition is in ``conditions``."""
+    by_name = {scene["name"]: scene for scene in nusc.scene}
+    present = sorted(set(scene_names) & set(by_name))
+    table = Path(nusc.dataroot) / nusc.version / "scene.json"
+    if not present:
+        raise ValueError(
+            f"{table}: none of the {len(scene_names)} scenes of {what} "
+            f"({', '.join(sorted(scene_names)[:4])}, ...) is listed; expected the {nusc.version} "
+            "tables as published, or another dataset.version"
+        )
+    tokens: list[str] = []
+    skipped: dict[str, int] = {}
+    for name in present:
+        scene = by_name[name]
+        condition = condition_from_description(scene.get("description", ""))
+        if condition not in conditions:
+            skipped[condition] = skipped.get(condition, 0) + 1
+            continue
+        token, index = scene["first_sample_token"], 0
+        while token:
+            if index > len(nusc.sample):
+                raise ValueError(f"{table}: scene {name}'s samples form a loop (sample {token})")
+            sample = nusc.get("sample", token)
+            if index % stride == 0:
+                tokens.append(token)
+            token, index = sample["next"], index + 1
+    if not tokens:
+        raise ValueError(
+            f"{table}: {what} has no keyframe left: dataset.conditions={list(conditions)} "
+            f"excludes all its {len(present)} scenes (conditions: {skipped}); expected at least "
+            "one scene with a keyframe"
+        )
+    return tokens
+
+
+def _resolve_root(root: str | os.PathLike | None) -> Path:
+    if root is None or str(root) in ("", "???", "None"):
+        raise ValueError(f"dataset.root is not set: expected {LAYOUT}")
+    path = Path(root).expanduser().resolve()
+    if not path.is_dir():
+        raise FileNotFoundError(f"dataset.root={path}: no such folder; expected {LAYOUT}")
+    return path
+
+
+def check_tables(root: Path, version: str) -> str:
+    """Checks ``<root>/<version>/`` holds the 13 tables; returns a digest of their names, sizes
+    and modification times (a changed download gets a new cache)."""
+    table_dir = root / version
+    if not table_dir.is_dir():
+        found = sorted(p.name for p in root.iterdir() if p.is_dir())
+        raise FileNotFoundError(
+            f"{table_dir}: missing folder; expected the nuScenes {version} tables "
+            f"(<root>/{version}/*.json, from the {version} metadata archive) next to samples/, "
+            f"sweeps/ and maps/ (found in {root}: {found or 'nothing'})"
+        )
+    digest = hashlib.sha256()
+    for table in TABLES:
+        path = table_dir / f"{table}.json"
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{path}: missing table; expected the {len(TABLES)} nuScenes tables "
+                f"({', '.join(TABLES)}) in {table_dir}"
+            )
+        stat = path.stat()
+        digest.update(json.dumps([table, stat.st_size, stat.st_mtime_ns]).encode())
+    return digest.hexdigest()[:16]
+
+
+def load_tables(devkit: Devkit, root: Path, version: str) -> Any:
+    """The devkit's database of one version; a layout it rejects fails naming the folder."""
+    log.info(
+        "loading the nuScenes %s tables from %s (v1.0-trainval: about a minute)", version, root
+    )
+    try:
+        return devkit.NuScenes(version=version, dataroot=str(root), verbose=False)
+    except (AssertionError, KeyError, IndexError, TypeError, ValueError, OSError) as err:
+        raise ValueError(
+            f"{root / version}: the nuScenes devkit could not load the {version} tables "
+            f"({type(err).__name__}: {err}); expected {LAYOUT}"
+        ) from err
+
+
+def _check_options(
+    split: str,
+    version: str,
+    height: int,
+    width: int,
+    fill: str,
+    conditions: Sequence[str],
+    radar_channels: Sequence[str],
+    radar_nsweeps: int,
+    lidar_nsweeps: int,
+    min_distance: float,
+    stride: int,
+    test_split: str,
+) -> None:
+    def choice(name: str, value: object, allowed: Sequence[str]) -> None:
+        if value not in allowed:
+            raise ValueError(f"{name}={value!r}: expected one of {list(allowed)}")
+
+    choice("split", split, SPLITS)
+    choice("dataset.version", version, list(VERSIONS))
+    choice("dataset.fill", fill, FILL_METHODS)
+    choice("dataset.reader.test_split", test_split, TEST_SPLITS)
+    for name, size in (("height", height), ("width", width)):
+        if int(size) != size or size <= 0 or size % 32:
+            raise ValueError(
+                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
+                "downsamples by 32)"
+            )
+    if not conditions or any(c not in CONDITIONS for c in conditions):
+        raise ValueError(
+            f"dataset.conditions={list(conditions)}: expected a non-empty subset of "
+            f"{list(CONDITIONS)}"
+        )
+    if not radar_channels or any(c not in RADAR_CHANNELS for c in radar_channels):
+        raise ValueError(
+            f"dataset.reader.radar_channels={list(radar_channels)}: expected a non-empty list of "
+            f"{list(RADAR_CHANNELS)}"
+        )
+    for name, value in (("radar_nsweeps", radar_nsweeps), ("lidar_nsweeps", lidar_nsweeps)):
+        if int(value) != value or value < 1:
+            raise ValueError(f"dataset.reader.{name}={value}: expected an integer >= 1")
+    if int(stride) != stride or stride < 1:
+        raise ValueError(f"dataset.reader.stride={stride}: expected an integer >= 1")
+    if not (math.isfinite(min_distance) and min_distance > 0):
+        raise ValueError(f"dataset.reader.min_distance={min_distance}: expected metres > 0")
+
+
+class NuScenesDepth(PreparedSplit):
+    """One split of nuScenes (see the module docstring), served from the prepared cache.
+
+    Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; the train
+    split serves the filled lidar map as ``depth`` when ``fill`` is not ``none``.
+    """
+
+    def __init__(
+        self,
+        split: str,
+        root: str | os.PathLike,
+        cache_root: str | os.PathLike,
+        version: str = "v1.0-trainval",
+        height: int = 448,
+        width: int = 800,
+        fill: str = "colorization",
+        conditions: Sequence[str] = CONDITIONS,
+        radar_channels: Sequence[str] = ("RADAR_FRONT",),
+        radar_nsweeps: int = 1,
+        radar_filters: str = "default",
+        radar_invalid_states: Sequence[int] = (0,),
+        radar_dynprop_states: Sequence[int] = tuple(range(7)),
+        radar_ambig_states: Sequence[int] = (3,),
+        lidar_nsweeps: int = 1,
+        min_distance: float = 1.0,
+        stride: int = 1,
+        test_split: str = "val",
+    ) -> None:
+        devkit = require_devkit()  # first: without it nothing else can work
+        conditions = [str(c) for c in conditions]
+        radar_channels = [str(c) for c in radar_channels]
+        _check_options(
+            split,
+            version,
+            height,
+            width,
+            fill,
+            conditions,
+            radar_channels,
+            radar_nsweeps,
+            lidar_nsweeps,
+            min_distance,
+            stride,
+            test_split,
+        )
+        states = radar_filter_states(
+            radar_filters, radar_invalid_states, radar_dynprop_states, radar_ambig_states
+        )
+        root = _resolve_root(root)
+        base = {
+            "format_version": FORMAT_VERSION,
+            "root": str(root),
+            "version": version,
+            "tables": check_tables(root, version),
+            "height": int(height),
+            "width": int(width),
+            "conditions": conditions,
+            "radar_channels": radar_channels,
+            "radar_nsweeps": int(radar_nsweeps),
+            "radar_states": states,
+            "lidar_nsweeps": int(lidar_nsweeps),
+            "min_distance": float(min_distance),
+            "stride": int(stride),
+        }
+        train_key, val_key = VERSIONS[version]
+        # split -> (cache params, table version, the devkit's split name, folder, fill)
+        sources = {
+            "train": ({**base, "fill": fill}, version, train_key, "train", fill),
+            "val": (base, version, val_key, "val", "none"),
+            "test": (base, version, val_key, "val", "none"),  # test_split=val: the same frames
+        }
+        if test_split == "test":
+            test_params = {
+                **base,
+                "test_version": TEST_VERSION,
+                "test_tables": check_tables(root, TEST_VERSION),
+            }
+            sources["test"] = (test_params, TEST_VERSION, "test", "test", "none")
+        cache_root = Path(cache_root).expanduser()
+        folders: dict[str, tuple[Path, str]] = {}
+        for name, (params, _version, _key, folder, _fill) in sources.items():
+            cache = cache_dir(cache_root, "nuscenes", params).resolve()
+            if cache.is_relative_to(root):
+                raise ValueError(
+                    f"cache {cache} is inside dataset.root={root}; the dataset folder is only "
+                    "read: point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
+                )
+            folders[name] = (cache, folder)
+        todo = [
+            name
+            for i, name in enumerate(SPLITS)
+            if folders[name] not in [folders[s] for s in SPLITS[:i]]
+            and not is_prepared(*folders[name])
+        ]
+        if todo:
+            settings = FrameSettings(
+                height=int(height),
+                width=int(width),
+                radar_channels=tuple(radar_channels),
+                radar_nsweeps=int(radar_nsweeps),
+                radar_states=states,
+                lidar_nsweeps=int(lidar_nsweeps),
+                min_distance=float(min_distance),
+                fill="none",
+            )
+            _prepare(devkit, root, sources, folders, todo, conditions, stride, settings)
+        cache, folder = folders[split]
+        super().__init__(cache / folder, use_filled=split == "train" and fill != "none")
+
+
+def _prepare(
+    devkit: Devkit,
+    root: Path,
+    sources: dict[str, tuple],
+    folders: dict[str, tuple[Path, str]],
+    todo: Sequence[str],
+    conditions: Sequence[str],
+    stride: int,
+    settings: FrameSettings,
+) -> None:
+    """Lists the frames of every split still to prepare and checks all their files before the
+    first frame is written; the devkit's tables are loaded once per version, dropped after."""
+    scene_splits = devkit.create_splits_scenes()
+    databases: dict[str, Any] = {}
+    plans = []
+    for name in todo:
+        params, version, key, _folder, fill = sources[name]
+        if version not in databases:
+            databases[version] = load_tables(devkit, root, version)
+        nusc = databases[version]
+        tokens = split_frames(
+            nusc, scene_splits[key], conditions, stride, f"the {key} split of {version}"
+        )
+        split_settings = replace(settings, fill=fill)
+        check_files(nusc, tokens, split_settings)
+        plans.append((name, params, nusc, tokens, split_settings))
+    for name, params, nusc, tokens, split_settings in plans:
+        cache, folder = folders[name]
+        prepare_split(
+            cache,
+            folder,
+            tokens,
+            lambda token, nusc=nusc, s=split_settings: load_frame(devkit, nusc, token, s),
+            params,
+        )

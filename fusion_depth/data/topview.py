@@ -1,0 +1,227 @@
+"""``dataset=topview``: top-view images from a crane's boom camera with depth exported from
+Unreal Engine (the paper's Top-View set). Camera only: ``sparse`` is all zeros, and the dataset
+config allows ``fusion=rgb`` alone (``dataset.fusions``).
+
+Folder format
+-------------
+::
+
+    <root>/
+      train/  val/  test/          the three splits, each laid out as
+        rgb/<name>.png|.jpg|.jpeg  the camera image (RGB; alpha ignored)
+        depth/<name>.png|.npy      its depth map, pixel-aligned, same size, matched by name
+
+* **16-bit PNG** (single channel): metres = value x ``depth_unit``. Unreal's native unit is the
+  centimetre, hence the default ``depth_unit: 0.01`` (1 cm steps, up to 655 m).
+* **NPY**: a (H, W) (or (H, W, 1)) float or integer array; metres = value x ``depth_unit``, so
+  set ``depth_unit: 1.0`` for maps saved in metres.
+* **EXR** is not read: no EXR reader is among the dependencies (OpenEXR/imageio are not
+  installed), and a ``.exr`` depth file fails naming the file; convert it to NPY (float) or
+  16-bit PNG first.
+
+Zero, negative or non-finite depths are invalid, and so is anything at or beyond ``max_range``
+(default 250 m: the cache stores 1/256 m in uint16). Every frame gets the condition ``condition``
+(default ``day``: the renders are daylight scenes). Files starting with ``.`` are ignored; an
+image without a depth map, or a depth map in two formats, is an error naming the files.
+
+Preparing
+---------
+As :mod:`fusion_depth.data.carla`: every split is prepared once into the shared cache
+(:mod:`fusion_depth.data.prepared`) under ``<cache_root>/topview/<hash>/`` at ``height x width``,
+the image resized bilinearly (area averaging when shrinking), the depth sampled at the nearest
+source pixel so every value is one Unreal rendered. The hash covers the settings and every file's
+name, size and modification time. The first split built prepares all three, so a bad file
+anywhere fails before training; the dataset folder is only ever read.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data._folders import (
+    check_max_range,
+    check_size,
+    check_split,
+    fingerprint,
+    list_files,
+    require_dir,
+    require_root,
+    resize_depth_nearest,
+    resize_rgb,
+)
+from fusion_depth.data.depth_io import read_depth_png, read_rgb
+from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
+
+FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
+CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
+RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEPTH_SUFFIXES = (".png", ".npy", ".exr")
+LAYOUT = "a Top-View dataset laid out as <root>/{train,val,test}/{rgb,depth}/<name>.*"
+
+log = logging.getLogger(__name__)
+
+
+def read_depth_file(path: str | os.PathLike, depth_unit: float) -> np.ndarray:
+    """A depth map (16-bit PNG or NPY) as float32 (H, W) metres; invalid values become 0."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        raise ValueError(
+            f"{path}: EXR depth maps are not supported (no EXR reader is installed); export or "
+            "convert them to .npy (float array, metres = value x dataset.reader.depth_unit) or "
+            "16-bit PNG"
+        )
+    if suffix == ".png":
+        depth = read_depth_png(path, scale=1.0).astype(np.float64) * depth_unit
+    elif suffix == ".npy":
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing depth map")
+        try:
+            array = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as err:
+            raise ValueError(f"{path}: unreadable NPY depth map ({err})") from err
+        if array.ndim == 3 and array.shape[2] == 1:
+            array = array[..., 0]
+        if array.ndim != 2 or array.dtype.kind not in "fiu":
+            raise ValueError(
+                f"{path}: expected a (H, W) numeric depth array, got {array.dtype} {array.shape}"
+            )
+        depth = array.astype(np.float64) * depth_unit
+    else:
+        raise ValueError(f"{path}: expected a depth map ending in {', '.join(DEPTH_SUFFIXES)}")
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class TopViewFrame:
+    id: str  # "<split>/<name>"
+    rgb: Path
+    depth: Path
+
+
+def scan_folder(root: Path) -> tuple[dict[str, list[TopViewFrame]], str]:
+    """Every split's frames (image and depth matched by name) and a fingerprint of the files."""
+    frames: dict[str, list[TopViewFrame]] = {}
+    entries: list[os.DirEntry] = []
+    for split in SPLITS:
+        split_dir = require_dir(root / split, f"the {split} split of {LAYOUT}")
+        rgb_dir = require_dir(split_dir / "rgb", f"the camera images {split_dir}/rgb/<name>.png")
+        depth_dir = require_dir(split_dir / "depth", f"the depth maps {split_dir}/depth/<name>.*")
+        images = list_files(rgb_dir, RGB_SUFFIXES)
+        depths = list_files(depth_dir, DEPTH_SUFFIXES)
+        if not images:
+            raise ValueError(
+                f"{rgb_dir}: no images, the {split} split is empty; expected "
+                f"<name>{'|'.join(RGB_SUFFIXES)} files"
+            )
+        kept = []
+        for name in sorted(images):
+            if name not in depths:
+                raise FileNotFoundError(
+                    f"{depth_dir / name}.png: missing depth map of {images[name].path} (expected "
+                    f"{name} with one of {', '.join(DEPTH_SUFFIXES)} in {depth_dir})"
+                )
+            entries += [images[name], depths[name]]
+            kept.append(
+                TopViewFrame(f"{split}/{name}", Path(images[name].path), Path(depths[name].path))
+            )
+        orphans = sorted(set(depths) - set(images))
+        if orphans:
+            log.warning(
+                "topview %s: %d depth maps without an image are ignored (e.g. %s)",
+                split,
+                len(orphans),
+                orphans[0],
+            )
+        frames[split] = kept
+    return frames, fingerprint(entries)
+
+
+def load_frame(
+    frame: TopViewFrame,
+    height: int,
+    width: int,
+    depth_unit: float,
+    max_range: float,
+    condition: str,
+) -> PreparedFrame:
+    """Reads and resizes one image and its depth map; the sparse input is empty."""
+    image = read_rgb(frame.rgb)
+    depth = read_depth_file(frame.depth, depth_unit)
+    if depth.shape != image.shape[:2]:
+        raise ValueError(
+            f"{frame.depth}: depth map is {depth.shape[1]}x{depth.shape[0]}, expected the "
+            f"image's {image.shape[1]}x{image.shape[0]} ({frame.rgb})"
+        )
+    depth = np.where(depth < max_range, depth, 0.0).astype(np.float32)
+    return PreparedFrame(
+        image=resize_rgb(image, height, width),
+        sparse=np.zeros((height, width), np.float32),
+        depth=resize_depth_nearest(depth, height, width),
+        condition=condition,
+    )
+
+
+class TopViewDepth(PreparedSplit):
+    """One split of a Top-View folder (format: the module docstring), served from the prepared
+    cache. Samples are the platform's dict with an all-zero ``sparse``."""
+
+    def __init__(
+        self,
+        split: str,
+        root: str | os.PathLike,
+        cache_root: str | os.PathLike,
+        height: int = 480,
+        width: int = 640,
+        depth_unit: float = 0.01,
+        condition: str = "day",
+        max_range: float = 250.0,
+    ) -> None:
+        check_split(split)
+        height, width = check_size(height, width)
+        if not depth_unit > 0:
+            raise ValueError(
+                f"dataset.reader.depth_unit={depth_unit}: expected metres per stored unit > 0 "
+                "(0.01 for Unreal's centimetres, 1.0 for metres)"
+            )
+        if condition not in CONDITIONS:
+            raise ValueError(
+                f"dataset.reader.condition={condition!r}: expected one of {list(CONDITIONS)}"
+            )
+        max_range = check_max_range(max_range)
+        root = require_root(root, LAYOUT)
+        frames, files = scan_folder(root)
+        params = {
+            "format_version": FORMAT_VERSION,
+            "root": str(root),
+            "height": height,
+            "width": width,
+            "depth_unit": float(depth_unit),
+            "condition": condition,
+            "max_range": max_range,
+            "files": files,
+        }
+        cache = cache_dir(Path(cache_root).expanduser(), "topview", params).resolve()
+        if cache.is_relative_to(root):
+            raise ValueError(
+                f"cache {cache} is inside dataset.root={root}; the dataset folder is only read: "
+                "point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
+            )
+        for name in SPLITS:
+            by_id = {frame.id: frame for frame in frames[name]}
+            prepare_split(
+                cache,
+                name,
+                list(by_id),
+                lambda frame_id, by_id=by_id: load_frame(
+                    by_id[frame_id], height, width, float(depth_unit), max_range, condition
+                ),
+                params,
+            )
+        super().__init__(cache / split)

@@ -1,0 +1,105 @@
+"""Ground-truth filling: every measured value survives; holes fill as each method says."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fusion_depth.data.filling import FILL_METHODS, fill_depth
+
+H, W = 30, 40
+
+
+def _plane(h: int = H, w: int = W) -> np.ndarray:
+    rows, cols = np.mgrid[0:h, 0:w]
+    return (4.0 + 0.25 * rows + 0.125 * cols).astype(np.float32)
+
+
+def _random_sparse(seed: int, density: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    depth = np.where(rng.random((H, W)) < density, rng.uniform(2, 60, (H, W)), 0.0)
+    image = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    return depth.astype(np.float32), image
+
+
+@pytest.mark.parametrize("method", FILL_METHODS)
+def test_every_method_keeps_every_measured_value_exactly(method) -> None:
+    depth, image = _random_sparse(0)
+    filled = fill_depth(depth, image, method)
+    assert filled.dtype == np.float32 and filled.shape == (H, W)
+    measured = depth > 0
+    np.testing.assert_array_equal(filled[measured], depth[measured])
+    if method == "none":
+        np.testing.assert_array_equal(filled, depth)
+    else:  # every hole filled, within the measured range (both methods average measurements)
+        assert (filled > 0).all()
+        assert depth[measured].min() - 1e-4 <= filled.min()
+        assert filled.max() <= depth[measured].max() + 1e-4
+
+
+def test_linear_on_a_plane_gives_the_plane() -> None:
+    plane = _plane()
+    rng = np.random.default_rng(1)
+    keep = rng.random((H, W)) < 0.05
+    keep[[0, 0, -1, -1], [0, -1, 0, -1]] = True  # the corners: the hull covers the frame
+    depth = np.where(keep, plane, 0)
+    filled = fill_depth(depth, np.zeros((H, W, 3), np.uint8), "linear")
+    np.testing.assert_allclose(filled, plane, atol=1e-4)
+
+
+def test_linear_fills_outside_the_hull_with_the_nearest_measurement() -> None:
+    depth = np.zeros((H, W), np.float32)
+    depth[10, 10], depth[10, 20], depth[20, 10] = 5.0, 7.0, 9.0
+    filled = fill_depth(depth, np.zeros((H, W, 3), np.uint8), "linear")
+    assert filled[0, 0] == 5.0 and filled[0, W - 1] == 7.0 and filled[H - 1, 0] == 9.0
+    assert filled[12, 12] == pytest.approx(5.0 + 0.2 * 2 + 0.4 * 2, abs=1e-5)  # inside: plane
+
+
+def test_linear_with_collinear_points_falls_back_to_nearest() -> None:
+    depth = np.zeros((H, W), np.float32)
+    depth[5, 5:30:10] = [3.0, 4.0, 5.0]  # one row: no triangle to interpolate in
+    filled = fill_depth(depth, np.zeros((H, W, 3), np.uint8), "linear")
+    assert filled[20, 5] == 3.0 and filled[20, 25] == 5.0 and (filled > 0).all()
+
+
+def test_colorization_reproduces_a_plane_under_a_flat_image() -> None:
+    """Uniform intensity makes every weight equal: the fill is the discrete harmonic
+    interpolant of the measurements, which a plane is when the border is measured."""
+    plane = _plane()
+    keep = np.zeros((H, W), bool)
+    keep[[0, -1], :] = keep[:, [0, -1]] = True
+    keep[15, 20] = True
+    filled = fill_depth(np.where(keep, plane, 0), np.full((H, W, 3), 128, np.uint8), "colorization")
+    np.testing.assert_allclose(filled, plane, atol=1e-4)
+
+
+def test_colorization_follows_image_edges_and_linear_does_not() -> None:
+    """Depth spreads along uniform image regions and stops at an intensity edge."""
+    image = np.zeros((H, W, 3), np.uint8)
+    image[:, W // 2 :] = 255
+    depth = np.zeros((H, W), np.float32)
+    depth[::6, 2] = 10.0  # measured only near the left border ...
+    depth[::6, W - 3] = 30.0  # ... and near the right border
+    color = fill_depth(depth, image, "colorization")
+    linear = fill_depth(depth, image, "linear")
+    left, right = color[:, 5 : W // 2 - 1], color[:, W // 2 + 1 : W - 5]
+    assert np.abs(left - 10.0).max() < 0.5 and np.abs(right - 30.0).max() < 0.5
+    assert linear[:, W // 2 - 2].mean() > 15.0  # a blend across the edge
+
+
+def test_a_map_without_measurements_stays_empty() -> None:
+    empty = np.zeros((H, W), np.float32)
+    for method in FILL_METHODS:
+        assert not fill_depth(empty, np.zeros((H, W, 3), np.uint8), method).any()
+
+
+def test_a_bad_method_names_the_value_and_the_choices() -> None:
+    depth, image = _random_sparse(2)
+    with pytest.raises(ValueError, match=r"'cubic'.*\['none', 'linear', 'colorization'\]"):
+        fill_depth(depth, image, "cubic")
+
+
+def test_an_image_of_another_size_is_refused() -> None:
+    depth, _ = _random_sparse(3)
+    with pytest.raises(ValueError, match=r"image: expected shape \(30, 40, 3\)"):
+        fill_depth(depth, np.zeros((H + 1, W, 3), np.uint8), "linear")

@@ -1,0 +1,473 @@
+"""``dataset=kitti`` on fixtures in KITTI's published depth completion layout.
+
+Frames are 40x100 (real ones ~375x1242): uint16 PNGs of metres x 256 with known values in
+``data_depth_annotated``/``data_depth_velodyne`` and RGB PNGs in the raw drives' folders.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf.errors import MissingMandatoryValue
+from PIL import Image
+
+import fusion_depth.data.kitti as kitti
+from fusion_depth.config import validate_config
+from fusion_depth.data.kitti import KittiDepth, parse_split_file
+from fusion_depth.prepare import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+H, W = 40, 100
+DRIVES = {
+    "train": ["2011_09_26_drive_0001_sync", "2011_09_28_drive_0002_sync"],
+    "val": ["2011_09_26_drive_0002_sync"],
+}
+FRAMES = {"2011_09_28_drive_0002_sync": ["0000000005"]}  # the other drives: 5 and 6
+CAMERAS = ("image_02", "image_03")
+
+
+def _frames_of(drive: str) -> list[str]:
+    return FRAMES.get(drive, ["0000000005", "0000000006"])
+
+
+def _write_u16(path: Path, value: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(value.astype(np.uint16)).save(path)
+
+
+def _frame_arrays(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame ``k``'s RGB image and its ground truth and Velodyne maps as stored (uint16)."""
+    rows, cols = np.mgrid[0:H, 0:W]
+    plane = np.round((5.0 + 0.1 * rows + 0.05 * cols + k) * 256).astype(np.uint16)
+    gt = np.where(((rows + cols) % 3 == 0) & (rows >= 10), plane, 0).astype(np.uint16)
+    velodyne = np.where(((rows + 2 * cols) % 7 == 0) & (rows >= 12), plane + 128, 0)
+    image = np.stack([rows * 6, cols * 2, np.full_like(rows, 40 * k)], -1) % 256
+    return image.astype(np.uint8), gt, velodyne.astype(np.uint16)
+
+
+@pytest.fixture
+def kitti_data(tmp_path) -> dict:
+    """A depth completion root and a raw root; ``truth[frame id]`` = (image, gt, velodyne)."""
+    root, raw = tmp_path / "kitti_depth", tmp_path / "kitti_raw"
+    truth, k = {}, 0
+    for subset, drives in DRIVES.items():
+        for drive in drives:
+            for camera in CAMERAS:
+                for frame in _frames_of(drive):
+                    image, gt, velo = _frame_arrays(k)
+                    k += 1
+                    proj = Path(subset, drive, "proj_depth")
+                    name = Path(camera, f"{frame}.png")
+                    _write_u16(root / "data_depth_annotated" / proj / "groundtruth" / name, gt)
+                    _write_u16(root / "data_depth_velodyne" / proj / "velodyne_raw" / name, velo)
+                    rgb = raw / drive[:10] / drive / camera / "data" / f"{frame}.png"
+                    rgb.parent.mkdir(parents=True, exist_ok=True)
+                    Image.fromarray(image).save(rgb)
+                    truth[f"{subset}/{drive}/{camera}/{frame}"] = (image, gt, velo)
+    return {"root": root, "raw_root": raw, "truth": truth, "cache": tmp_path / "cache"}
+
+
+def _dataset(data: dict, split: str, **options) -> KittiDepth:
+    options = {
+        "root": data["root"],
+        "raw_root": data["raw_root"],
+        "cache_root": data["cache"],
+        "height": 64,
+        "width": 128,
+        **options,
+    }
+    return KittiDepth(split, **options)
+
+
+def _tree(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file below ``folder`` with its size and modification time."""
+    return {
+        str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def _dataset_files(data: dict) -> list[dict]:
+    """What a run must never change: the depth completion and raw data folders."""
+    return [_tree(data["root"]), _tree(data["raw_root"])]
+
+
+def _ids(dataset: KittiDepth) -> list[str]:
+    return [frame["id"] for frame in dataset.frames]
+
+
+# --- reading, crop/pad, subsampling, filling -----------------------------------------------
+
+
+def test_decoded_depths_match_the_encoded_ones_and_padding_is_invalid(kitti_data) -> None:
+    before = _dataset_files(kitti_data)
+    val = _dataset(kitti_data, "val")  # 64x128: 24 rows and 28 columns of padding
+    assert len(val) == 4 and val.conditions == ["day"] * 4
+    for i, frame_id in enumerate(_ids(val)):
+        image, gt, velodyne = kitti_data["truth"][frame_id]
+        sample = val[i]
+        assert sample["condition"] == "day"
+        assert sample["depth"].shape == sample["sparse"].shape == (1, 64, 128)
+        np.testing.assert_array_equal(sample["depth"][0, :H, :W].numpy(), gt / 256.0)
+        np.testing.assert_array_equal(sample["sparse"][0, :H, :W].numpy(), velodyne / 256.0)
+        for name in ("depth", "sparse"):
+            assert not sample[name][0, H:].any() and not sample[name][0, :, W:].any()
+        rgb = np.round(sample["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8)
+        np.testing.assert_array_equal(rgb[:H, :W], image)
+        np.testing.assert_array_equal(rgb[H:, :W], np.repeat(image[-1:], 64 - H, 0))  # edge
+    assert _dataset_files(kitti_data) == before, "the dataset folders were written to"
+
+
+def test_a_larger_frame_keeps_its_bottom_rows_and_horizontal_centre(kitti_data) -> None:
+    val = _dataset(kitti_data, "val", height=32, width=96)
+    _, gt, velodyne = kitti_data["truth"][_ids(val)[0]]
+    np.testing.assert_array_equal(val[0]["depth"][0].numpy(), gt[8:40, 2:98] / 256.0)
+    np.testing.assert_array_equal(val[0]["sparse"][0].numpy(), velodyne[8:40, 2:98] / 256.0)
+
+
+def test_splits_are_kittis_train_and_val_and_test_is_val_prepared_once(kitti_data) -> None:
+    train, val, test = (_dataset(kitti_data, s) for s in ("train", "val", "test"))
+    assert _ids(train) == [f for f in kitti_data["truth"] if f.startswith("train/")]
+    assert _ids(val) == _ids(test) == [f for f in kitti_data["truth"] if f.startswith("val/")]
+    assert test.split_dir == val.split_dir
+    assert sorted(p.name for p in train.cache.iterdir() if p.is_dir()) == ["train", "val"]
+    assert train.cache.parent == kitti_data["cache"] / "kitti"
+
+
+def test_sparse_points_keeps_exactly_n_velodyne_returns_the_same_each_time(kitti_data) -> None:
+    n = 7
+    first = _dataset(kitti_data, "train", sparse_points=n)
+    again = _dataset(kitti_data, "train", sparse_points=n, cache_root=kitti_data["cache"] / "b")
+    assert again.split_dir != first.split_dir
+    masks = []
+    for i, frame_id in enumerate(_ids(first)):
+        sparse = first[i]["sparse"][0, :H, :W].numpy()
+        source = kitti_data["truth"][frame_id][2] / 256.0
+        assert (sparse > 0).sum() == n
+        np.testing.assert_array_equal(sparse[sparse > 0], source[sparse > 0])
+        np.testing.assert_array_equal(again[i]["sparse"][0].numpy(), first[i]["sparse"][0].numpy())
+        masks.append(sparse > 0)
+    assert any((m != masks[0]).any() for m in masks[1:]), "every frame kept the same pixels"
+    everything = _dataset(kitti_data, "train", sparse_points=10**6)
+    np.testing.assert_array_equal(
+        everything[0]["sparse"][0, :H, :W].numpy(), kitti_data["truth"][_ids(first)[0]][2] / 256.0
+    )
+
+
+@pytest.mark.parametrize("method", ["linear", "colorization"])
+def test_filled_ground_truth_trains_and_evaluation_scores_measured_points(
+    kitti_data, method
+) -> None:
+    train = _dataset(kitti_data, "train", fill=method, height=32, width=96)
+    val = _dataset(kitti_data, "val", fill=method, height=32, width=96)
+    assert train.use_filled and not val.use_filled
+    for i, frame_id in enumerate(_ids(train)):
+        gt = kitti_data["truth"][frame_id][1][8:40, 2:98] / 256.0
+        depth = train[i]["depth"][0].numpy()
+        assert (depth > 0).all(), "holes left in the filled ground truth"
+        np.testing.assert_array_equal(depth[gt > 0], gt[gt > 0])
+        if method == "linear":  # the measured points lie on a plane: so does the fill
+            k = list(kitti_data["truth"]).index(frame_id)
+            rows, cols = np.mgrid[8:40, 2:98]
+            plane = 5.0 + 0.1 * rows + 0.05 * cols + k
+            np.testing.assert_allclose(depth[3:-1, 1:-1], plane[3:-1, 1:-1], atol=2 / 256)
+    _, gt, _ = kitti_data["truth"][_ids(val)[0]]
+    np.testing.assert_array_equal(val[0]["depth"][0].numpy(), gt[8:40, 2:98] / 256.0)
+
+
+def test_eval_crop_masks_validation_and_test_ground_truth_only(kitti_data) -> None:
+    train, val = (_dataset(kitti_data, s, eval_crop="garg") for s in ("train", "val"))
+    _, gt, _ = kitti_data["truth"][_ids(val)[0]]
+    inside = np.zeros((H, W), bool)
+    inside[16:39, 3:96] = True  # Garg's fractions of a 40x100 frame
+    np.testing.assert_array_equal(val[0]["depth"][0, :H, :W].numpy(), np.where(inside, gt, 0) / 256)
+    _, train_gt, _ = kitti_data["truth"][_ids(train)[0]]
+    np.testing.assert_array_equal(train[0]["depth"][0, :H, :W].numpy(), train_gt / 256.0)
+
+
+# --- split files --------------------------------------------------------------------------------
+
+
+def test_a_split_file_selects_the_test_frames_and_their_drives_leave_train(kitti_data) -> None:
+    split_file = kitti_data["root"].parent / "eigen_test_files.txt"
+    split_file.write_text(
+        "# Eigen/monodepth2 style, then a relative path\n"
+        "2011_09_26/2011_09_26_drive_0002_sync 5 l\n"
+        "\n"
+        "2011_09_26/2011_09_26_drive_0002_sync 0000000006 r\n"
+        "2011_09_26/2011_09_26_drive_0002_sync 5 l\n"  # a duplicate counts once
+        "2011_09_28_drive_0002_sync/proj_depth/groundtruth/image_03/0000000005.png\n"
+    )
+    test = _dataset(kitti_data, "test", split_file=split_file)
+    assert _ids(test) == [
+        "val/2011_09_26_drive_0002_sync/image_02/0000000005",
+        "val/2011_09_26_drive_0002_sync/image_03/0000000006",
+        "train/2011_09_28_drive_0002_sync/image_03/0000000005",
+    ]
+    _, gt, _ = kitti_data["truth"][_ids(test)[2]]
+    np.testing.assert_array_equal(test[2]["depth"][0, :H, :W].numpy(), gt / 256.0)
+    train = _dataset(kitti_data, "train", split_file=split_file)
+    assert {f.split("/")[1] for f in _ids(train)} == {"2011_09_26_drive_0001_sync"}
+    assert len(_dataset(kitti_data, "val", split_file=split_file)) == 4
+    kept = _dataset(kitti_data, "train", split_file=split_file, exclude_test_drives=False)
+    assert len(kept) == 6
+
+
+def test_train_stride_keeps_every_nth_frame_of_each_drive_and_camera(kitti_data) -> None:
+    train = _dataset(kitti_data, "train", train_stride=2)
+    assert [f.split("/", 1)[1] for f in _ids(train)] == [
+        f"{drive}/{camera}/0000000005" for drive in DRIVES["train"] for camera in CAMERAS
+    ]
+    assert len(_dataset(kitti_data, "val", train_stride=2)) == 4  # evaluation keeps every frame
+
+
+def test_split_file_line_formats(tmp_path) -> None:
+    path = tmp_path / "files.txt"
+    path.write_text(
+        "2011_09_26/2011_09_26_drive_0002_sync 0000000069 r\n"
+        "2011_09_26/2011_09_26_drive_0002_sync/image_02/data/0000000070.png "
+        "2011_09_26/2011_09_26_drive_0002_sync/image_03/data/0000000070.png\n"
+        "val\\2011_09_26_drive_0005_sync\\proj_depth\\velodyne_raw\\image_02\\0000000071.png\n"
+    )
+    assert parse_split_file(path) == [
+        ("2011_09_26_drive_0002_sync", "image_03", "0000000069"),
+        ("2011_09_26_drive_0002_sync", "image_02", "0000000070"),
+        ("2011_09_26_drive_0005_sync", "image_02", "0000000071"),
+    ]
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def _break(data: dict, how: str) -> tuple[dict, type, str]:
+    """Damages the fixture one way; returns the KittiDepth options, error type and message."""
+    root, raw = data["root"], data["raw_root"]
+    frame = "2011_09_26_drive_0001_sync/proj_depth/{}/image_02/0000000005.png"
+    gt = root / "data_depth_annotated" / "train" / frame.format("groundtruth")
+    velodyne = root / "data_depth_velodyne" / "train" / frame.format("velodyne_raw")
+    image = raw / "2011_09_26/2011_09_26_drive_0001_sync/image_02/data/0000000005.png"
+    split_file = root.parent / "split.txt"
+    if how == "missing root":
+        return {"root": root.parent / "nowhere"}, FileNotFoundError, r"dataset.root=.*nowhere"
+    if how == "annotated folder as root":
+        return {"root": root / "data_depth_annotated"}, ValueError, "pass its parent"
+    if how == "missing velodyne folder":
+        (root / "data_depth_velodyne").rename(root.parent / "moved")
+        return {}, FileNotFoundError, r"data_depth_velodyne: missing; expected .*velodyne_raw"
+    if how == "missing raw root":
+        return {"raw_root": raw.parent / "no_raw"}, FileNotFoundError, r"raw_root=.*no_raw"
+    if how == "missing image":
+        image.unlink()
+        return {}, FileNotFoundError, rf"1 of 6 frames have no raw RGB image.*\n  {image}"
+    if how == "missing velodyne frame":
+        velodyne.unlink()
+        return {}, FileNotFoundError, rf"no velodyne_raw depth PNG.*\n  {velodyne}"
+    if how == "corrupt ground truth":
+        gt.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+        return {}, ValueError, rf"{gt}: unreadable depth PNG"
+    if how == "8-bit ground truth":
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(gt)
+        return {}, ValueError, rf"{gt}: expected a single-channel 16-bit depth PNG"
+    if how == "wrong size":
+        _write_u16(velodyne, np.zeros((H, W - 1)))
+        return {}, ValueError, rf"{velodyne}: 40x99 depth map, expected the size of its image"
+    if how == "no drives":
+        for drive in (root / "data_depth_annotated" / "val").iterdir():
+            drive.rename(root.parent / drive.name)
+        return {}, ValueError, r"data_depth_annotated/val: no drive folders like"
+    if how == "drive without frames":
+        for png in (root / "data_depth_annotated" / "val").rglob("*.png"):
+            png.unlink()
+        return {}, ValueError, r"val: no annotated depth PNGs"
+    if how == "unlisted frame":
+        split_file.write_text("2011_09_26/2011_09_26_drive_0002_sync 7 l\n")
+        expected = r"(?s)1 of 1 listed frames have no annotated depth.*0000000007.png.*652"
+        return {"split_file": split_file}, FileNotFoundError, expected
+    if how == "bad split line":
+        split_file.write_text("# header\n2011_09_26_drive_0002_sync five l\n")
+        return {"split_file": split_file}, ValueError, r"split.txt, line 2: .*expected"
+    if how == "empty split file":
+        split_file.write_text("# nothing\n\n")
+        return {"split_file": split_file}, ValueError, "lists no frames"
+    if how == "every train drive tested":
+        split_file.write_text(
+            "2011_09_26/2011_09_26_drive_0001_sync 5 l\n2011_09_28/2011_09_28_drive_0002_sync 5 l\n"
+        )
+        return {"split_file": split_file}, ValueError, "nothing is left to train on"
+    if how == "cache inside the dataset":
+        return {"cache_root": root / "cache"}, ValueError, r"inside dataset.root=.*only ever read"
+    raise AssertionError(how)
+
+
+BAD_INPUTS = [
+    "missing root",
+    "annotated folder as root",
+    "missing velodyne folder",
+    "missing raw root",
+    "missing image",
+    "missing velodyne frame",
+    "corrupt ground truth",
+    "8-bit ground truth",
+    "wrong size",
+    "no drives",
+    "drive without frames",
+    "unlisted frame",
+    "bad split line",
+    "empty split file",
+    "every train drive tested",
+    "cache inside the dataset",
+]
+
+
+@pytest.mark.parametrize("how", BAD_INPUTS)
+def test_bad_input_fails_before_training_naming_the_path(kitti_data, how) -> None:
+    options, error, message = _break(kitti_data, how)
+    before = _dataset_files(kitti_data)
+    with pytest.raises(error, match=message):
+        _dataset(kitti_data, "val", **options)
+    assert _dataset_files(kitti_data) == before, "the dataset folders were written to"
+    assert not list(kitti_data["cache"].rglob("index.json")), "a split was marked prepared"
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ({"fill": "cubic"}, r"dataset.fill='cubic': expected one of \['none', 'linear'"),
+        ({"eval_crop": "tight"}, r"dataset.eval_crop='tight': expected one of \['none', 'garg'"),
+        ({"sparse_points": 0}, "dataset.sparse_points=0: expected null"),
+        ({"height": 40}, "dataset.height=40: expected a positive multiple of 32"),
+        ({"train_stride": 0}, "dataset.train_stride=0: expected an integer >= 1"),
+    ],
+)
+def test_bad_options_are_named(kitti_data, option, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        _dataset(kitti_data, "train", **option)
+
+
+def test_the_config_needs_both_roots_before_touching_data(make_config, kitti_data) -> None:
+    with pytest.raises(MissingMandatoryValue, match="dataset.root"):
+        validate_config(make_config("dataset=kitti"))
+    with pytest.raises(MissingMandatoryValue, match="dataset.raw_root"):
+        validate_config(make_config("dataset=kitti", f"dataset.root={kitti_data['root']}"))
+
+
+# --- prepare --------------------------------------------------------------------------------
+
+
+class Interrupted(Exception):
+    pass
+
+
+def test_prepare_is_idempotent_and_resumes_after_an_interruption(
+    make_config, kitti_data, monkeypatch
+) -> None:
+    overrides = [
+        "dataset=kitti",
+        f"dataset.root={kitti_data['root']}",
+        f"dataset.raw_root={kitti_data['raw_root']}",
+        "dataset.height=32",
+        "dataset.width=96",
+        "dataset.fill=linear",
+    ]
+    real_load = kitti.load_frame
+    calls = []
+
+    def counting_load(*args, **kwargs):
+        calls.append(args[0].id)
+        if len(calls) == 4 and interrupt:
+            raise Interrupted
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(kitti, "load_frame", counting_load)
+    interrupt = False
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"] / "whole"))
+    assert prepare(make_config(*overrides)) == {"train": 6, "val": 4, "test": 4}
+    assert len(calls) == 10
+    whole = next((kitti_data["cache"] / "whole" / "kitti").iterdir())
+    snapshot = _tree(whole)
+    assert prepare(make_config(*overrides)) == {"train": 6, "val": 4, "test": 4}
+    assert len(calls) == 10 and _tree(whole) == snapshot, "a second prepare wrote something"
+
+    calls.clear()
+    interrupt = True
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"] / "resumed"))
+    with pytest.raises(Interrupted):
+        prepare(make_config(*overrides))
+    resumed = next((kitti_data["cache"] / "resumed" / "kitti").iterdir())
+    assert len(list((resumed / "train").glob("*.json"))) == 3  # three frames done, no index
+    assert not (resumed / "train" / "index.json").exists()
+    assert not [p for p in resumed.rglob("*") if p.name.endswith(".tmp")]
+    done = _tree(resumed)
+    calls.clear()
+    interrupt = False
+    assert prepare(make_config(*overrides)) == {"train": 6, "val": 4, "test": 4}
+    assert len(calls) == 7, "frames prepared before the interruption were prepared again"
+    after = _tree(resumed)
+    assert all(after[name] == stat for name, stat in done.items() if name != "meta.json")
+    for name in snapshot:  # the same files with the same contents as an uninterrupted run
+        assert (resumed / name).read_bytes() == (whole / name).read_bytes(), name
+    assert set(after) == set(snapshot)
+
+
+# --- configs end to end --------------------------------------------------------------------------
+
+
+def test_training_and_testing_through_the_real_configs(make_config, kitti_data) -> None:
+    from fusion_depth.train import train
+
+    cfg = make_config(
+        "dataset=kitti",
+        f"dataset.root={kitti_data['root']}",
+        f"dataset.raw_root={kitti_data['raw_root']}",
+        "dataset.height=32",
+        "dataset.width=96",
+        "dataset.sparse_points=50",
+        "backbone=resnet50",
+        "backbone.pretrained=false",
+        "fusion=concat",
+        "logger=none",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.limit_val_batches=1",
+        "trainer.num_sanity_val_steps=0",
+        "trainer.enable_model_summary=false",
+        "callbacks.model_checkpoint.save_last=false",
+        "+callbacks.model_checkpoint.save_weights_only=true",
+        "data.eval_batch_size=2",
+        "model.num_val_panels=1",
+    )
+    results = train(cfg)
+    saved = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
+    assert saved["test"] == results["test"]
+    assert saved["run"]["dataset"] == "kitti" and saved["run"]["sensor"] == "lidar"
+    assert saved["test"]["num_images"] == 4  # test = KITTI's val here
+    assert set(saved["test_by_condition"]) <= {"day"}
+    assert np.isfinite(saved["test"]["rmse"]) and saved["global_step"] == 2
+
+
+def test_the_sweep_config_reproduces_the_papers_kitti_table(tmp_path) -> None:
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(str(REPO / "sweeps"), version_base="1.3"):
+        cfg = compose(
+            "kitti_fusion",
+            overrides=[
+                f"hydra.searchpath=[file://{REPO / 'conf'}]",
+                f"dataset.root={tmp_path}",
+                f"dataset.raw_root={tmp_path}",
+            ],
+            return_hydra_config=True,
+        )
+    GlobalHydra.instance().clear()
+    assert cfg.dataset.name == "kitti" and cfg.dataset.sensor == "lidar"
+    assert (cfg.dataset.height, cfg.dataset.width) == (384, 1248)
+    assert cfg.dataset.fill == "colorization" and cfg.dataset.eval_crop == "garg"
+    assert cfg.dataset.reader.train_stride == 10
+    assert set(cfg.hydra.sweeper.params.fusion.split(",")) == {"rgb", "concat", "add"}
+    assert cfg.loss.pixel == "l1" and cfg.trainer.max_epochs == 20
+    assert cfg.backbone.pretrained is True and cfg.dataset.max_depth == 80.0

@@ -1,0 +1,691 @@
+"""``dataset=nuscenes`` on a tiny database in the real nuScenes schema, read by the real devkit.
+
+The fixture writes the 13 JSON tables, a map mask, radar ``.pcd`` files in the nuScenes binary PCD
+format (18 fields), lidar ``.pcd.bin`` files and JPEG images. Points are placed by choosing the
+pixel and depth they must end up at, then taking them back through the camera calibration, the
+ego pose at the camera's timestamp, the ego pose at the sweep's timestamp and the sensor's
+calibration, with rotation matrices written out here (not the devkit's), so a convention error
+on either side fails the comparison.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("nuscenes")
+
+from nuscenes.nuscenes import NuScenes  # noqa: E402
+from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
+
+import fusion_depth.data.nuscenes as nus  # noqa: E402
+from fusion_depth.data.nuscenes import NuScenesDepth  # noqa: E402
+
+# --- geometry -----------------------------------------------------------------------------
+
+CAM_W, CAM_H = 128, 72  # the fixture's "1600x900": 16:9
+INTRINSIC = [[100.0, 0.0, 64.0], [0.0, 100.0, 36.0], [0.0, 0.0, 1.0]]
+# The prepared size in most tests: scale 0.5 (64x36), then 4 rows cropped from the top, so the
+# intrinsics become f = 50, c = (32, 18 - 4).
+HEIGHT, WIDTH = 32, 64
+F_OUT, CX_OUT, CY_OUT = 50.0, 32.0, 14.0
+
+
+def yaw_matrix(degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_quaternion(degrees: float) -> list[float]:
+    half = math.radians(degrees) / 2
+    return [math.cos(half), 0.0, 0.0, math.sin(half)]
+
+
+@dataclass(frozen=True)
+class Rigid:
+    """A frame inside its parent: ``parent = R @ child + t``; ``quaternion`` is R as nuScenes
+    stores it (w, x, y, z)."""
+
+    rotation: np.ndarray
+    translation: tuple[float, float, float]
+    quaternion: list[float]
+
+    @classmethod
+    def yaw(cls, degrees: float, translation: tuple[float, float, float]) -> Rigid:
+        return cls(yaw_matrix(degrees), translation, yaw_quaternion(degrees))
+
+    def to_parent(self, p: np.ndarray) -> np.ndarray:
+        return self.rotation @ p + np.asarray(self.translation)[:, None]
+
+    def from_parent(self, p: np.ndarray) -> np.ndarray:
+        return self.rotation.T @ (p - np.asarray(self.translation)[:, None])
+
+
+# Camera axes (x right, y down, z forward) in the ego frame (x forward, y left, z up).
+CAMERA = Rigid(
+    np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+    (1.0, 0.0, 1.5),
+    [0.5, -0.5, 0.5, -0.5],
+)
+SENSORS = {
+    "CAM_FRONT": ("camera", CAMERA),
+    "RADAR_FRONT": ("radar", Rigid.yaw(10.0, (3.5, 0.2, 0.6))),
+    "RADAR_FRONT_LEFT": ("radar", Rigid.yaw(80.0, (3.4, 0.6, 0.5))),
+    "LIDAR_TOP": ("lidar", Rigid.yaw(-90.0, (0.95, 0.0, 1.85))),
+}
+
+
+def ego_poses(i: int) -> dict[str, Rigid]:
+    """Ego poses of sample ``i``'s sweeps: each timestamp its own, all different."""
+    x = 20.0 * i
+    return {
+        "CAM_FRONT": Rigid.yaw(30.0, (100.0 + x, 50.0, 0.0)),
+        "RADAR_FRONT": Rigid.yaw(31.0, (100.5 + x, 50.2, 0.0)),
+        "RADAR_FRONT/prev": Rigid.yaw(28.0, (99.0 + x, 49.5, 0.0)),
+        "RADAR_FRONT_LEFT": Rigid.yaw(30.8, (100.4 + x, 50.15, 0.0)),
+        "LIDAR_TOP": Rigid.yaw(30.5, (100.2 + x, 50.1, 0.05)),
+        "LIDAR_TOP/prev": Rigid.yaw(29.0, (99.5 + x, 49.8, 0.0)),
+    }
+
+
+def camera_point(row: float, col: float, depth: float) -> np.ndarray:
+    """The camera-frame point seen at the centre of prepared pixel (row, col) at ``depth``."""
+    return np.array(
+        [
+            (col + 0.5 - CX_OUT) * depth / F_OUT,
+            (row + 0.5 - CY_OUT) * depth / F_OUT,
+            depth,
+        ]
+    )
+
+
+def in_sensor(points_cam: np.ndarray, i: int, sweep: str) -> np.ndarray:
+    """Camera-frame points (3, N) of sample ``i`` as ``sweep``'s sensor recorded them."""
+    poses = ego_poses(i)
+    world = poses["CAM_FRONT"].to_parent(CAMERA.to_parent(points_cam))
+    sensor = SENSORS[sweep.split("/")[0]][1]
+    return sensor.from_parent(poses[sweep].from_parent(world))
+
+
+VALID = {"dyn_prop": 1, "ambig_state": 3, "invalid_state": 0}
+# sweep -> [(row, col, depth, radar states)]; what each prepared pixel must hold.
+RADAR_POINTS = {
+    "RADAR_FRONT": [
+        (20, 10, 12.0, VALID),
+        (22, 40, 30.0, {**VALID, "invalid_state": 1}),  # low RCS: default filters drop it
+        (25, 50, 8.0, {**VALID, "dyn_prop": 0, "ambig_state": 1}),  # ambiguous Doppler
+        (18, 30, 20.0, {**VALID, "dyn_prop": 7}),  # "stopped": not in default dynprop_states
+    ],
+    "RADAR_FRONT/prev": [(15, 20, 25.0, VALID)],
+    "RADAR_FRONT_LEFT": [(12, 5, 15.0, VALID)],
+}
+LIDAR_POINTS = {
+    "LIDAR_TOP": [
+        camera_point(10, 10, 15.0),
+        camera_point(16, 32, 20.0),  # a shared pixel, farther point first ...
+        camera_point(16, 32, 10.0),  # ... the nearer one wins
+        camera_point(16, 33, 9.0),  # a shared pixel, nearer point first
+        camera_point(16, 33, 11.0),
+        np.array([0.5, 0.2, -5.0]),  # behind the camera
+        camera_point(20, 20, 0.5),  # closer than min_distance
+        camera_point(10, 70, 10.0),  # right of the image
+        camera_point(-2, 10, 10.0),  # in the rows cropped away at the top
+    ],
+    "LIDAR_TOP/prev": [camera_point(28, 60, 40.0)],
+}
+LIDAR_EXPECTED = {(10, 10): 15.0, (16, 32): 10.0, (16, 33): 9.0}
+RADAR_DEFAULT = {(20, 10): 12.0}
+
+# --- the database ---------------------------------------------------------------------------
+
+RADAR_FIELDS = (
+    "x y z dyn_prop id rcs vx vy vx_comp vy_comp is_quality_valid ambig_state x_rms y_rms "
+    "invalid_state pdh0 vx_rms vy_rms"
+).split()
+RADAR_SIZES = [4, 4, 4, 1, 2, 4, 4, 4, 4, 4, 1, 1, 1, 1, 1, 1, 1, 1]
+RADAR_TYPES = "F F F I I F F F F F I I I I I I I I".split()
+_PACK = {("F", 4): "<f", ("I", 1): "<b", ("I", 2): "<h"}
+
+
+def write_radar_pcd(path: Path, xyz: np.ndarray, states: list[dict]) -> None:
+    """A radar sweep in the nuScenes PCD v0.7 binary format (18 fields, little-endian)."""
+    n = xyz.shape[1]
+    header = [
+        "# .PCD v0.7 - Point Cloud Data file format",
+        "VERSION 0.7",
+        "FIELDS " + " ".join(RADAR_FIELDS),
+        "SIZE " + " ".join(map(str, RADAR_SIZES)),
+        "TYPE " + " ".join(RADAR_TYPES),
+        "COUNT " + " ".join(["1"] * len(RADAR_FIELDS)),
+        f"WIDTH {n}",
+        "HEIGHT 1",
+        "VIEWPOINT 0 0 0 1 0 0 0",
+        f"POINTS {n}",
+        "DATA binary",
+    ]
+    body = bytearray()
+    for k in range(n):
+        values = {name: 0 for name in RADAR_FIELDS}
+        values.update({"x": xyz[0, k], "y": xyz[1, k], "z": xyz[2, k], "id": k, "rcs": 5.0})
+        values.update({"is_quality_valid": 1, "pdh0": 1, "x_rms": 3, "y_rms": 3})
+        values.update(states[k])
+        for name, size, kind in zip(RADAR_FIELDS, RADAR_SIZES, RADAR_TYPES, strict=True):
+            body += struct.pack(_PACK[(kind, size)], values[name])
+    # The devkit asserts that data follows every field it reads (end < len), so the published
+    # files end with a byte after the last point.
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(("\n".join(header) + "\n").encode() + bytes(body) + b"\n")
+
+
+def write_lidar_bin(path: Path, xyz: np.ndarray) -> None:
+    """A lidar sweep as nuScenes stores it: float32 (x, y, z, intensity, ring index) rows."""
+    n = xyz.shape[1]
+    rows = np.zeros((n, 5), dtype=np.float32)
+    rows[:, :3] = xyz.T
+    rows[:, 3] = 10.0
+    rows[:, 4] = np.arange(n) % 32
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows.tofile(path)
+
+
+def write_jpeg(path: Path, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:CAM_H, 0:CAM_W]
+    image = np.stack([xx * 2, yy * 3, (xx + yy) % 256], -1) + rng.integers(0, 30, (CAM_H, CAM_W, 3))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.clip(image, 0, 255).astype(np.uint8)).save(path, quality=95)
+
+
+def token(*parts: object) -> str:
+    return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
+
+
+def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]]) -> dict:
+    """Writes ``<root>/<version>/`` (the 13 tables), ``maps/`` and the sensor files of
+    ``scenes`` = [(name, description, number of keyframes)]; returns scene -> sample tokens."""
+    tables: dict[str, list] = {name: [] for name in nus.TABLES}
+    tables["category"] = [
+        {"token": token("cat"), "name": "vehicle.car", "description": "Vehicle designed for 4 ppl"}
+    ]
+    tables["attribute"] = [
+        {"token": token("attr"), "name": "vehicle.parked", "description": "Vehicle is stationary"}
+    ]
+    tables["visibility"] = [
+        {"token": str(i + 1), "level": level, "description": f"visibility of whole object {level}"}
+        for i, level in enumerate(["v0-40", "v40-60", "v60-80", "v80-100"])
+    ]
+    for channel, (modality, rigid) in SENSORS.items():
+        tables["sensor"].append({"token": token(channel), "channel": channel, "modality": modality})
+        tables["calibrated_sensor"].append(
+            {
+                "token": token("calib", channel),
+                "sensor_token": token(channel),
+                "translation": list(rigid.translation),
+                "rotation": rigid.quaternion,
+                "camera_intrinsic": INTRINSIC if modality == "camera" else [],
+            }
+        )
+    log_token = token(version, "log")
+    tables["log"].append(
+        {
+            "token": log_token,
+            "logfile": "n015-2018-07-24-11-22-45+0800",
+            "vehicle": "n015",
+            "date_captured": "2018-07-24",
+            "location": "singapore-onenorth",
+        }
+    )
+    map_file = f"maps/{token(version, 'map')}.png"
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(root / map_file)
+    tables["map"].append(
+        {
+            "token": token(version, "map"),
+            "log_tokens": [log_token],
+            "category": "semantic_prior",
+            "filename": map_file,
+        }
+    )
+    samples: dict[str, list[str]] = {}
+    last_sd: dict[str, dict] = {}  # channel -> the previous sample_data record of its chain
+    clock = 1532402927000000
+    for name, description, count in scenes:
+        last_sd.clear()
+        tokens = [token(version, name, "sample", i) for i in range(count)]
+        samples[name] = tokens
+        tables["scene"].append(
+            {
+                "token": token(version, name),
+                "log_token": log_token,
+                "nbr_samples": count,
+                "first_sample_token": tokens[0],
+                "last_sample_token": tokens[-1],
+                "name": name,
+                "description": description,
+            }
+        )
+        for i, sample_token in enumerate(tokens):
+            clock += 500000
+            tables["sample"].append(
+                {
+                    "token": sample_token,
+                    "timestamp": clock,
+                    "prev": tokens[i - 1] if i else "",
+                    "next": tokens[i + 1] if i + 1 < count else "",
+                    "scene_token": token(version, name),
+                }
+            )
+            sweeps = [
+                ("RADAR_FRONT/prev", -90000, False),
+                ("RADAR_FRONT", -20000, True),
+                ("RADAR_FRONT_LEFT", -15000, True),
+                ("LIDAR_TOP/prev", -40000, False),
+                ("LIDAR_TOP", 10000, True),
+                ("CAM_FRONT", 0, True),
+            ]
+            for sweep, offset, key in sweeps:
+                channel = sweep.split("/")[0]
+                stamp = clock + offset
+                folder = "samples" if key else "sweeps"
+                stem = f"n015-2018-07-24-11-22-45+0800__{channel}__{stamp}"
+                if channel == "CAM_FRONT":
+                    filename, fmt = f"{folder}/{channel}/{stem}.jpg", "jpg"
+                    write_jpeg(root / filename, seed=stamp % 1000)
+                elif channel.startswith("RADAR"):
+                    filename, fmt = f"{folder}/{channel}/{stem}.pcd", "pcd"
+                    points = RADAR_POINTS[sweep]
+                    xyz = in_sensor(np.stack([camera_point(*p[:3]) for p in points], 1), i, sweep)
+                    write_radar_pcd(root / filename, xyz, [p[3] for p in points])
+                else:
+                    filename, fmt = f"{folder}/{channel}/{stem}.pcd.bin", "pcd"
+                    xyz = in_sensor(np.stack(LIDAR_POINTS[sweep], 1), i, sweep)
+                    write_lidar_bin(root / filename, xyz)
+                pose = ego_poses(i)[sweep]
+                pose_token = token(version, name, i, sweep, "pose")
+                tables["ego_pose"].append(
+                    {
+                        "token": pose_token,
+                        "timestamp": stamp,
+                        "rotation": pose.quaternion,
+                        "translation": list(pose.translation),
+                    }
+                )
+                record = {
+                    "token": token(version, name, i, sweep),
+                    "sample_token": sample_token,
+                    "ego_pose_token": pose_token,
+                    "calibrated_sensor_token": token("calib", channel),
+                    "timestamp": stamp,
+                    "fileformat": fmt,
+                    "is_key_frame": key,
+                    "height": CAM_H if channel == "CAM_FRONT" else 0,
+                    "width": CAM_W if channel == "CAM_FRONT" else 0,
+                    "filename": filename,
+                    "prev": last_sd[channel]["token"] if channel in last_sd else "",
+                    "next": "",
+                }
+                if channel in last_sd:
+                    last_sd[channel]["next"] = record["token"]
+                last_sd[channel] = record
+                tables["sample_data"].append(record)
+    (root / version).mkdir(parents=True, exist_ok=True)
+    for name, rows in tables.items():
+        (root / version / f"{name}.json").write_text(json.dumps(rows, indent=0))
+    return samples
+
+
+MINI_SCENES = [
+    ("scene-0061", "Parked truck, construction, intersection, turn left, following a van", 2),
+    ("scene-0553", "Night, wait at intersection, bicycle, rain", 2),  # night wins over rain
+    ("scene-0103", "Rain, peds, big street", 2),
+    ("scene-0916", "Parking lot, bicycle rack, parked bicycles, bus, many peds, ped crossing", 2),
+]
+TEST_SCENES = [("scene-0077", "Night, big street, bus stop", 1)]
+
+
+@pytest.fixture(scope="module")
+def nusc_root(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    root = tmp_path_factory.mktemp("nuscenes")
+    samples = write_nuscenes(root, "v1.0-mini", MINI_SCENES)
+    samples.update(write_nuscenes(root, "v1.0-test", TEST_SCENES))
+    return root, samples
+
+
+def make_reader(root: Path, cache: Path, split: str = "train", **options) -> NuScenesDepth:
+    settings = {"version": "v1.0-mini", "height": HEIGHT, "width": WIDTH, "fill": "none"}
+    return NuScenesDepth(split=split, root=root, cache_root=cache, **{**settings, **options})
+
+
+def nonzero(depth_map) -> dict[tuple[int, int], float]:
+    array = np.asarray(depth_map).squeeze()
+    return {(int(r), int(c)): float(array[r, c]) for r, c in zip(*np.nonzero(array), strict=True)}
+
+
+# --- tests ----------------------------------------------------------------------------------
+
+
+def test_fixture_is_read_by_the_real_devkit(nusc_root) -> None:
+    root, samples = nusc_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    assert [s["name"] for s in nusc.scene] == [name for name, _, _ in MINI_SCENES]
+    sample = nusc.get("sample", samples["scene-0061"][0])
+    assert set(sample["data"]) == set(SENSORS)
+    radar_path = nusc.get_sample_data_path(sample["data"]["RADAR_FRONT"])
+    cloud = RadarPointCloud.from_file(radar_path, list(range(18)), list(range(8)), list(range(5)))
+    assert cloud.points.shape == (18, 4)
+    assert cloud.points[3].tolist() == [1, 1, 0, 7]  # dyn_prop
+    assert cloud.points[-4].tolist() == [0, 1, 0, 0]  # invalid_state
+    assert RadarPointCloud.from_file(radar_path).points.shape == (18, 1)  # default filters
+    lidar = LidarPointCloud.from_file(nusc.get_sample_data_path(sample["data"]["LIDAR_TOP"]))
+    assert lidar.points.shape == (4, len(LIDAR_POINTS["LIDAR_TOP"]))
+
+
+def test_points_land_on_the_expected_pixels_with_the_expected_depth(nusc_root, tmp_path) -> None:
+    root, samples = nusc_root
+    train = make_reader(root, tmp_path)
+    assert len(train) == 4  # two scenes of two keyframes, each with its own ego poses
+    for index in range(len(train)):
+        item = train[index]
+        assert item["image"].shape == (3, HEIGHT, WIDTH)
+        assert nonzero(item["depth"]) == LIDAR_EXPECTED
+        assert nonzero(item["sparse"]) == RADAR_DEFAULT
+    # The image is the JPEG scaled by 0.5 and cut by 4 rows at the top, like the intrinsics.
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    cam = nusc.get("sample", samples["scene-0061"][0])["data"]["CAM_FRONT"]
+    jpeg = Image.open(nusc.get_sample_data_path(cam)).convert("RGB")
+    expected = np.asarray(jpeg.resize((64, 36), Image.Resampling.BILINEAR))[4:]
+    assert np.array_equal((train[0]["image"].numpy() * 255).round().transpose(1, 2, 0), expected)
+
+
+@pytest.mark.parametrize(
+    ("options", "expected"),
+    [
+        ({"radar_filters": "off"}, {(20, 10): 12.0, (22, 40): 30.0, (25, 50): 8.0, (18, 30): 20.0}),
+        (
+            {"radar_filters": "custom", "radar_invalid_states": [0, 1]},
+            {(20, 10): 12.0, (22, 40): 30.0},
+        ),
+        (
+            {"radar_filters": "custom", "radar_dynprop_states": list(range(8))},
+            {(20, 10): 12.0, (18, 30): 20.0},
+        ),
+        ({"radar_nsweeps": 2}, {(20, 10): 12.0, (15, 20): 25.0}),
+        ({"radar_channels": ["RADAR_FRONT", "RADAR_FRONT_LEFT"]}, {(20, 10): 12.0, (12, 5): 15.0}),
+    ],
+    ids=["filters-off", "custom-invalid", "custom-dynprop", "two-sweeps", "front-left"],
+)
+def test_radar_filters_sweeps_and_channels(nusc_root, tmp_path, options, expected) -> None:
+    root, _ = nusc_root
+    train = make_reader(root, tmp_path, **options)
+    for index in range(len(train)):
+        assert nonzero(train[index]["sparse"]) == expected
+        assert nonzero(train[index]["depth"]) == LIDAR_EXPECTED
+    # The devkit's global filter settings are left alone.
+    assert RadarPointCloud.invalid_states == [0] and RadarPointCloud.ambig_states == [3]
+    assert list(RadarPointCloud.dynprop_states) == list(range(7))
+
+
+def test_lidar_sweeps_accumulate(nusc_root, tmp_path) -> None:
+    root, _ = nusc_root
+    train = make_reader(root, tmp_path, lidar_nsweeps=2)
+    assert nonzero(train[1]["depth"]) == {**LIDAR_EXPECTED, (28, 60): 40.0}
+
+
+def test_project_points_keeps_the_nearest_and_drops_the_rest() -> None:
+    k = np.array([[10.0, 0.0, 2.0], [0.0, 10.0, 1.0], [0.0, 0.0, 1.0]])
+    points = np.array(
+        [
+            [0.0, 0.0, 5.0],  # (1, 2) at 5 m
+            [0.0, 0.0, 3.0],  # same pixel, nearer: wins
+            [0.0, 0.0, 0.9],  # closer than min_distance
+            [0.0, 0.0, -4.0],  # behind
+            [10.0, 0.0, 5.0],  # u = 22: right of the image
+            [0.1, 0.0, 1.0],  # (1, 3) at exactly min_distance: kept
+            [0.0, 0.0, 300.0],  # beyond the cache's 255.99 m
+            [np.nan, 0.0, 5.0],
+        ]
+    ).T
+    depth = nus.project_points(points, k, height=3, width=4, min_distance=1.0)
+    assert depth.dtype == np.float32
+    assert nonzero(depth) == {(1, 2): 3.0, (1, 3): 1.0}
+
+
+def test_resize_and_crop_scales_the_intrinsics() -> None:
+    image = np.zeros((900, 1600, 3), np.uint8)
+    k = np.array([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]])
+    out, k2 = nus.resize_and_crop(image, k, 448, 800)
+    assert out.shape == (448, 800, 3)
+    np.testing.assert_allclose(k2, [[633.2, 0, 408.15], [0, 633.2, 245.75 - 2], [0, 0, 1]])
+    out, k3 = nus.resize_and_crop(image, k, 256, 640)  # scale 0.4: 640x360, 104 rows cut
+    np.testing.assert_allclose(k3, [[506.56, 0, 326.52], [0, 506.56, 196.6 - 104], [0, 0, 1]])
+
+
+def test_splits_conditions_and_stride(nusc_root, tmp_path) -> None:
+    root, samples = nusc_root
+    readers = {split: make_reader(root, tmp_path, split=split) for split in ("train", "val")}
+    test = make_reader(root, tmp_path, split="test")
+    ids = {split: [f["id"] for f in r.frames] for split, r in readers.items()}
+    assert ids["train"] == samples["scene-0061"] + samples["scene-0553"]  # mini_train
+    assert ids["val"] == samples["scene-0103"] + samples["scene-0916"]  # mini_val
+    assert readers["train"].conditions == ["day", "day", "night", "night"]
+    assert readers["val"].conditions == ["rain", "rain", "day", "day"]
+    assert test.split_dir == readers["val"].split_dir  # test_split=val: the same prepared frames
+
+    strided = make_reader(root, tmp_path, stride=2)
+    assert [f["id"] for f in strided.frames] == [samples["scene-0061"][0], samples["scene-0553"][0]]
+    day_night = make_reader(root, tmp_path, split="val", conditions=["day", "night"])
+    assert [f["id"] for f in day_night.frames] == samples["scene-0916"]  # rain left out
+    with pytest.raises(ValueError, match="mini_val split of v1.0-mini has no keyframe left"):
+        make_reader(root, tmp_path, conditions=["night"])  # an empty split fails
+
+    official = make_reader(root, tmp_path, split="test", test_split="test")
+    assert [f["id"] for f in official.frames] == samples["scene-0077"]
+    assert official.conditions == ["night"]
+    assert nonzero(official[0]["depth"]) == LIDAR_EXPECTED
+
+
+def test_filled_ground_truth_trains_and_measured_points_evaluate(nusc_root, tmp_path) -> None:
+    root, _ = nusc_root
+    train = make_reader(root, tmp_path, fill="linear")
+    depth = train[0]["depth"].squeeze().numpy()
+    assert (depth > 0).all()  # dense: every pixel filled
+    for (r, c), value in LIDAR_EXPECTED.items():
+        assert depth[r, c] == value  # measured values kept
+    val = make_reader(root, tmp_path, split="val", fill="linear")
+    assert nonzero(val[0]["depth"]) == LIDAR_EXPECTED  # evaluation: the lidar points only
+    # val does not depend on fill: another fill re-prepares only train.
+    assert make_reader(root, tmp_path, split="val").split_dir == val.split_dir
+    assert make_reader(root, tmp_path).split_dir.parent != train.split_dir.parent
+
+
+def test_prepare_is_idempotent_and_resumable(nusc_root, tmp_path, monkeypatch) -> None:
+    root, _ = nusc_root
+    real_load = nus.load_frame
+    calls: list[str] = []
+
+    def interrupted(devkit, nusc, token, settings):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(token)
+        return real_load(devkit, nusc, token, settings)
+
+    monkeypatch.setattr(nus, "load_frame", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        make_reader(root, tmp_path)
+    split_dirs = list(tmp_path.glob("nuscenes/*/train"))
+    assert len(split_dirs) == 1 and not (split_dirs[0] / "index.json").exists()
+    assert len(list(split_dirs[0].glob("*.json"))) == 3  # three frames done
+
+    calls.clear()
+    monkeypatch.setattr(nus, "load_frame", lambda *a: calls.append(a[2]) or real_load(*a))
+    train = make_reader(root, tmp_path)
+    assert len(train) == 4 and len(calls) == 4 + 1  # the 4th train frame, then val's 4
+    stamps = {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()}
+
+    def no_devkit_load(*args):
+        raise AssertionError("a prepared cache must not load the tables again")
+
+    monkeypatch.setattr(nus, "load_tables", no_devkit_load)
+    again = make_reader(root, tmp_path)
+    assert again.split_dir == train.split_dir and again.frames == train.frames
+    assert {p: p.stat().st_mtime_ns for p in tmp_path.rglob("*") if p.is_file()} == stamps
+    with pytest.raises(AssertionError, match="must not load"):
+        make_reader(root, tmp_path, radar_nsweeps=2)  # other settings: a new cache
+
+
+def _snapshot(root: Path) -> dict:
+    return {str(p): (p.stat().st_size, p.stat().st_mtime_ns) for p in root.rglob("*")}
+
+
+@pytest.fixture
+def fresh_root(tmp_path) -> tuple[Path, dict]:
+    root = tmp_path / "data"
+    samples = write_nuscenes(root, "v1.0-mini", MINI_SCENES)
+    return root, samples
+
+
+def test_dataset_folder_is_only_read(fresh_root, tmp_path) -> None:
+    root, _ = fresh_root
+    before = _snapshot(root)
+    make_reader(root, tmp_path / "cache", fill="colorization")
+    assert _snapshot(root) == before
+    with pytest.raises(ValueError, match="inside dataset.root"):
+        make_reader(root, root / "cache")
+
+
+def _sample_file(root: Path, samples: dict, channel: str) -> Path:
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    sample = nusc.get("sample", samples["scene-0553"][1])
+    return Path(nusc.get_sample_data_path(sample["data"][channel]))
+
+
+def _break_lidar_missing(root, samples):
+    path = _sample_file(root, samples, "LIDAR_TOP")
+    path.unlink()
+    return path, FileNotFoundError, "missing LIDAR_TOP lidar point cloud"
+
+
+def _break_lidar_size(root, samples):
+    path = _sample_file(root, samples, "LIDAR_TOP")
+    path.write_bytes(path.read_bytes()[:-3])
+    return path, ValueError, "not a whole number of 20-byte points"
+
+
+def _break_radar(root, samples):
+    path = _sample_file(root, samples, "RADAR_FRONT")
+    path.write_bytes(path.read_bytes()[:300])
+    return path, ValueError, "unreadable RADAR_FRONT radar point cloud.*expected a nuScenes radar"
+
+
+def _break_image(root, samples):
+    path = _sample_file(root, samples, "CAM_FRONT")
+    path.write_bytes(b"not a jpeg")
+    return path, ValueError, "unreadable image"
+
+
+def _break_version(root, samples):
+    (root / "v1.0-mini").rename(root / "v1.0-mini-old")
+    return root / "v1.0-mini", FileNotFoundError, "missing folder; expected the nuScenes v1.0-mini"
+
+
+def _break_table(root, samples):
+    path = root / "v1.0-mini" / "sample_data.json"
+    path.unlink()
+    return path, FileNotFoundError, "missing table; expected the 13 nuScenes tables"
+
+
+def _break_map(root, samples):
+    next((root / "maps").glob("*.png")).unlink()
+    return root / "v1.0-mini", ValueError, "devkit could not load the v1.0-mini tables"
+
+
+def _break_split(root, samples):
+    write_nuscenes(root, "v1.0-mini", MINI_SCENES[:2])  # no mini_val scene
+    return root / "v1.0-mini" / "scene.json", ValueError, "none of the 2 scenes of the mini_val"
+
+
+def _break_root(root, samples):
+    return root / "elsewhere", FileNotFoundError, "no such folder; expected the nuScenes folder"
+
+
+@pytest.mark.parametrize(
+    "breaker",
+    [
+        _break_lidar_missing,
+        _break_lidar_size,
+        _break_radar,
+        _break_image,
+        _break_version,
+        _break_table,
+        _break_map,
+        _break_split,
+        _break_root,
+    ],
+)
+def test_bad_input_fails_naming_the_path_before_training(fresh_root, tmp_path, breaker) -> None:
+    root, samples = fresh_root
+    path, error, message = breaker(root, samples)
+    data_root = path if breaker is _break_root else root
+    before = _snapshot(root)
+    with pytest.raises(error, match=message) as info:
+        make_reader(data_root, tmp_path / "cache", split="test")
+    assert str(path) in str(info.value)
+    assert not list((tmp_path / "cache").rglob("index.json"))  # nothing usable was written
+    assert _snapshot(root) == before
+
+
+def test_missing_and_wrong_options_fail_clearly(nusc_root, tmp_path) -> None:
+    root, _ = nusc_root
+    with pytest.raises(ValueError, match="dataset.version='v2.0'"):
+        make_reader(root, tmp_path, version="v2.0")
+    with pytest.raises(ValueError, match="radar_channels.*RADAR_FRONT_LEFT"):
+        make_reader(root, tmp_path, radar_channels=["RADAR_TOP"])
+    with pytest.raises(ValueError, match="radar_ambig_states=\\[\\]"):
+        make_reader(root, tmp_path, radar_filters="custom", radar_ambig_states=[])
+    with pytest.raises(ValueError, match="dataset.fill='cubic'"):
+        make_reader(root, tmp_path, fill="cubic")
+    with pytest.raises(ValueError, match="dataset.root is not set"):
+        make_reader(None, tmp_path)
+    assert not list(tmp_path.rglob("*"))
+
+
+def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None:
+    from fusion_depth.prepare import prepare
+    from fusion_depth.train import train
+
+    root, _ = nusc_root
+    cfg = make_config(
+        "dataset=nuscenes",
+        f"dataset.root={root}",
+        "dataset.version=v1.0-mini",
+        "dataset.height=64",
+        "dataset.width=128",
+        "backbone=resnet50",
+        "backbone.pretrained=false",
+        "fusion=concat",
+        "logger=none",
+        "trainer.max_epochs=1",
+        "trainer.num_sanity_val_steps=0",
+        "trainer.enable_model_summary=false",
+        "callbacks.model_checkpoint.save_last=false",
+        "+callbacks.model_checkpoint.save_weights_only=true",
+        "model.num_val_panels=1",
+    )
+    assert cfg.dataset.fill == "colorization" and cfg.backbone.name == "resnet50"
+    assert prepare(cfg) == {"train": 4, "val": 4, "test": 4}
+    results = train(cfg)
+    assert results["run"]["dataset"] == "nuscenes" and results["run"]["sensor"] == "radar"
+    assert results["test"]["num_images"] == 4
+    assert set(results["test_by_condition"]) == {"rain", "day"}
+    assert all(math.isfinite(v) for v in results["test"].values())
+    assert Path(cfg.paths.output_dir, "metrics.json").is_file()
+    assert list(Path(os.environ["FUSION_DEPTH_CACHE"]).glob("nuscenes/*/train/index.json"))

@@ -1,0 +1,227 @@
+"""dataset=topview: Unreal depth exports decoded exactly, RGB only enforced at config time, bad
+input named, prepare idempotent, and one training run."""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from PIL import Image
+
+from fusion_depth.config import validate_config
+from fusion_depth.data.topview import TopViewDepth, read_depth_file
+from fusion_depth.prepare import prepare
+
+REPO = Path(__file__).resolve().parents[1]
+CACHE_STEP = 1 / 256  # the prepared cache stores depth in 1/256 m
+H, W = 64, 96
+SPLIT_FRAMES = {"train": ["a00", "a01", "a02", "a03"], "val": ["b00", "b01"], "test": ["c00"]}
+
+
+def crane_depth_cm(seed: int) -> np.ndarray:
+    """Ground 30-45 m below the boom and a load hanging 6-8 m below it, in centimetres."""
+    rng = np.random.default_rng(seed)
+    depth = 3000.0 + np.add.outer(np.arange(H) * 12.0, np.arange(W) * 7.0) + rng.uniform(0, 50)
+    depth[20:30, 40:52] = 600.0 + rng.uniform(0, 200)
+    return depth
+
+
+def write_folder(root: Path) -> Path:
+    """Images as PNG and JPEG; depth as 16-bit PNG (cm) and float NPY (cm), matched by name."""
+    for split, names in SPLIT_FRAMES.items():
+        (root / split / "rgb").mkdir(parents=True)
+        (root / split / "depth").mkdir(parents=True)
+        for i, name in enumerate(names):
+            seed = zlib.crc32(name.encode()) % 1000
+            rgb = np.random.default_rng(seed).integers(0, 256, (H, W, 3), dtype=np.uint8)
+            depth = crane_depth_cm(seed)
+            if i % 2 == 0:
+                Image.fromarray(rgb).save(root / split / "rgb" / f"{name}.png")
+                Image.fromarray(np.round(depth).astype(np.uint16)).save(
+                    root / split / "depth" / f"{name}.png"
+                )
+            else:
+                Image.fromarray(rgb).save(root / split / "rgb" / f"{name}.jpg", quality=95)
+                np.save(root / split / "depth" / f"{name}.npy", depth.astype(np.float32))
+    return root
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory) -> Path:
+    return write_folder(tmp_path_factory.mktemp("topview") / "data")
+
+
+def _expected_metres(name: str, png: bool) -> np.ndarray:
+    depth = crane_depth_cm(zlib.crc32(name.encode()) % 1000)
+    return (np.round(depth) if png else depth.astype(np.float32).astype(np.float64)) * 0.01
+
+
+def test_png_and_npy_depth_decode_to_metres(folder, tmp_path) -> None:
+    train = TopViewDepth("train", folder, tmp_path / "cache", height=H, width=W)
+    assert len(train) == 4 and train.conditions == ["day"] * 4
+    for index, png in ((0, True), (1, False)):
+        sample = train[index]
+        assert sample["image"].shape == (3, H, W) and sample["condition"] == "day"
+        assert not sample["sparse"].any()  # camera only
+        expected = _expected_metres(SPLIT_FRAMES["train"][index], png)
+        got = sample["depth"][0].numpy()
+        assert np.abs(got - expected).max() <= CACHE_STEP / 2 + 1e-4
+    image = (train[0]["image"].numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)
+    expected_rgb = np.asarray(Image.open(folder / "train/rgb/a00.png").convert("RGB"))
+    np.testing.assert_array_equal(image, expected_rgb)
+
+
+def test_depth_unit_applies_to_npy_in_metres(tmp_path) -> None:
+    metres = np.full((4, 5, 1), 42.5, np.float64)
+    metres[0, 0] = np.nan
+    metres[1, 1] = -3.0
+    np.save(tmp_path / "m.npy", metres)
+    depth = read_depth_file(tmp_path / "m.npy", depth_unit=1.0)
+    assert depth.shape == (4, 5) and depth[0, 0] == 0 and depth[1, 1] == 0
+    assert depth[2, 2] == pytest.approx(42.5)
+
+
+def test_exr_is_refused_naming_the_file_and_the_alternatives(tmp_path) -> None:
+    (tmp_path / "frame.exr").write_bytes(b"v/1\x01")
+    with pytest.raises(ValueError, match="frame.exr: EXR.*not supported.*\\.npy.*16-bit PNG"):
+        read_depth_file(tmp_path / "frame.exr", depth_unit=0.01)
+
+
+def test_resizing_keeps_rendered_depths(folder, tmp_path) -> None:
+    val = TopViewDepth("val", folder, tmp_path / "cache", height=32, width=64)
+    sample = val[0]
+    assert sample["image"].shape == (3, 32, 64) and sample["depth"].shape == (1, 32, 64)
+    rendered = np.unique(_expected_metres("b00", png=True))
+    got = sample["depth"][0].numpy().ravel()
+    nearest = np.abs(got[:, None] - rendered[None, :]).min(axis=1)
+    assert nearest.max() <= CACHE_STEP / 2 + 1e-4
+
+
+def _make(make_config, root, *overrides):
+    return make_config(
+        "dataset=topview",
+        f"dataset.root={root}",
+        "dataset.height=64",
+        "dataset.width=96",
+        *overrides,
+    )
+
+
+def test_only_rgb_fusion_is_allowed(folder, make_config) -> None:
+    cfg = _make(make_config, folder)
+    assert cfg.dataset.sensor == "none" and cfg.fusion.mode == "rgb"
+    assert cfg.dataset.reader.condition == "day"
+    validate_config(cfg)
+    for fusion in ("concat", "add"):
+        with pytest.raises(ValueError, match=f"fusion={fusion}: dataset=topview .*fusion=rgb"):
+            validate_config(_make(make_config, folder, f"fusion={fusion}"))
+
+
+def test_prepare_is_idempotent_and_never_writes_into_the_folder(folder, make_config) -> None:
+    before = sorted((p, p.stat().st_mtime_ns) for p in folder.rglob("*"))
+    cfg = _make(make_config, folder)
+    assert prepare(cfg) == {"train": 4, "val": 2, "test": 1}
+    cache = Path(cfg.paths.cache_dir) / "topview"
+    files = sorted((p, p.stat().st_mtime_ns) for p in cache.rglob("*"))
+    assert prepare(cfg) == {"train": 4, "val": 2, "test": 1}
+    assert sorted((p, p.stat().st_mtime_ns) for p in cache.rglob("*")) == files
+    assert sorted((p, p.stat().st_mtime_ns) for p in folder.rglob("*")) == before
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    for path in src.rglob("*"):
+        if path.is_file():
+            target = dst / path.relative_to(src)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(path.read_bytes())
+    return dst
+
+
+def _break(root: Path, change: str) -> Path:
+    if change == "root":
+        return root / "nowhere"
+    if change == "layout":
+        (root / "val/depth").rename(root / "val/depths")
+    elif change == "missing":
+        (root / "train/depth/a02.png").unlink()
+    elif change == "empty":
+        for path in (root / "test/rgb").iterdir():
+            path.unlink()
+    elif change == "8bit":
+        Image.fromarray(np.zeros((H, W), np.uint8)).save(root / "test/depth/c00.png")
+    elif change == "size":
+        np.save(root / "val/depth/b01.npy", np.ones((H, W + 1), np.float32))
+    elif change == "corrupt":
+        (root / "val/rgb/b00.png").write_bytes(b"not an image")
+    elif change == "twice":
+        np.save(root / "train/depth/a00.npy", np.ones((H, W), np.float32))
+    return root
+
+
+@pytest.mark.parametrize(
+    "change,error,match",
+    [
+        ("root", FileNotFoundError, "nowhere: no such folder.*\\{rgb,depth\\}"),
+        ("layout", FileNotFoundError, "val/depth: missing folder.*found.*depths"),
+        ("missing", FileNotFoundError, "train/depth/a02.png: missing depth map of .*a02.png"),
+        ("empty", ValueError, "test/rgb: no images, the test split is empty"),
+        ("8bit", ValueError, "c00.png: expected a single-channel 16-bit depth PNG"),
+        ("size", ValueError, "b01.npy: depth map is 97x64, expected the image's 96x64"),
+        ("corrupt", ValueError, "b00.png: unreadable image"),
+        ("twice", ValueError, "a00.npy and a00.png|a00.png and a00.npy"),
+    ],
+)
+def test_bad_input_fails_before_training_naming_the_path(
+    folder, tmp_path, change, error, match
+) -> None:
+    root = _break(_copy(folder, tmp_path / "copy"), change)
+    with pytest.raises(error, match=match):
+        TopViewDepth("train", root, tmp_path / "cache", height=H, width=W)
+
+
+def test_sweep_config_reproduces_the_papers_topview_table(tmp_path) -> None:
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(str(REPO / "sweeps"), version_base="1.3"):
+        cfg = compose(
+            "topview_loss_grid",
+            overrides=[f"hydra.searchpath=[file://{REPO / 'conf'}]", f"dataset.root={tmp_path}"],
+            return_hydra_config=True,
+        )
+    GlobalHydra.instance().clear()
+    assert cfg.dataset.name == "topview" and cfg.fusion.mode == "rgb"
+    assert set(cfg.hydra.sweeper.params.loss.split(",")) == {"l1", "l2", "berhu"}
+    assert "fusion" not in cfg.hydra.sweeper.params
+    assert cfg.trainer.max_epochs == 30 and cfg.backbone.pretrained is True
+
+
+def test_training_and_testing_on_a_folder(folder, make_config) -> None:
+    from fusion_depth.train import train
+
+    cfg = _make(
+        make_config,
+        folder,
+        "backbone=resnet50",
+        "backbone.pretrained=false",
+        "loss=berhu",
+        "logger=none",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.limit_val_batches=1",
+        "trainer.num_sanity_val_steps=0",
+        "trainer.enable_model_summary=false",
+        "callbacks.model_checkpoint.save_last=false",
+        "+callbacks.model_checkpoint.save_weights_only=true",
+        "model.num_val_panels=1",
+    )
+    results = train(cfg)
+    saved = json.loads((Path(cfg.paths.output_dir) / "metrics.json").read_text())
+    assert saved["test"] == results["test"] and results["test"]["num_images"] == 1
+    assert results["run"]["dataset"] == "topview" and results["run"]["sensor"] == "none"
+    assert set(results["test_by_condition"]) == {"day"}
+    assert all(math.isfinite(v) for v in results["test"].values())
