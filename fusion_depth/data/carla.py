@@ -485,12 +485,7 @@ class CarlaDepth(PreparedSplit):
             "max_range": max_range,
             "files": files,
         }
-        cache = cache_dir(Path(cache_root).expanduser(), "carla", params).resolve()
-        if cache.is_relative_to(root):
-            raise ValueError(
-                f"cache {cache} is inside dataset.root={root}; the dataset folder is only read: "
-                "point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
-            )
+        cache = cache_dir(cache_root, "carla", params, read_only={"root": root})
         for name in SPLITS:
             by_id = {frame.id: frame for frame in frames[name]}
             prepare_split(

@@ -664,12 +664,7 @@ class NuScenesDepth(PreparedSplit):
         cache_root = Path(cache_root).expanduser()
         folders: dict[str, tuple[Path, str]] = {}
         for name, (params, _version, _key, folder, _fill) in sources.items():
-            cache = cache_dir(cache_root, "nuscenes", params).resolve()
-            if cache.is_relative_to(root):
-                raise ValueError(
-                    f"cache {cache} is inside dataset.root={root}; the dataset folder is only "
-                    "read: point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
-                )
+            cache = cache_dir(cache_root, "nuscenes", params, read_only={"root": root})
             folders[name] = (cache, folder)
         todo = [
             name

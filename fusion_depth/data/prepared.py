@@ -54,10 +54,28 @@ class PreparedFrame:
     filled: np.ndarray | None = None  # float (H, W) metres: densified ground truth for training
 
 
-def cache_dir(root: str | os.PathLike, dataset: str, params: dict[str, Any]) -> Path:
-    """``root/dataset/<12 hex digits>``: one folder per distinct set of settings."""
+def cache_dir(
+    root: str | os.PathLike,
+    dataset: str,
+    params: dict[str, Any],
+    read_only: dict[str, Path] | None = None,
+) -> Path:
+    """``root/dataset/<12 hex digits>``: one folder per distinct set of settings.
+
+    ``read_only`` names the user's dataset folders (``{"root": path}``); a cache that would land
+    inside one of them is refused, because those folders are only ever read.
+    """
     text = json.dumps({"prepared_version": PREPARED_VERSION, **params}, sort_keys=True)
-    return Path(root) / dataset / hashlib.sha256(text.encode()).hexdigest()[:12]
+    cache = Path(root).expanduser() / dataset / hashlib.sha256(text.encode()).hexdigest()[:12]
+    if read_only:
+        cache = cache.resolve()
+        for name, folder in read_only.items():
+            if cache.is_relative_to(folder):
+                raise ValueError(
+                    f"cache {cache} is inside dataset.{name}={folder}; the dataset folder is only "
+                    "ever read: point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
+                )
+    return cache
 
 
 def is_prepared(cache: Path, split: str) -> bool:
