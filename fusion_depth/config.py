@@ -20,15 +20,8 @@ def register_resolvers() -> None:
     OmegaConf.register_new_resolver("fd.cache_dir", _cache_dir, replace=True)
 
 
-def validate_config(cfg: DictConfig) -> dict:
-    """Fail before touching data: missing values, and values the network cannot take.
-
-    Hydra already rejects unknown group choices with the list of options; this catches
-    ``???`` values anywhere and the numeric constraints, each naming the key. Returns the
-    resolved config as plain data.
-    """
-    resolved = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    ds = cfg.dataset
+def check_dataset(ds: DictConfig, fusion: str) -> None:
+    """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it."""
     for key in ("height", "width"):
         value = ds[key]
         if not isinstance(value, int) or value <= 0 or value % 32:
@@ -48,11 +41,22 @@ def validate_config(cfg: DictConfig) -> dict:
             f"installed: {needs.install}"
         )
     allowed = ds.get("fusions")
-    if allowed is not None and cfg.fusion.mode not in allowed:
+    if allowed is not None and fusion not in allowed:
         raise ValueError(
-            f"fusion={cfg.fusion.mode}: dataset={ds.name} has no sparse sensor input, so only "
+            f"fusion={fusion}: dataset={ds.name} has no sparse sensor input, so only "
             f"fusion={'/'.join(allowed)} is possible (dataset.fusions)"
         )
+
+
+def validate_config(cfg: DictConfig) -> dict:
+    """Fail before touching data: missing values, and values the network cannot take.
+
+    Hydra already rejects unknown group choices with the list of options; this catches
+    ``???`` values anywhere and the numeric constraints, each naming the key. Returns the
+    resolved config as plain data.
+    """
+    resolved = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    check_dataset(cfg.dataset, cfg.fusion.mode)
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size={cfg.data.batch_size}: expected an integer ≥ 1")
     return resolved

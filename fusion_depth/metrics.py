@@ -6,8 +6,15 @@ comparable with published ones):
 * A pixel is scored iff ``min_depth < target < max_depth`` (NaN targets are never valid).
 * Predictions are clamped to ``[min_depth, max_depth]`` before scoring, as monodepth2 and the KITTI
   evaluation scripts do; this bounds the relative/log/inverse errors of degenerate predictions.
-* Averaging is per image: each metric is averaged over the valid pixels of one image, then over
-  images. Images without any valid pixel are skipped (they would be 0/0).
+* Averaging is per image by default (KITTI, monodepth2): each metric is averaged over the valid
+  pixels of one image, then over images. ``averaging="pooled"`` (DenseDepth) averages over every
+  valid pixel of the set at once, so large images and dense ground truth weigh more. Images
+  without any valid pixel are skipped (they would be 0/0).
+* ``max_depth`` may be several caps (RadarNet reports 50, 70 and 80 m): each cap is scored in the
+  same pass, with predictions clamped to ``[min_depth, cap]``; the largest is the headline.
+* ``crop`` keeps only the Garg et al. or Eigen et al. region of the frame, given as fractions of the
+  *original* frame (KITTI's convention); a sample's ``frame_box`` says where that frame lies when a
+  reader padded or cropped it.
 
 Metrics, with ``d`` the prediction and ``d*`` the ground truth, means over valid pixels:
 
@@ -34,10 +41,15 @@ from torch import Tensor
 from torchmetrics import Metric
 
 __all__ = [
+    "AVERAGING",
+    "EVAL_CROPS",
     "HIGHER_IS_BETTER",
     "METRIC_KEYS",
     "DepthMetrics",
     "compute_depth_metrics",
+    "crop_mask",
+    "depth_error_sums",
+    "metrics_from_sums",
     "per_image_depth_metrics",
 ]
 
@@ -57,6 +69,21 @@ METRIC_KEYS: tuple[str, ...] = (
 
 HIGHER_IS_BETTER: dict[str, bool] = {k: k.startswith("delta") for k in METRIC_KEYS}
 """Per-metric optimisation direction (e.g. for checkpoint ``mode``): only the deltas go up."""
+
+
+# Metrics that are square roots of a mean: their per-pixel sum holds the squared error.
+_ROOT_KEYS = frozenset({"rmse", "rmse_log", "irmse"})
+_ROOT_MASK = torch.tensor([k in _ROOT_KEYS for k in METRIC_KEYS])
+
+AVERAGING: tuple[str, ...] = ("per_image", "pooled")
+
+# Evaluation crops as (top, bottom, left, right) fractions of the full frame: Garg et al. (ECCV
+# 2016) and Eigen et al. (NIPS 2014), with the constants of the monodepth2/KITTI scripts.
+EVAL_CROPS: dict[str, tuple[float, float, float, float] | None] = {
+    "none": None,
+    "garg": (0.40810811, 0.99189189, 0.03594771, 0.96405229),
+    "eigen": (0.3324324, 0.91351351, 0.0359477, 0.96405229),
+}
 
 
 def _check_range(min_depth: float, max_depth: float) -> None:
@@ -83,6 +110,84 @@ def _flatten(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
     )
 
 
+def crop_mask(
+    shape: tuple[int, int],
+    crop: str,
+    frame_box: Tensor | None = None,
+    batch: int = 1,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """Bool ``(B, H, W)``: True inside ``EVAL_CROPS[crop]`` (everywhere for ``"none"``).
+
+    ``frame_box`` ``(B, 4)`` holds ``(top, left, height, width)`` of each original frame in the
+    map's pixel coordinates (negative when a reader cut rows or columns off); without it the map
+    is the frame. Rows ``top + int(f · height)`` follow the KITTI scripts' rounding.
+    """
+    if crop not in EVAL_CROPS:
+        raise ValueError(f"eval.crop={crop!r}: expected one of {list(EVAL_CROPS)}")
+    height, width = shape
+    fractions = EVAL_CROPS[crop]
+    if fractions is None:
+        return torch.ones(batch, height, width, dtype=torch.bool, device=device)
+    if frame_box is None:
+        frame_box = torch.tensor([[0, 0, height, width]], device=device).expand(batch, 4)
+    rows = torch.arange(height, device=device)
+    cols = torch.arange(width, device=device)
+    masks = []
+    for top, left, h, w in frame_box.tolist():
+        t, b, lft, r = (
+            offset + int(f * size)
+            for f, size, offset in zip(fractions, (h, h, w, w), (top, top, left, left), strict=True)
+        )
+        masks.append(((rows >= t) & (rows < b))[:, None] & ((cols >= lft) & (cols < r))[None, :])
+    return torch.stack(masks)
+
+
+def depth_error_sums(
+    pred: Tensor, target: Tensor, valid: Tensor, min_depth: float, max_depth: float
+) -> tuple[Tensor, Tensor]:
+    """Per-image sums of each metric's per-pixel term over ``valid`` pixels, and their count.
+
+    Returns float64 ``sums`` ``(B, K)`` in :data:`METRIC_KEYS` order (the squared error for the
+    root metrics) and ``counts`` ``(B,)``. Every averaging follows from these: per image
+    ``sums / counts``, pooled ``sums.sum(0) / counts.sum()`` (see :func:`metrics_from_sums`).
+    Predictions are clamped to ``[min_depth, max_depth]`` first.
+    """
+    d, gt = _flatten(pred, target)
+    valid = valid.reshape(d.shape) & torch.isfinite(gt) & (gt > 0)
+    # Invalid pixels get a harmless value so that log/divisions stay finite; torch.where below
+    # keeps these placeholders out of every sum.
+    d = d.clamp(min_depth, max_depth)
+    gt = torch.where(valid, gt, d)
+    err = d - gt
+    sq = err * err
+    ratio = torch.maximum(d / gt, gt / d)
+    log_err = torch.log(d) - torch.log(gt)
+    inv_err = 1000.0 / d - 1000.0 / gt
+    terms = {
+        "abs_rel": err.abs() / gt,
+        "sq_rel": sq / gt,
+        "rmse": sq,
+        "rmse_log": log_err * log_err,
+        "mae": err.abs(),
+        "log10": log_err.abs() / math.log(10.0),
+        "delta1": (ratio < 1.25).to(torch.float64),
+        "delta2": (ratio < 1.25**2).to(torch.float64),
+        "delta3": (ratio < 1.25**3).to(torch.float64),
+        "irmse": inv_err * inv_err,
+        "imae": inv_err.abs(),
+    }
+    zero = torch.zeros((), dtype=torch.float64, device=d.device)
+    sums = torch.stack([torch.where(valid, terms[k], zero).sum(dim=1) for k in METRIC_KEYS], 1)
+    return sums, valid.sum(dim=1).to(torch.float64)
+
+
+def metrics_from_sums(sums: Tensor, counts: Tensor) -> Tensor:
+    """Metric values ``(..., K)`` from sums ``(..., K)`` over ``counts`` ``(...)`` pixels (> 0)."""
+    means = sums / counts.unsqueeze(-1)
+    return torch.where(_ROOT_MASK.to(means.device), means.sqrt(), means)
+
+
 def per_image_depth_metrics(
     pred: Tensor, target: Tensor, min_depth: float, max_depth: float
 ) -> tuple[dict[str, Tensor], Tensor]:
@@ -101,68 +206,83 @@ def per_image_depth_metrics(
         skipped using ``has_valid``.
     """
     _check_range(min_depth, max_depth)
-    d, gt = _flatten(pred, target)
-    valid = (gt > min_depth) & (gt < max_depth)
-    n = valid.sum(dim=1)
-    has_valid = n > 0
-    n = n.clamp_min(1).to(torch.float64)
+    valid = (target > min_depth) & (target < max_depth)
+    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth)
+    has_valid = counts > 0
+    values = metrics_from_sums(sums, counts.clamp_min(1))
+    values = torch.where(has_valid[:, None], values, torch.zeros_like(values))
+    return {k: values[:, i] for i, k in enumerate(METRIC_KEYS)}, has_valid
 
-    # Replace invalid pixels by a harmless value so that log/divisions stay finite; masked sums use
-    # torch.where, so these placeholders never reach a result.
-    d = d.clamp(min_depth, max_depth)
-    gt = torch.where(valid, gt, d)
 
-    def mean(x: Tensor) -> Tensor:
-        return torch.where(valid, x, torch.zeros_like(x)).sum(dim=1) / n
+def _aggregate(sums: Tensor, counts: Tensor, averaging: str) -> dict[str, float] | None:
+    """Metrics over a set of images (rows) by ``averaging``; None when no image was scored."""
+    scored = counts > 0
+    if not bool(scored.any()):
+        return None
+    if averaging == "pooled":
+        values = metrics_from_sums(sums[scored].sum(0), counts[scored].sum())
+    else:
+        values = metrics_from_sums(sums[scored], counts[scored]).mean(0)
+    out = {k: float(v) for k, v in zip(METRIC_KEYS, values, strict=True)}
+    out["num_images"] = int(scored.sum())
+    out["num_pixels"] = int(counts.sum())
+    return out
 
-    err = d - gt
-    sq = err * err
-    ratio = torch.maximum(d / gt, gt / d)
-    log_err = torch.log(d) - torch.log(gt)
-    inv_err = 1000.0 / d - 1000.0 / gt
-    values = {
-        "abs_rel": mean(err.abs() / gt),
-        "sq_rel": mean(sq / gt),
-        "rmse": mean(sq).sqrt(),
-        "rmse_log": mean(log_err * log_err).sqrt(),
-        "mae": mean(err.abs()),
-        "log10": mean(log_err.abs()) / math.log(10.0),
-        "delta1": mean((ratio < 1.25).to(torch.float64)),
-        "delta2": mean((ratio < 1.25**2).to(torch.float64)),
-        "delta3": mean((ratio < 1.25**3).to(torch.float64)),
-        "irmse": mean(inv_err * inv_err).sqrt(),
-        "imae": mean(inv_err.abs()),
-    }
-    return values, has_valid
+
+def _check_averaging(averaging: str) -> str:
+    if averaging not in AVERAGING:
+        raise ValueError(f"eval.averaging={averaging!r}: expected one of {list(AVERAGING)}")
+    return averaging
 
 
 def compute_depth_metrics(
-    pred: Tensor, target: Tensor, min_depth: float = 1e-3, max_depth: float = 80.0
+    pred: Tensor,
+    target: Tensor,
+    min_depth: float = 1e-3,
+    max_depth: float = 80.0,
+    averaging: str = "per_image",
+    crop: str = "none",
+    frame_box: Tensor | None = None,
 ) -> dict[str, float]:
-    """Per-image-averaged metrics of one batch as Python floats (functional twin of DepthMetrics).
+    """Metrics of one batch as Python floats (functional twin of DepthMetrics, one cap).
 
     Raises:
         ValueError: if shapes differ, or if no image has a pixel inside ``(min_depth, max_depth)``.
     """
-    values, has_valid = per_image_depth_metrics(pred, target, min_depth, max_depth)
-    count = int(has_valid.sum())
-    if count == 0:
+    _check_range(min_depth, max_depth)
+    _check_averaging(averaging)
+    b = pred.shape[0]
+    valid = (target > min_depth) & (target < max_depth)
+    valid = valid.reshape(b, -1) & crop_mask(
+        tuple(target.shape[-2:]), crop, frame_box, b, target.device
+    ).reshape(b, -1)
+    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth)
+    out = _aggregate(sums, counts, averaging)
+    if out is None:
         raise ValueError(f"no image has a valid ground-truth pixel in ({min_depth}, {max_depth})")
-    return {k: float(v[has_valid].sum() / count) for k, v in values.items()}
+    return {k: out[k] for k in METRIC_KEYS}
+
+
+def _label(value: float) -> str:
+    return f"{value:g}"
 
 
 class DepthMetrics(Metric):
-    """Accumulates per-image depth metrics across batches (and processes), optionally per condition.
+    """Accumulates depth metrics across batches (and processes), with the evaluation breakdowns.
 
-    States (all summed across processes): ``sums`` ``(K,)`` float64, the sum over scored images of
-    each per-image metric in :data:`METRIC_KEYS` order, and ``count`` the number of scored images;
-    with ``conditions`` (e.g. ``["day", "night", "rain", "fog"]``) also ``cond_sums`` ``(G, K)`` and
-    ``cond_count`` ``(G,)`` for the breakdown the paper reports per weather/lighting condition.
-    Storing sums of per-image values, not per-pixel sums, is what makes the average per image.
+    Each update stores, per image, the per-pixel sums of every metric term and the pixel count
+    for each scoring *region*: one per depth cap in ``max_depth`` and one per distance bin
+    (``distance_bins`` edges in metres, scored within the headline cap). States are lists
+    concatenated across processes (``dist_reduce_fx="cat"``): ``image_sums`` ``(N, R, K)``,
+    ``image_counts`` ``(N, R)``, ``image_condition`` ``(N,)`` (index into ``conditions``, -1 for
+    none) and ``image_index`` ``(N,)`` (the sample's position in its split, -1 if unknown).
+    Keeping per-image sums is what lets one pass give per-image and pooled averages, every
+    breakdown, and the per-image records a paired comparison between models needs.
 
-    ``compute()`` returns a flat dict of 0-d float64 tensors: ``"abs_rel"``, ... and, with
-    conditions, ``"<condition>/abs_rel"``, ... for each condition with at least one scored image.
-    The metrics do not share a direction, so ``higher_is_better`` is None; see
+    ``compute()`` returns a flat dict of 0-d float64 tensors for the headline cap: ``"abs_rel"``,
+    ... and, with conditions, ``"<condition>/abs_rel"``, ... for each condition with a scored
+    image. :meth:`results` gives every breakdown; :meth:`per_image` the per-image records. The
+    metrics do not share a direction, so ``higher_is_better`` is None; see
     :data:`HIGHER_IS_BETTER` for each key.
     """
 
@@ -170,22 +290,41 @@ class DepthMetrics(Metric):
     higher_is_better = None
     full_state_update = False
 
-    sums: Tensor
-    count: Tensor
-    cond_sums: Tensor
-    cond_count: Tensor
+    image_sums: list[Tensor]
+    image_counts: list[Tensor]
+    image_condition: list[Tensor]
+    image_index: list[Tensor]
 
     def __init__(
         self,
         min_depth: float = 1e-3,
-        max_depth: float = 80.0,
+        max_depth: float | Sequence[float] = 80.0,
         conditions: Sequence[str] | None = None,
+        averaging: str = "per_image",
+        crop: str = "none",
+        distance_bins: Sequence[float] | None = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
-        _check_range(min_depth, max_depth)
+        caps = [max_depth] if isinstance(max_depth, int | float) else list(max_depth)
+        if not caps:
+            raise ValueError("max_depth: expected a depth cap or a non-empty list of caps")
+        for cap in caps:
+            _check_range(min_depth, cap)
         self.min_depth = float(min_depth)
-        self.max_depth = float(max_depth)
+        self.caps = sorted({float(c) for c in caps})
+        self.max_depth = self.caps[-1]  # the headline cap
+        self.averaging = _check_averaging(averaging)
+        crop_mask((1, 1), crop)  # validates the name
+        self.crop = crop
+        self.bins: list[tuple[float, float]] = []
+        if distance_bins is not None:
+            edges = [float(e) for e in distance_bins]
+            if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+                raise ValueError(
+                    f"distance_bins={list(distance_bins)}: expected at least two increasing edges"
+                )
+            self.bins = list(zip(edges, edges[1:], strict=False))
         if isinstance(conditions, str):
             raise ValueError(
                 f"conditions must be a sequence of names, got the string {conditions!r}"
@@ -197,16 +336,8 @@ class DepthMetrics(Metric):
                 raise ValueError(f"conditions must be non-empty and unique, got {list(names)}")
             self.conditions = names
             self._cond_index = {name: i for i, name in enumerate(names)}
-
-        k = len(METRIC_KEYS)
-        self.add_state("sums", torch.zeros(k, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("count", torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
-        if self.conditions is not None:
-            g = len(self.conditions)
-            self.add_state(
-                "cond_sums", torch.zeros(g, k, dtype=torch.float64), dist_reduce_fx="sum"
-            )
-            self.add_state("cond_count", torch.zeros(g, dtype=torch.float64), dist_reduce_fx="sum")
+        for name in ("image_sums", "image_counts", "image_condition", "image_index"):
+            self.add_state(name, default=[], dist_reduce_fx="cat")
 
     def _condition_indices(self, condition: Sequence[str] | str, batch: int) -> Tensor:
         """Map one condition name per image (a single string applies to the whole batch)."""
@@ -220,41 +351,149 @@ class DepthMetrics(Metric):
             raise ValueError(
                 f"unknown condition(s) {unknown}; known conditions: {list(self.conditions)}"
             )
-        return torch.tensor(
-            [self._cond_index[name] for name in names], dtype=torch.long, device=self.sums.device
-        )
+        return torch.tensor([self._cond_index[name] for name in names], dtype=torch.long)
 
-    def update(self, pred: Tensor, target: Tensor, condition: Sequence[str] | None = None) -> None:
+    def update(
+        self,
+        pred: Tensor,
+        target: Tensor,
+        condition: Sequence[str] | str | None = None,
+        index: Tensor | None = None,
+        frame_box: Tensor | None = None,
+    ) -> None:
         """Score a batch of depth maps in metres, ``(B, 1, H, W)`` or ``(B, H, W)``.
 
-        ``condition`` gives one known condition name per image (or one string for the whole batch);
-        without it the images only count towards the overall metrics.
+        ``condition`` gives one known condition name per image (or one string for the whole
+        batch); ``index`` each image's position in its split; ``frame_box`` ``(B, 4)`` where each
+        original frame lies (see :func:`crop_mask`).
         """
-        idx = None
-        if condition is not None:
-            # Validate before touching any state, so a bad batch leaves the metric unchanged.
-            idx = self._condition_indices(condition, pred.shape[0])
-        values, has_valid = per_image_depth_metrics(pred, target, self.min_depth, self.max_depth)
-        per_image = torch.stack([values[k] for k in METRIC_KEYS], dim=1)  # (B, K)
-        per_image = torch.where(has_valid[:, None], per_image, torch.zeros_like(per_image))
-        weight = has_valid.to(torch.float64)
-        self.sums += per_image.sum(dim=0)
-        self.count += weight.sum()
-        if idx is not None:
-            self.cond_sums.index_add_(0, idx, per_image)
-            self.cond_count.index_add_(0, idx, weight)
+        b = pred.shape[0]
+        # Validate before touching any state, so a bad batch leaves the metric unchanged.
+        cond = (
+            torch.full((b,), -1, dtype=torch.long)
+            if condition is None
+            else self._condition_indices(condition, b)
+        )
+        if pred.shape != target.shape:
+            raise ValueError(
+                f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}"
+            )
+        flat_target = target.detach().reshape(b, -1)
+        base = crop_mask(tuple(target.shape[-2:]), self.crop, frame_box, b, target.device)
+        base = base.reshape(b, -1) & (flat_target > self.min_depth)
+        regions = [(base & (flat_target < cap), cap) for cap in self.caps]
+        regions += [
+            (
+                base & (flat_target < self.max_depth) & (flat_target >= lo) & (flat_target < hi),
+                self.max_depth,
+            )
+            for lo, hi in self.bins
+        ]
+        sums, counts = zip(
+            *(depth_error_sums(pred, target, m, self.min_depth, cap) for m, cap in regions),
+            strict=True,
+        )
+        self.image_sums.append(torch.stack(sums, dim=1))
+        self.image_counts.append(torch.stack(counts, dim=1))
+        self.image_condition.append(cond.to(self.device))
+        idx = torch.full((b,), -1, dtype=torch.long) if index is None else index.reshape(b)
+        self.image_index.append(idx.to(device=self.device, dtype=torch.long))
+
+    def _states(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        def cat(state: list[Tensor] | Tensor) -> Tensor:
+            # After a distributed sync a list state is already one concatenated tensor.
+            return torch.cat(state) if isinstance(state, list) else state
+
+        if not self.image_sums:
+            raise ValueError("DepthMetrics has not seen any image (update was never called)")
+        return (
+            cat(self.image_sums).cpu(),
+            cat(self.image_counts).cpu(),
+            cat(self.image_condition).cpu(),
+            cat(self.image_index).cpu(),
+        )
+
+    def _headline(self, sums: Tensor, counts: Tensor) -> tuple[Tensor, Tensor]:
+        r = self.caps.index(self.max_depth)
+        return sums[:, r], counts[:, r]
 
     def compute(self) -> dict[str, Tensor]:
-        """Mean over scored images; raises ValueError if none was scored."""
-        if self.count <= 0:
+        """Headline-cap metrics (and per condition); raises ValueError if nothing was scored."""
+        sums, counts, cond, _ = self._states()
+        head_sums, head_counts = self._headline(sums, counts)
+        overall = _aggregate(head_sums, head_counts, self.averaging)
+        if overall is None:
             raise ValueError(
                 "DepthMetrics has not scored any image: no ground-truth pixel in "
                 f"({self.min_depth}, {self.max_depth}) was seen"
             )
-        out = {k: v for k, v in zip(METRIC_KEYS, self.sums / self.count, strict=True)}
-        if self.conditions is not None:
-            for g, name in enumerate(self.conditions):
-                if self.cond_count[g] > 0:
-                    means = self.cond_sums[g] / self.cond_count[g]
-                    out.update({f"{name}/{k}": v for k, v in zip(METRIC_KEYS, means, strict=True)})
+        out = {k: torch.tensor(overall[k], dtype=torch.float64) for k in METRIC_KEYS}
+        for g, name in enumerate(self.conditions or ()):
+            group = _aggregate(head_sums[cond == g], head_counts[cond == g], self.averaging)
+            if group is not None:
+                out.update(
+                    {
+                        f"{name}/{k}": torch.tensor(group[k], dtype=torch.float64)
+                        for k in METRIC_KEYS
+                    }
+                )
         return out
+
+    def results(self) -> dict[str, dict]:
+        """Every breakdown as plain data: ``overall``, ``by_condition``, ``by_distance``
+        (``"0-10"``, ... m, within the headline cap) and ``by_cap`` (``"50"``, ...), each with
+        ``num_images`` and ``num_pixels``; groups without a scored image are left out."""
+        sums, counts, cond, _ = self._states()
+        head_sums, head_counts = self._headline(sums, counts)
+        overall = _aggregate(head_sums, head_counts, self.averaging)
+        if overall is None:
+            raise ValueError(
+                "DepthMetrics has not scored any image: no ground-truth pixel in "
+                f"({self.min_depth}, {self.max_depth}) was seen"
+            )
+        by_condition = {}
+        for g, name in enumerate(self.conditions or ()):
+            group = _aggregate(head_sums[cond == g], head_counts[cond == g], self.averaging)
+            if group is not None:
+                by_condition[name] = group
+        by_cap = {
+            _label(cap): _aggregate(sums[:, r], counts[:, r], self.averaging)
+            for r, cap in enumerate(self.caps)
+        }
+        by_distance = {}
+        for j, (lo, hi) in enumerate(self.bins):
+            r = len(self.caps) + j
+            group = _aggregate(sums[:, r], counts[:, r], self.averaging)
+            if group is not None:
+                by_distance[f"{_label(lo)}-{_label(hi)}"] = group
+        return {
+            "overall": overall,
+            "by_condition": by_condition,
+            "by_distance": by_distance,
+            "by_cap": {k: v for k, v in by_cap.items() if v is not None},
+        }
+
+    def per_image(self) -> list[dict]:
+        """One record per scored image (headline cap): ``index``, ``condition``, ``num_pixels``
+        and every metric; ordered by ``index``."""
+        sums, counts, cond, index = self._states()
+        head_sums, head_counts = self._headline(sums, counts)
+        scored = head_counts > 0
+        values = metrics_from_sums(head_sums[scored], head_counts[scored])
+        names = self.conditions or ()
+        rows = [
+            {
+                "index": int(i),
+                "condition": names[c] if c >= 0 else "",
+                "num_pixels": int(n),
+                **{k: float(v) for k, v in zip(METRIC_KEYS, row, strict=True)},
+            }
+            for i, c, n, row in zip(
+                index[scored].tolist(),
+                cond[scored].tolist(),
+                head_counts[scored].tolist(),
+                values,
+                strict=True,
+            )
+        ]
+        return sorted(rows, key=lambda r: r["index"])

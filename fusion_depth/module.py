@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import lightning as L
@@ -11,6 +12,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fusion_depth.checkpoint import CONFIG_KEY, RUN_KEY
+from fusion_depth.evaluation import EvalProtocol, latency_summary
+from fusion_depth.inference import predict_depth, resize_depth
 from fusion_depth.losses import DepthLoss
 from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
@@ -37,20 +41,24 @@ def downsample_depth(
 class DepthModule(L.LightningModule):
     """Trains ``net`` on reciprocal depth; validates and tests in metres.
 
-    Predictions are upsampled bilinearly from the network's half resolution to the ground
-    truth's before scoring. ``run_config`` (the resolved run config, plain data) is saved in
-    every checkpoint so evaluation can rebuild the run without unpickling code.
+    Scoring follows ``evaluation`` (the ``eval`` config group, see :class:`EvalProtocol`):
+    predictions are resized from the network's half resolution to the ground truth's, and the
+    test stage may add flip test-time augmentation. Validation scores the same way without it.
+    ``run_config`` (the resolved run config, plain data) is saved in every checkpoint so
+    evaluation can rebuild the run without unpickling code. ``loss`` and ``optimizer`` may be
+    None for a module that only evaluates.
     """
 
     def __init__(
         self,
         net: DepthNet,
-        loss: DepthLoss,
-        optimizer: Callable[..., torch.optim.Optimizer],
+        loss: DepthLoss | None = None,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
         augmentation: nn.Module | None = None,
         conditions: Sequence[str] = (),
         num_val_panels: int = 4,
+        evaluation: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["net", "loss", "optimizer", "scheduler", "augmentation"])
@@ -59,20 +67,29 @@ class DepthModule(L.LightningModule):
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.augmentation = augmentation
-        metric_args = {
-            "min_depth": net.min_depth,
-            "max_depth": net.max_depth,
-            "conditions": list(conditions) or None,
-        }
-        self.val_metrics = DepthMetrics(**metric_args)
-        self.test_metrics = DepthMetrics(**metric_args)
-        self.test_results: dict[str, float] = {}
+        self.conditions = list(conditions) or None
+        self.protocol = EvalProtocol.from_config(evaluation, net.min_depth, net.max_depth)
+        self.val_metrics = self.protocol.metrics(self.conditions)
+        self.test_metrics = self.protocol.metrics(self.conditions)
+        self.test_results: dict[str, Any] = {}
+        self.test_per_image: list[dict] = []
+        self.test_latency: dict[str, Any] = {}
+        self._latencies: list[float] = []
+        self._test_input: tuple[int, tuple[int, ...]] = (0, (0, 0))  # batch size, image size
         self.val_panels: list[np.ndarray] = []
         self.run_config: dict | None = None
+        self.run_identity: dict | None = None
+
+    def set_protocol(self, protocol: EvalProtocol) -> None:
+        """Score the test stage by ``protocol`` from now on (``evaluate``'s options)."""
+        self.protocol = protocol
+        self.test_metrics = protocol.metrics(self.conditions)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         if self.run_config is not None:
-            checkpoint["fusion_depth_config"] = self.run_config
+            checkpoint[CONFIG_KEY] = self.run_config
+        if self.run_identity is not None:
+            checkpoint[RUN_KEY] = self.run_identity
 
     def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
         """Depth in metres at half the input resolution."""
@@ -100,20 +117,21 @@ class DepthModule(L.LightningModule):
         )
         return losses["loss"]
 
-    def _evaluate(self, batch: dict, metrics: DepthMetrics) -> torch.Tensor:
-        reciprocal = self._reciprocal(batch)
-        depth = batch["depth"]
-        pred = F.interpolate(
-            self.net.to_depth(reciprocal),
-            size=depth.shape[-2:],
-            mode="bilinear",
-            align_corners=False,
+    @staticmethod
+    def _update(metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:
+        metrics.update(
+            pred,
+            batch["depth"],
+            batch["condition"] if metrics.conditions else None,
+            index=batch.get("index"),
+            frame_box=batch.get("frame_box"),
         )
-        metrics.update(pred, depth, batch["condition"] if metrics.conditions else None)
-        return reciprocal
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
-        reciprocal = self._evaluate(batch, self.val_metrics)
+        reciprocal = self._reciprocal(batch)
+        depth = batch["depth"]
+        pred = resize_depth(self.net.to_depth(reciprocal), depth.shape[-2:], self.protocol.upsample)
+        self._update(self.val_metrics, pred, batch)
         self.log(
             "val/loss",
             self._loss(reciprocal, batch["depth"])["loss"],
@@ -142,17 +160,41 @@ class DepthModule(L.LightningModule):
         self.log_dict({f"val/{k}": v for k, v in self.val_metrics.compute().items()})
         self.val_metrics.reset()
 
+    def on_test_epoch_start(self) -> None:
+        self._latencies = []
+
     def test_step(self, batch: dict, batch_idx: int) -> None:
-        self._evaluate(batch, self.test_metrics)
+        image, depth = batch["image"], batch["depth"]
+        if image.device.type == "cuda":
+            torch.cuda.synchronize(image.device)
+        start = time.perf_counter()
+        pred = predict_depth(
+            self.net,
+            image,
+            batch["sparse"],
+            flip_tta=self.protocol.flip_tta,
+            size=tuple(depth.shape[-2:]),
+            upsample=self.protocol.upsample,
+        )
+        if image.device.type == "cuda":
+            torch.cuda.synchronize(image.device)
+        self._latencies.append((time.perf_counter() - start) / len(image))
+        self._update(self.test_metrics, pred, batch)
+        if batch_idx == 0:
+            self._test_input = (len(image), tuple(image.shape[-2:]))
 
     def on_test_epoch_end(self) -> None:
-        results = self.test_metrics.compute()
-        self.log_dict({f"test/{k}": v for k, v in results.items()})
-        self.test_results = {k: float(v) for k, v in results.items()}
-        self.test_results["num_images"] = int(self.test_metrics.count)
+        flat = self.test_metrics.compute()
+        self.log_dict({f"test/{k}": v for k, v in flat.items()})
+        self.test_results = self.test_metrics.results()
+        self.test_per_image = self.test_metrics.per_image()
+        batch_size, size = self._test_input
+        self.test_latency = latency_summary(self._latencies, self.device, batch_size, size)
         self.test_metrics.reset()
 
     def configure_optimizers(self) -> dict:
+        if self.optimizer_factory is None:
+            raise ValueError("this DepthModule was built for evaluation only (no optimizer)")
         optimizer = self.optimizer_factory(params=self.parameters())
         if self.scheduler_factory is None:
             return {"optimizer": optimizer}

@@ -1,9 +1,11 @@
-"""The on-disk record of a run: ``metrics.json`` on success, ``failure.json`` on error."""
+"""The on-disk record of a run: ``metrics.json`` (+ ``per_image.csv``) on success,
+``failure.json`` on error, and where the code that produced it came from."""
 
 from __future__ import annotations
 
 import json
 import os
+import subprocess
 import tempfile
 import traceback
 from pathlib import Path
@@ -12,6 +14,41 @@ from typing import Any
 METRICS_FILE = "metrics.json"
 FAILURE_FILE = "failure.json"
 RESOLVED_CONFIG_FILE = "config_resolved.yaml"
+PER_IMAGE_FILE = "per_image.csv"
+
+
+def provenance() -> dict[str, Any]:
+    """Package versions and, when the package runs from a git checkout, its commit and whether
+    the working tree had uncommitted changes (``git_dirty``); None where unknown."""
+    import lightning
+    import torch
+
+    import fusion_depth
+
+    source = Path(fusion_depth.__file__).resolve().parent
+    commit = dirty = None
+    try:
+        git = ["git", "-C", str(source)]
+        commit = subprocess.run(
+            [*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        status = subprocess.run(
+            [*git, "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout
+        dirty = bool(status.strip())
+    except (OSError, subprocess.SubprocessError):
+        pass  # not a git checkout (an installed wheel) or no git: the versions still say enough
+    return {
+        "fusion_depth": fusion_depth.__version__,
+        "torch": torch.__version__,
+        "lightning": lightning.__version__,
+        "git_commit": commit or None,
+        "git_dirty": dirty,
+    }
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -7,10 +7,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 REPO = Path(__file__).resolve().parents[1]
 CONF_DIR = str(REPO / "conf")
@@ -27,11 +28,13 @@ def isolated_environment(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return cache
 
 
-def compose_config(overrides: list[str], output_dir: Path) -> DictConfig:
-    """The config a ``python -m fusion_depth.train`` task function would receive."""
+def compose_config(
+    overrides: list[str], output_dir: Path, config_name: str = "train"
+) -> DictConfig:
+    """The config a ``python -m fusion_depth.<config_name>`` task function would receive."""
     GlobalHydra.instance().clear()
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
-        cfg = compose("train", overrides=overrides, return_hydra_config=True)
+        cfg = compose(config_name, overrides=overrides, return_hydra_config=True)
     with open_dict(cfg):
         cfg.hydra.runtime.output_dir = str(output_dir)
         cfg.hydra.job.num = 0
@@ -48,3 +51,39 @@ def make_config(tmp_path: Path) -> Callable[..., DictConfig]:
 
     yield _make
     GlobalHydra.instance().clear()
+
+
+def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int = 0) -> Path:
+    """An untrained DepthNet saved the way training saves it (weights + run config), so tests of
+    evaluate/predict need no training run."""
+    from fusion_depth.models import DepthNet
+
+    torch.manual_seed(seed)
+    kwargs = {
+        "backbone": "densenet169",
+        "fusion": fusion,
+        "min_depth": dataset["min_depth"],
+        "max_depth": dataset["max_depth"],
+        "depth_scale": dataset["depth_scale"],
+        "sparse_encoding": "log",
+    }
+    net = DepthNet(**kwargs, pretrained=False)
+    config = {
+        "model": {"net": kwargs},
+        "fusion": {"mode": fusion},
+        "backbone": {"name": "densenet169"},
+        "loss": {"pixel": "l1"},
+        "seed": seed,
+        "dataset": dataset,
+    }
+    state = {f"net.{k}": v for k, v in net.state_dict().items()}
+    torch.save({"state_dict": state, "fusion_depth_config": config}, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def smoke_dataset(tmp_path_factory: pytest.TempPathFactory, isolated_environment: Path) -> dict:
+    """The smoke experiment's procedural block (64×96, 5 test frames), as plain data."""
+    cfg = compose_config(["experiment=smoke"], tmp_path_factory.mktemp("compose"))
+    GlobalHydra.instance().clear()
+    return OmegaConf.to_container(cfg.dataset, resolve=True)

@@ -19,6 +19,7 @@ from PIL import Image
 import fusion_depth.data.kitti as kitti
 from fusion_depth.config import validate_config
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
+from fusion_depth.metrics import crop_mask
 from fusion_depth.prepare import prepare
 
 REPO = Path(__file__).resolve().parents[1]
@@ -181,14 +182,25 @@ def test_filled_ground_truth_trains_and_evaluation_scores_measured_points(
     np.testing.assert_array_equal(val[0]["depth"][0].numpy(), gt[8:40, 2:98] / 256.0)
 
 
-def test_eval_crop_masks_validation_and_test_ground_truth_only(kitti_data) -> None:
-    train, val = (_dataset(kitti_data, s, eval_crop="garg") for s in ("train", "val"))
+def test_eval_crop_is_taken_on_the_original_frame(kitti_data) -> None:
+    """Samples keep every measured point and say where the 40x100 frame lies, so eval.crop=garg
+    scores Garg's fractions of the full frame: rows 16..38 and columns 3..95 of it, whether the
+    sample padded the frame or cut rows off."""
+    val = _dataset(kitti_data, "val")
     _, gt, _ = kitti_data["truth"][_ids(val)[0]]
-    inside = np.zeros((H, W), bool)
-    inside[16:39, 3:96] = True  # Garg's fractions of a 40x100 frame
-    np.testing.assert_array_equal(val[0]["depth"][0, :H, :W].numpy(), np.where(inside, gt, 0) / 256)
-    _, train_gt, _ = kitti_data["truth"][_ids(train)[0]]
-    np.testing.assert_array_equal(train[0]["depth"][0, :H, :W].numpy(), train_gt / 256.0)
+    sample = val[0]
+    np.testing.assert_array_equal(sample["depth"][0, :H, :W].numpy(), gt / 256.0)
+    assert sample["frame_box"].tolist() == [0, 0, H, W]  # padded to 64x128 at the bottom/right
+    inside = np.zeros((64, 128), bool)
+    inside[16:39, 3:96] = True
+    mask = crop_mask((64, 128), "garg", sample["frame_box"][None])[0]
+    np.testing.assert_array_equal(mask.numpy(), inside)
+    # Cut to 32 rows (bottom kept, 8 cut at the top) and 96 columns (2 cut on each side).
+    cut = _dataset(kitti_data, "val", height=32, width=96)[0]
+    assert cut["frame_box"].tolist() == [-8, -2, H, W]
+    mask = crop_mask((32, 96), "garg", cut["frame_box"][None])[0]
+    assert mask.any(dim=1).nonzero().flatten().tolist() == list(range(16 - 8, 39 - 8))
+    assert mask.any(dim=0).nonzero().flatten().tolist() == list(range(3 - 2, 96 - 2))
 
 
 # --- split files --------------------------------------------------------------------------------
@@ -339,7 +351,6 @@ def test_bad_input_fails_before_training_naming_the_path(kitti_data, how) -> Non
     ("option", "message"),
     [
         ({"fill": "cubic"}, r"dataset.fill='cubic': expected one of \['none', 'linear'"),
-        ({"eval_crop": "tight"}, r"dataset.eval_crop='tight': expected one of \['none', 'garg'"),
         ({"sparse_points": 0}, "dataset.sparse_points=0: expected null"),
         ({"height": 40}, "dataset.height=40: expected a positive multiple of 32"),
         ({"train_stride": 0}, "dataset.train_stride=0: expected an integer >= 1"),
@@ -466,7 +477,8 @@ def test_the_sweep_config_reproduces_the_papers_kitti_table(tmp_path) -> None:
     GlobalHydra.instance().clear()
     assert cfg.dataset.name == "kitti" and cfg.dataset.sensor == "lidar"
     assert (cfg.dataset.height, cfg.dataset.width) == (384, 1248)
-    assert cfg.dataset.fill == "colorization" and cfg.dataset.eval_crop == "garg"
+    assert cfg.dataset.fill == "colorization" and cfg.eval.crop == "garg"
+    assert cfg.hydra.sweeper.params.seed == "42,43,44"
     assert cfg.dataset.reader.train_stride == 10
     assert set(cfg.hydra.sweeper.params.fusion.split(",")) == {"rgb", "concat", "add"}
     assert cfg.loss.pixel == "l1" and cfg.trainer.max_epochs == 20

@@ -12,6 +12,7 @@ from fusion_depth.metrics import (
     METRIC_KEYS,
     DepthMetrics,
     compute_depth_metrics,
+    crop_mask,
     per_image_depth_metrics,
 )
 
@@ -165,8 +166,8 @@ def test_metric_class_matches_functional_over_concatenated_batch() -> None:
     for key in METRIC_KEYS:
         assert out[key].dim() == 0
         assert out[key].item() == pytest.approx(expected[key], rel=1e-9), key
-    assert metric.count.item() == 6
-    assert metric.sums.dtype == torch.float64 and metric.sums.shape == (len(METRIC_KEYS),)
+    assert metric.results()["overall"]["num_images"] == 6
+    assert len(metric.per_image()) == 6  # the image without ground truth has no record
 
     metric.reset()
     with pytest.raises(ValueError), pytest.warns(UserWarning, match="before the ``update``"):
@@ -198,7 +199,8 @@ def test_condition_breakdown() -> None:
     assert set(out) == set(METRIC_KEYS) | {
         f"{c}/{k}" for c in ("day", "night") for k in METRIC_KEYS
     }
-    assert metric.cond_count.tolist() == [3.0, 2.0, 0.0]
+    counts = {c: g["num_images"] for c, g in metric.results()["by_condition"].items()}
+    assert counts == {"day": 3, "night": 2}
     for key in METRIC_KEYS:
         assert out[f"day/{key}"].item() == pytest.approx(exp_day[key], rel=1e-9)
         assert out[f"night/{key}"].item() == pytest.approx(exp_night[key], rel=1e-9)
@@ -213,8 +215,111 @@ def test_unknown_condition_raises_and_leaves_state() -> None:
     pred, target = _random_batch(b=2)
     with pytest.raises(ValueError, match=r"snow.*day.*night"):
         metric.update(pred, target, condition=["day", "snow"])
-    assert metric.count.item() == 0 and metric.sums.abs().sum().item() == 0
+    assert metric.image_sums == [] and metric.image_condition == []
     with pytest.raises(ValueError, match="2 images"):
         metric.update(pred, target, condition=["day"])
     with pytest.raises(ValueError):
         DepthMetrics().update(pred, target, condition=["day", "day"])
+
+
+# --- evaluation protocols: caps, crops, averaging, breakdowns ----------------------------------
+
+
+def test_pooled_weighs_pixels_per_image_weighs_images() -> None:
+    # Image A: one pixel, error 2 m. Image B: three pixels, error 0. Per image: RMSE mean of
+    # (2, 0) = 1; pooled: sqrt(4 / 4) = 1 as well, so use MAE to tell them apart: per image
+    # (2 + 0) / 2 = 1, pooled 2 / 4 = 0.5.
+    pred = torch.tensor([[[[4.0, 0.0], [0.0, 0.0]]], [[[5.0, 5.0], [5.0, 0.0]]]])
+    target = torch.tensor([[[[2.0, 0.0], [0.0, 0.0]]], [[[5.0, 5.0], [5.0, 0.0]]]])
+    per_image = compute_depth_metrics(pred, target, averaging="per_image")
+    pooled = compute_depth_metrics(pred, target, averaging="pooled")
+    assert per_image["mae"] == pytest.approx(1.0)
+    assert pooled["mae"] == pytest.approx(0.5)
+    assert per_image["rmse"] == pytest.approx(1.0)  # mean of sqrt(4) and 0
+    assert pooled["rmse"] == pytest.approx(1.0)  # sqrt(4 / 4)
+    assert pooled["abs_rel"] == pytest.approx(1.0 / 4)
+    assert per_image["abs_rel"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="eval.averaging='mean'"):
+        compute_depth_metrics(pred, target, averaging="mean")
+
+
+def test_caps_score_only_closer_ground_truth_and_clamp_predictions() -> None:
+    # Ground truth 10, 45, 60, 75 m; predictions 12, 45, 90, 75. Cap 50: pixels 10 and 45,
+    # cap 70 adds 60 (prediction clamped to 70), cap 80 adds 75 and clamps 90 to 80.
+    target = _img([[10.0, 45.0], [60.0, 75.0]])
+    pred = _img([[12.0, 45.0], [90.0, 75.0]])
+    metric = DepthMetrics(min_depth=1.0, max_depth=[80, 50, 70])
+    metric.update(pred, target)
+    by_cap = metric.results()["by_cap"]
+    assert list(by_cap) == ["50", "70", "80"]
+    assert by_cap["50"]["mae"] == pytest.approx(2.0 / 2)
+    assert by_cap["70"]["mae"] == pytest.approx((2.0 + 10.0) / 3)
+    assert by_cap["80"]["mae"] == pytest.approx((2.0 + 20.0) / 4)
+    assert [by_cap[c]["num_pixels"] for c in by_cap] == [2, 3, 4]
+    # The headline (compute, overall) is the largest cap.
+    assert metric.compute()["mae"].item() == pytest.approx(by_cap["80"]["mae"])
+    assert metric.results()["overall"] == by_cap["80"]
+
+
+def test_garg_and_eigen_crop_masks_follow_the_kitti_fractions() -> None:
+    h, w = 100, 200
+    garg = crop_mask((h, w), "garg")[0]
+    rows = garg.any(dim=1).nonzero().flatten()
+    cols = garg.any(dim=0).nonzero().flatten()
+    assert (rows.min().item(), rows.max().item() + 1) == (int(0.40810811 * h), int(0.99189189 * h))
+    assert (cols.min().item(), cols.max().item() + 1) == (int(0.03594771 * w), int(0.96405229 * w))
+    eigen = crop_mask((h, w), "eigen")[0]
+    assert eigen.any(dim=1).nonzero().min().item() == int(0.3324324 * h)
+    assert crop_mask((h, w), "none").all()
+    with pytest.raises(ValueError, match="eval.crop='tight'"):
+        crop_mask((h, w), "tight")
+
+
+def test_crop_follows_the_original_frame_of_a_padded_or_cut_sample() -> None:
+    # A 40x100 frame padded to 48x104 (frame at the top-left) gives Garg rows 16..39 and
+    # columns 3..96 of the frame; cut by 8 rows at the top instead, those rows move up by 8.
+    padded = crop_mask((48, 104), "garg", torch.tensor([[0, 0, 40, 100]]))[0]
+    assert padded.any(dim=1).nonzero().flatten().tolist() == list(range(16, 39))
+    assert padded.any(dim=0).nonzero().flatten().tolist() == list(range(3, 96))
+    cut = crop_mask((32, 100), "garg", torch.tensor([[-8, 0, 40, 100]]))[0]
+    assert cut.any(dim=1).nonzero().flatten().tolist() == list(range(8, 31))
+
+
+def test_crop_changes_the_numbers_exactly_as_the_mask_says() -> None:
+    pred, target = _random_batch(b=3, h=40, w=60, seed=3)
+    mask = crop_mask((40, 60), "garg", batch=3)[:, None]
+    cropped = compute_depth_metrics(pred, target, crop="garg")
+    by_hand = compute_depth_metrics(pred, torch.where(mask, target, torch.zeros_like(target)))
+    assert cropped == pytest.approx(by_hand, rel=1e-12)
+    assert cropped["rmse"] != pytest.approx(compute_depth_metrics(pred, target)["rmse"])
+
+
+def test_breakdown_counts_add_up_to_the_total() -> None:
+    pred, target = _random_batch(b=10, h=12, w=16, seed=5)
+    conditions = ["day", "night", "fog", "day", "night", "fog", "day", "rain", "rain", "day"]
+    metric = DepthMetrics(
+        min_depth=0.5,
+        max_depth=80.0,
+        conditions=["day", "night", "fog", "rain"],
+        distance_bins=[0, 10, 20, 40, 80],
+    )
+    metric.update(pred[:6], target[:6], conditions[:6], index=torch.arange(6))
+    metric.update(pred[6:], target[6:], conditions[6:], index=torch.arange(6, 10))
+    results = metric.results()
+    overall = results["overall"]
+    assert sum(g["num_images"] for g in results["by_condition"].values()) == overall["num_images"]
+    assert sum(g["num_pixels"] for g in results["by_condition"].values()) == overall["num_pixels"]
+    assert list(results["by_distance"]) == ["0-10", "10-20", "20-40", "40-80"]
+    assert sum(g["num_pixels"] for g in results["by_distance"].values()) == overall["num_pixels"]
+    # A bin's numbers are those of the pixels whose ground truth lies in it.
+    in_bin = (target >= 20) & (target < 40)
+    expected = compute_depth_metrics(pred, torch.where(in_bin, target, torch.zeros_like(target)))
+    for key in METRIC_KEYS:
+        assert results["by_distance"]["20-40"][key] == pytest.approx(expected[key], rel=1e-9)
+    # Per-image records: one per scored image, in split order, matching the overall mean.
+    rows = metric.per_image()
+    assert [r["index"] for r in rows] == list(range(10))
+    assert [r["condition"] for r in rows] == conditions
+    mean_rmse = sum(r["rmse"] for r in rows) / len(rows)
+    assert mean_rmse == pytest.approx(overall["rmse"], rel=1e-12)
+    assert sum(r["num_pixels"] for r in rows) == overall["num_pixels"]

@@ -1,15 +1,18 @@
-"""The paper-style table: grouping over seeds, best marks, formats, errors."""
+"""The paper-style table: grouping over seeds, best marks, formats, errors; per-condition
+columns, paired comparisons with bootstrap intervals, plots and the W&B table."""
 
 from __future__ import annotations
 
 import csv
 import io
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.report import build_table, group_runs, main
-from fusion_depth.runs import write_json_atomic
+from fusion_depth.report import build_table, group_runs, main, paired_differences
+from fusion_depth.runs import load_runs, write_json_atomic
 
 
 def _write_run(root, name, fusion, loss, seed, rmse, delta1=0.8, extra=()):
@@ -99,3 +102,276 @@ def test_errors_name_the_problem(tmp_path, capsys) -> None:
 def test_unknown_format_is_rejected() -> None:
     with pytest.raises(SystemExit):
         main(["x", "--format", "html"])
+
+
+# --- Per-image results: --by, --compare, --plot, --wandb -------------------------------------
+
+CONDITIONS = ("day", "night")
+NUM_IMAGES = 40
+# Per-image RMSE of the RGB baseline: image i, seed s (seeds differ a little).
+BASE = np.linspace(1.0, 3.0, NUM_IMAGES)
+
+
+def _condition(i: int) -> str:
+    return CONDITIONS[i % 2]
+
+
+def _write_image_run(
+    root,
+    name,
+    fusion,
+    seed,
+    rmse,
+    *,
+    loss="l1",
+    dataset="procedural",
+    split="test",
+    conditions=None,
+    per_image=True,
+):
+    """A run with per-image RMSE ``rmse`` (one value per image) and consistent aggregates."""
+    rmse = np.asarray(rmse, dtype=float)
+    conditions = conditions or [_condition(i) for i in range(len(rmse))]
+
+    def metrics(mask) -> dict:
+        return {k: 0.1 for k in METRIC_KEYS} | {
+            "rmse": float(rmse[mask].mean()),
+            "num_images": int(np.sum(mask)),
+        }
+
+    cond = np.array(conditions)
+    near = np.arange(len(rmse)) < len(rmse) // 2
+    write_json_atomic(
+        root / name / "metrics.json",
+        {
+            "status": "ok",
+            "run": {
+                "dataset": dataset,
+                "sensor": "radar",
+                "backbone": "densenet169",
+                "fusion": fusion,
+                "loss": loss,
+                "seed": seed,
+                "overrides": [f"fusion={fusion}", f"loss={loss}", f"seed={seed}"],
+            },
+            "split": split,
+            "protocol": {"min_depth": 0.5, "max_depth": [80.0], "crop": "none"},
+            "test": metrics(np.ones(len(rmse), bool)),
+            "test_by_condition": {c: metrics(cond == c) for c in CONDITIONS if (cond == c).any()},
+            # Distance bins listed out of order on purpose: the table sorts them by range.
+            "test_by_distance": {"10-20": metrics(~near), "0-10": metrics(near)},
+            "per_image_file": "per_image.csv",
+        },
+    )
+    if per_image:
+        lines = ["index,condition,num_pixels,rmse,abs_rel,delta1"]
+        for i, (c, v) in enumerate(zip(conditions, rmse.tolist(), strict=True)):
+            lines.append(f"{i},{c},100,{v!r},0.1,0.9")
+        (root / name / "per_image.csv").write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture
+def grid(tmp_path):
+    """3 seeds × (RGB baseline, fusion far better by 0.5 at night / 0.2 by day, add no better)."""
+    noise = np.random.default_rng(0).normal(0.0, 0.05, size=(3, NUM_IMAGES))
+    gain = np.where(np.arange(NUM_IMAGES) % 2 == 1, 0.5, 0.2)
+    runs = {}
+    for s, seed in enumerate((1, 2, 3)):
+        runs["rgb", seed] = BASE + 0.1 * s
+        runs["concat", seed] = BASE + 0.1 * s - gain + noise[s]
+        runs["add", seed] = BASE + 0.1 * s + noise[s] - noise[s].mean()
+    for (fusion, seed), rmse in runs.items():
+        _write_image_run(tmp_path, f"{fusion}_{seed}", fusion, seed, rmse)
+    return tmp_path, runs
+
+
+def _csv(capsys) -> list[dict]:
+    return list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+
+
+def test_by_condition_cells_are_seed_means(grid, capsys) -> None:
+    root, runs = grid
+    assert main([str(root), "--by", "condition", "--format", "csv"]) == 0
+    rows = {r["Modality"]: r for r in _csv(capsys)}
+    assert set(rows) == {"RGB", "RGB-Fusion", "RGB-Add"}
+    night = np.arange(NUM_IMAGES) % 2 == 1
+    for fusion, label in (("rgb", "RGB"), ("concat", "RGB-Fusion")):
+        for column, mask in (("all", slice(None)), ("night", night), ("day", ~night)):
+            per_seed = [runs[fusion, s][mask].mean() for s in (1, 2, 3)]
+            assert float(rows[label][f"rmse_{column}_mean"]) == pytest.approx(
+                np.mean(per_seed), rel=1e-5
+            )
+            assert float(rows[label][f"rmse_{column}_std"]) == pytest.approx(
+                np.std(per_seed, ddof=1), rel=1e-4
+            )
+    assert main([str(root), "--by", "condition"]) == 0
+    table = capsys.readouterr().out
+    header, _, *lines = table.strip().splitlines()
+    assert "RMSE (all)" in header and "RMSE (day)" in header and "RMSE (night)" in header
+    fusion = next(line for line in lines if "RGB-Fusion" in line)
+    assert fusion.count("**") == 6  # best in every column
+    assert "±" in fusion
+
+
+def test_by_distance_sorts_bins_and_other_metrics(grid, capsys) -> None:
+    root, _ = grid
+    assert main([str(root), "--by", "distance", "--metric", "delta1", "--format", "latex"]) == 0
+    header = capsys.readouterr().out.splitlines()[1]
+    assert header.index("(0-10)") < header.index("(10-20)") and r"$\delta_1$" in header
+    assert main([str(root), "--by", "condition", "--metric", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "metrics.json: no metric 'nope'; expected one of" in err and "rmse" in err
+
+
+def test_compare_gives_hand_computed_differences(grid, capsys) -> None:
+    root, runs = grid
+    argv = [str(root), "--compare", "fusion=rgb", "--by", "condition", "--resamples", "2000"]
+    assert main([*argv, "--format", "csv"]) == 0
+    rows = {r["Modality"]: r for r in _csv(capsys)}
+    assert set(rows) == {"RGB-Fusion", "RGB-Add"}  # the baseline is not compared with itself
+    night = np.arange(NUM_IMAGES) % 2 == 1
+    for fusion, label in (("concat", "RGB-Fusion"), ("add", "RGB-Add")):
+        diff = np.stack([runs[fusion, s] - runs["rgb", s] for s in (1, 2, 3)])
+        row = rows[label]
+        assert row["Baseline"] == "RGB" and row["Seeds"] == "3 paired" and row["Images"] == "40"
+        for column, mask in (("all", slice(None)), ("night", night), ("day", ~night)):
+            assert float(row[f"rmse_{column}_diff"]) == pytest.approx(
+                diff[:, mask].mean(), rel=1e-5
+            )
+            low, high = float(row[f"rmse_{column}_low"]), float(row[f"rmse_{column}_high"])
+            assert low <= diff[:, mask].mean() <= high
+    concat, add = rows["RGB-Fusion"], rows["RGB-Add"]
+    assert float(concat["rmse_night_diff"]) == pytest.approx(-0.5, abs=0.05)
+    assert float(concat["rmse_night_high"]) < 0 and concat["rmse_night_significant"] == "yes"
+    assert float(add["rmse_all_low"]) < 0 < float(add["rmse_all_high"])
+    assert add["rmse_all_significant"] == "no" and add["level"] == "0.95"
+
+    assert main([*argv, "--level", "0.9"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert "ΔRMSE (all, 90% CI)" in lines[0] and "Significant" in lines[0]
+    concat_line = next(line for line in lines if "RGB-Fusion" in line)
+    add_line = next(line for line in lines if "RGB-Add" in line)
+    assert "all, day, night" in concat_line and "**-0.3" in concat_line
+    assert add_line.rstrip(" |").endswith("none") and "**" not in add_line
+
+
+def test_compare_without_shared_seeds_uses_seed_means(tmp_path, capsys) -> None:
+    _write_image_run(tmp_path, "rgb1", "rgb", 1, BASE)
+    _write_image_run(tmp_path, "rgb2", "rgb", 2, BASE + 0.2)
+    _write_image_run(tmp_path, "cat", "concat", 3, BASE - 1.0)
+    assert main([str(tmp_path), "--compare", "fusion=rgb", "--format", "csv"]) == 0
+    (row,) = _csv(capsys)
+    assert row["Seeds"] == "means 2 vs 1"
+    assert float(row["rmse_all_diff"]) == pytest.approx(-1.1)
+    assert row["rmse_all_significant"] == "yes"
+
+
+def test_compare_by_loss_pairs_only_groups_differing_in_loss(grid, capsys) -> None:
+    root, runs = grid
+    for seed in (1, 2, 3):
+        _write_image_run(root, f"rgb_l2_{seed}", "rgb", seed, runs["rgb", seed] + 1.0, loss="l2")
+    assert main([str(root), "--compare", "loss=l1", "--format", "csv", "--resamples", "500"]) == 0
+    (row,) = _csv(capsys)
+    assert (row["Modality"], row["Loss"], row["Baseline"]) == ("RGB", "L2", "L1")
+    assert float(row["rmse_all_diff"]) == pytest.approx(1.0)
+    assert main([str(root), "--compare", "loss=berhu"]) == 2
+    assert "--compare loss=berhu: no runs with loss=berhu (have: l1, l2)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        ({"conditions": ["night"] * NUM_IMAGES}, "image 0 is 'day' in one and 'night'"),
+        ({"split": "val"}, "split 'test' vs 'val'"),
+    ],
+)
+def test_compare_refuses_different_image_sets(tmp_path, capsys, change, reason) -> None:
+    _write_image_run(tmp_path, "a", "rgb", 1, BASE)
+    _write_image_run(tmp_path, "b", "concat", 1, BASE - 0.1, **change)
+    assert main([str(tmp_path), "--compare", "fusion=rgb"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'a' / 'metrics.json'} and {tmp_path / 'b' / 'metrics.json'}" in err
+    assert f"not scored on the same test images ({reason}" in err
+
+
+def test_paired_differences_refuses_another_dataset(tmp_path) -> None:
+    _write_image_run(tmp_path, "a", "rgb", 1, BASE)
+    _write_image_run(tmp_path, "b", "concat", 1, BASE - 0.1, dataset="carla")
+    rgb, concat = sorted(group_runs(load_runs(tmp_path)), key=lambda g: g["fusion"] != "rgb")
+    with pytest.raises(ValueError, match="dataset 'procedural' vs 'carla'"):
+        paired_differences(rgb, concat, "rmse")
+
+
+def test_paired_differences_uses_shared_images_only(tmp_path) -> None:
+    _write_image_run(tmp_path, "a", "rgb", 1, BASE)
+    _write_image_run(tmp_path, "b", "concat", 1, BASE[:30] - 0.1)  # 10 images not scored
+    rgb, concat = sorted(group_runs(load_runs(tmp_path)), key=lambda g: g["fusion"] != "rgb")
+    diff, conditions, seeds = paired_differences(rgb, concat, "rmse")
+    assert diff.shape == (1, 30) and seeds == (1,)
+    np.testing.assert_allclose(diff, -0.1)
+    assert conditions.tolist() == [_condition(i) for i in range(30)]
+
+
+def test_compare_needs_per_image_files(tmp_path, capsys) -> None:
+    _write_image_run(tmp_path, "a", "rgb", 1, BASE)
+    _write_image_run(tmp_path, "b", "concat", 1, BASE, per_image=False)
+    assert main([str(tmp_path), "--compare", "fusion=rgb"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'b' / 'metrics.json'}: its per-image results" in err
+    assert "per_image.csv are missing" in err
+    assert main([str(tmp_path), "--compare", "fusion=rgb", "--by", "distance"]) == 2
+    assert "--by distance with --compare" in capsys.readouterr().err
+
+
+def test_old_metrics_files_still_give_the_basic_table(tmp_path, capsys) -> None:
+    _write_run(tmp_path, "a", "rgb", "l1", 1, rmse=1.0)
+    _write_run(tmp_path, "b", "concat", "l1", 1, rmse=0.5)
+    assert main([str(tmp_path)]) == 0
+    assert "RGB-Fusion" in capsys.readouterr().out
+    assert main([str(tmp_path), "--by", "distance"]) == 2
+    assert "a/metrics.json: no 'test_by_distance'" in capsys.readouterr().err
+    assert main([str(tmp_path), "--compare", "fusion=rgb"]) == 2
+    assert "per_image.csv are missing" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--compare", "seed=1"], ["--compare", "fusion"], ["--resamples", "0"], ["--level", "95"]],
+)
+def test_bad_options_are_rejected(argv) -> None:
+    with pytest.raises(SystemExit):
+        main(["x", *argv])
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [[], ["--metric", "rmse"], ["--by", "condition"], ["--compare", "fusion=rgb"]],
+)
+def test_plot_writes_a_png(grid, capsys, extra) -> None:
+    root, _ = grid
+    out = root / "plots" / "grid.png"
+    assert main([str(root), "--plot", str(out), "--resamples", "200", *extra]) == 0
+    with Image.open(out) as image:
+        assert image.format == "PNG" and image.size[0] > 0 and image.size[1] > 0
+    assert [p.name for p in out.parent.iterdir()] == ["grid.png"]  # no temporary file left
+
+
+def test_plot_of_single_seeds_and_bad_extension(tmp_path, capsys) -> None:
+    _write_run(tmp_path, "a", "rgb", "l1", 1, rmse=1.0)
+    _write_run(tmp_path, "b", "concat", "l2", 1, rmse=0.5)
+    assert main([str(tmp_path), "--plot", str(tmp_path / "p.pdf")]) == 0
+    assert (tmp_path / "p.pdf").read_bytes().startswith(b"%PDF")
+    assert main([str(tmp_path), "--plot", str(tmp_path / "p.xyz")]) == 2
+    assert "--plot " in capsys.readouterr().err and not (tmp_path / "p.xyz").exists()
+
+
+def test_wandb_logs_the_table_offline(grid, monkeypatch, capsys) -> None:
+    root, _ = grid
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    monkeypatch.setenv("NETRC", str(root / "no-netrc"))
+    assert main([str(root), "--wandb"]) == 0
+    runs = list((root / "wandb").glob("offline-run-*"))
+    assert len(runs) == 1 and list(runs[0].glob("run-*.wandb"))
+    assert "RGB-Fusion" in capsys.readouterr().out

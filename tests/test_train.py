@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from omegaconf import OmegaConf
 
@@ -34,8 +36,21 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     out = Path(cfg.paths.output_dir)
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["test"] == results["test"]
-    assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images"}
+    assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images", "num_pixels"}
     assert saved["test"]["num_images"] == cfg.dataset.reader.num_test
+    # Per-image records line up with the test split and add up to the overall numbers.
+    rows = list(csv.DictReader((out / "per_image.csv").open()))
+    assert [int(r["index"]) for r in rows] == list(range(cfg.dataset.reader.num_test))
+    assert sum(int(r["num_pixels"]) for r in rows) == saved["test"]["num_pixels"]
+    mean_rmse = sum(float(r["rmse"]) for r in rows) / len(rows)
+    assert mean_rmse == pytest.approx(saved["test"]["rmse"], rel=1e-9)
+    assert saved["protocol"]["averaging"] == "per_image" and saved["protocol"]["max_depth"] == [80]
+    assert (
+        sum(g["num_pixels"] for g in saved["test_by_distance"].values())
+        == (saved["test"]["num_pixels"])
+    )
+    assert saved["latency"]["mean_s"] > 0 and saved["latency"]["device"].startswith("cpu")
+    assert saved["versions"]["git_commit"] is None or len(saved["versions"]["git_commit"]) == 40
     assert saved["run"] | {"overrides": None} == {
         "dataset": "procedural",
         "sensor": "radar",
@@ -51,7 +66,11 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     ckpt = torch.load(saved["best_checkpoint"], map_location="cpu", weights_only=True)
     assert ckpt["fusion_depth_config"]["fusion"]["mode"] == "concat"
     assert any(k.startswith("net.fusion.mix") for k in ckpt["state_dict"])
-    assert list((out / "wandb").glob("offline-run-*")), "W&B must log offline by default"
+    assert ckpt["fusion_depth_run"]["fusion"] == "concat"
+    wandb_runs = list((out / "wandb").glob("offline-run-*"))
+    assert wandb_runs, "W&B must log offline by default"
+    tables = {p.name.rsplit("_", 2)[0] for p in wandb_runs[0].rglob("*.table.json")}
+    assert {"by_condition", "by_distance", "by_cap"} <= tables, tables
     resolved = OmegaConf.load(out / "config_resolved.yaml")
     assert resolved.model.loss.max_val == cfg.dataset.depth_scale / cfg.dataset.min_depth
 
@@ -105,3 +124,15 @@ def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     assert (sweep / "1" / "metrics.json").is_file()
     summary = json.loads((sweep / "sweep_summary.json").read_text())
     assert [job["status"] for job in summary] == ["failed", "ok"]
+
+
+def test_the_same_seed_gives_the_same_metrics(make_config, tmp_path) -> None:
+    """Reproducibility: seed_everything(seed, workers=True) covers init, shuffling and
+    augmentation, so a second run with the same seed prints the same numbers."""
+    first = train(make_config("experiment=smoke", "logger=none", "seed=7"))
+    from conftest import compose_config
+
+    second = train(compose_config(["experiment=smoke", "logger=none", "seed=7"], tmp_path / "b"))
+    for key in METRIC_KEYS:
+        assert f"{first['test'][key]:.3f}" == f"{second['test'][key]:.3f}", key
+        assert first["test"][key] == pytest.approx(second["test"][key], rel=1e-9), key

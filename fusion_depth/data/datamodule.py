@@ -11,11 +11,26 @@ from torch.utils.data import DataLoader, Dataset
 from fusion_depth.data import SPLITS
 
 
+class IndexedDataset(Dataset):
+    """Adds ``"index"`` (the sample's position in its split) to every sample, so evaluation can
+    record per-image results that line up across models scored on the same split."""
+
+    def __init__(self, dataset: Dataset) -> None:
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, index: int) -> dict:
+        return {**self.dataset[index], "index": index}
+
+
 class DepthDataModule(L.LightningDataModule):
     """Builds split datasets from ``reader(split=...)``, a partial from the dataset config.
 
-    Every reader returns samples ``{"image", "sparse", "depth", "condition"}``, so the model
-    never knows which dataset it trains on.
+    Every reader returns samples ``{"image", "sparse", "depth", "condition"}`` (optionally
+    ``"frame_box"``, see :func:`fusion_depth.metrics.crop_mask`), so the model never knows which
+    dataset it trains on; the datamodule adds ``"index"``.
     """
 
     def __init__(
@@ -26,6 +41,7 @@ class DepthDataModule(L.LightningDataModule):
         num_workers: int = 0,
         pin_memory: bool | None = None,
         persistent_workers: bool | None = None,
+        test_split: str = "test",
     ) -> None:
         super().__init__()
         if batch_size < 1:
@@ -41,6 +57,9 @@ class DepthDataModule(L.LightningDataModule):
             if persistent_workers is None
             else persistent_workers and num_workers > 0
         )
+        if test_split not in SPLITS:
+            raise ValueError(f"split={test_split!r}: expected one of {list(SPLITS)}")
+        self.test_split = test_split  # what the test stage scores (evaluate's split=)
         self.datasets: dict[str, Dataset] = {}
 
     def dataset(self, split: str) -> Dataset:
@@ -48,15 +67,15 @@ class DepthDataModule(L.LightningDataModule):
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
         if split not in self.datasets:
-            self.datasets[split] = self.reader(split=split)
+            self.datasets[split] = IndexedDataset(self.reader(split=split))
         return self.datasets[split]
 
     def setup(self, stage: str | None = None) -> None:
         needed = {
             "fit": ("train", "val"),
             "validate": ("val",),
-            "test": ("test",),
-            "predict": ("test",),
+            "test": (self.test_split,),
+            "predict": (self.test_split,),
         }.get(stage or "", SPLITS)
         for split in needed:
             self.dataset(split)
@@ -79,4 +98,4 @@ class DepthDataModule(L.LightningDataModule):
         return self._loader("val", False, self.eval_batch_size)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader("test", False, self.eval_batch_size)
+        return self._loader(self.test_split, False, self.eval_batch_size)

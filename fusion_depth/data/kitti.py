@@ -38,8 +38,9 @@ bottom/right, the image by repeating its edge, depth and sparse maps with 0 (= i
 padding is never scored). ``sparse_points`` keeps that many of the Velodyne returns (sparse-to-
 dense's 200/500-sample experiments), chosen at random but the same every time for a frame.
 ``fill`` densifies the *training* ground truth (:mod:`fusion_depth.data.filling`); validation and
-test always score the measured annotated points, only those inside ``eval_crop`` (``garg`` or
-``eigen``, taken on the full frame) when set. Every frame is condition ``day``.
+test always score the measured annotated points. Each sample carries ``frame_box``, where the
+original frame lies in it, so ``eval.crop=garg|eigen`` takes its fractions of the full KITTI
+frame exactly as the KITTI scripts do. Every frame is condition ``day``.
 
 All of it happens once, in the prepared cache ``<cache_root>/kitti/<hash>/`` (see
 :mod:`fusion_depth.data.prepared`; ``python -m fusion_depth.prepare dataset=kitti ...``). Every
@@ -81,12 +82,6 @@ VELODYNE = "data_depth_velodyne"
 KITTI_VERSION = 1  # bump when the frame processing changes, so old caches are not reused
 # Evaluation crops as fractions of the full frame, (top, bottom, left, right), as monodepth2
 # writes them: Garg et al.'s (ECCV 2016) and Eigen et al.'s (NIPS 2014).
-EVAL_CROPS: dict[str, tuple[float, float, float, float] | None] = {
-    "none": None,
-    "garg": (0.40810811, 0.99189189, 0.03594771, 0.96405229),
-    "eigen": (0.3324324, 0.91351351, 0.0359477, 0.96405229),
-}
-
 _DRIVE = r"\d{4}_\d{2}_\d{2}_drive_\d{4}_sync"
 _DRIVE_RE = re.compile(rf"^{_DRIVE}$")
 _EIGEN_LINE = re.compile(rf"^(?:\d{{4}}_\d{{2}}_\d{{2}}/)?({_DRIVE})$")
@@ -296,26 +291,11 @@ class FrameSettings:
     sparse_points: int | None
     fill: str
     seed: int
-    eval_crop: str = "none"
-
-
-def eval_crop_mask(shape: tuple[int, int], crop: str) -> np.ndarray:
-    """True inside ``EVAL_CROPS[crop]`` of a full frame of ``shape`` (all True for "none")."""
-    mask = np.ones(shape, dtype=bool)
-    fractions = EVAL_CROPS[crop]
-    if fractions is not None:
-        h, w = shape
-        top, bottom, left, right = (
-            int(f * size) for f, size in zip(fractions, (h, h, w, w), strict=True)
-        )
-        mask[:] = False
-        mask[top:bottom, left:right] = True
-    return mask
 
 
 def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> PreparedFrame:
-    """Reads one frame's three files and turns them into the network's input size: a training
-    frame gets its filled ground truth, an evaluation frame its evaluation crop."""
+    """Reads one frame's three files and turns them into the network's input size; a training
+    frame gets its filled ground truth."""
     s = settings
     paths = {
         "image": frame.image(s.raw_root),
@@ -332,8 +312,10 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
                 f"{paths[name]}: {shape[0]}x{shape[1]} depth map, expected the size of its "
                 f"image {paths['image']} ({image.shape[0]}x{image.shape[1]})"
             )
-    if not training:
-        depth = np.where(eval_crop_mask(depth.shape, s.eval_crop), depth, 0.0)
+    # Where the full frame lies in the sample (crop_or_pad keeps the bottom rows and the centre
+    # columns of a larger frame), for evaluation crops defined on the full frame.
+    frame_h, frame_w = depth.shape
+    frame_box = (-max(frame_h - s.height, 0), -max((frame_w - s.width) // 2, 0), frame_h, frame_w)
     # Crop first (filling then sees exactly the kept pixels), pad last (padding stays invalid).
     crop_h, crop_w = min(s.height, image.shape[0]), min(s.width, image.shape[1])
     image, depth, sparse = (crop_or_pad(a, crop_h, crop_w, "zero") for a in (image, depth, sparse))
@@ -345,6 +327,7 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
         depth=crop_or_pad(depth, s.height, s.width, "zero"),
         condition=CONDITION,
         filled=None if dense is None else crop_or_pad(dense, s.height, s.width, "zero"),
+        frame_box=frame_box,
     )
 
 
@@ -370,20 +353,12 @@ class KittiDepth(PreparedSplit):
         fill: str = "none",
         split_file: str | os.PathLike | None = None,
         exclude_test_drives: bool = True,
-        eval_crop: str = "none",
         train_stride: int = 1,
         seed: int = 0,
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
-        settings = _settings(root, raw_root, height, width, sparse_points, fill, eval_crop, seed)
-        cache_root = Path(cache_root).expanduser().resolve()
-        for name, folder in (("root", settings.root), ("raw_root", settings.raw_root)):
-            if cache_root == folder or folder in cache_root.parents:
-                raise ValueError(
-                    f"paths.cache_dir={cache_root} is inside dataset.{name}={folder}: the "
-                    "dataset folder is only ever read; set FUSION_DEPTH_CACHE elsewhere"
-                )
+        settings = _settings(root, raw_root, height, width, sparse_points, fill, seed)
         check_layout(settings.root, settings.raw_root)
         if int(train_stride) != train_stride or train_stride < 1:
             raise ValueError(
@@ -399,14 +374,18 @@ class KittiDepth(PreparedSplit):
             "width": settings.width,
             "sparse_points": settings.sparse_points,
             "fill": settings.fill,
-            "eval_crop": settings.eval_crop,
             "seed": settings.seed,
             "split_file": None if split_path is None else str(split_path),
             "exclude_test_drives": bool(exclude_test_drives),
             "train_stride": int(train_stride),
             "frames": _digest(frames),
         }
-        self.cache = cache_dir(cache_root, "kitti", params)
+        self.cache = cache_dir(
+            cache_root,
+            "kitti",
+            params,
+            read_only={"root": settings.root, "raw_root": settings.raw_root},
+        )
         folders = {name: name for name in frames}
         if split_path is None:
             folders["test"] = "val"  # the same frames: prepared once
@@ -435,7 +414,6 @@ def _settings(
     width: int,
     sparse_points: int | None,
     fill: str,
-    eval_crop: str,
     seed: int,
 ) -> FrameSettings:
     for name, size in (("height", height), ("width", width)):
@@ -451,8 +429,6 @@ def _settings(
         )
     if fill not in FILL_METHODS:
         raise ValueError(f"dataset.fill={fill!r}: expected one of {list(FILL_METHODS)}")
-    if eval_crop not in EVAL_CROPS:
-        raise ValueError(f"dataset.eval_crop={eval_crop!r}: expected one of {list(EVAL_CROPS)}")
     if int(seed) != seed or seed < 0:
         raise ValueError(f"dataset.seed={seed}: expected a non-negative integer")
     return FrameSettings(
@@ -463,7 +439,6 @@ def _settings(
         sparse_points=None if sparse_points is None else int(sparse_points),
         fill=fill,
         seed=int(seed),
-        eval_crop=eval_crop,
     )
 
 

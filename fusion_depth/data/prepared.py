@@ -52,6 +52,9 @@ class PreparedFrame:
     depth: np.ndarray  # float (H, W) metres, 0 = invalid: measured points only
     condition: str
     filled: np.ndarray | None = None  # float (H, W) metres: densified ground truth for training
+    # (top, left, height, width) of the original frame in the arrays when a reader cropped or
+    # padded it: evaluation crops (eval.crop) are fractions of the original frame.
+    frame_box: tuple[int, int, int, int] | None = None
 
 
 def cache_dir(
@@ -128,6 +131,8 @@ def prepare_split(
             "condition": frame.condition,
             "filled": frame.filled is not None,
         }
+        if frame.frame_box is not None:
+            record["frame_box"] = [int(v) for v in frame.frame_box]
         write_json_atomic(record_path, record)
         records.append(record)
     write_json_atomic(split_dir / INDEX_FILE, {"split": split, "frames": records})
@@ -175,9 +180,12 @@ class PreparedSplit(Dataset):
         stem = self.split_dir / frame["file"]
         depth_file = "filled" if self.use_filled and frame["filled"] else "depth"
         image = read_rgb(f"{stem}.image.png")
-        return {
+        sample = {
             "image": torch.from_numpy(image.transpose(2, 0, 1).copy()).float().div_(255.0),
             "sparse": torch.from_numpy(read_depth_png(f"{stem}.sparse.png"))[None],
             "depth": torch.from_numpy(read_depth_png(f"{stem}.{depth_file}.png"))[None],
             "condition": frame["condition"],
         }
+        if "frame_box" in frame:
+            sample["frame_box"] = torch.tensor(frame["frame_box"], dtype=torch.long)
+        return sample

@@ -1,0 +1,166 @@
+"""Score trained checkpoints without training: ``python -m fusion_depth.evaluate ckpt_path=...``.
+
+The model is rebuilt from the checkpoint (weights-only loading, see :mod:`fusion_depth.checkpoint`)
+and scored on a dataset split by the ``eval`` protocol; ``metrics.json`` and ``per_image.csv``
+are written in the same format as a training run's, so ``report`` reads both.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model
+from fusion_depth.config import check_dataset
+from fusion_depth.console import quiet_known_noise
+from fusion_depth.data import SPLITS
+from fusion_depth.data.datamodule import DepthDataModule
+from fusion_depth.evaluation import (
+    EvalProtocol,
+    evaluation_record,
+    log_to_loggers,
+    results_tables,
+    write_record,
+)
+from fusion_depth.module import DepthModule
+from fusion_depth.runs import METRICS_FILE, RESOLVED_CONFIG_FILE, provenance, write_text_atomic
+
+log = logging.getLogger(__name__)
+quiet_known_noise()
+
+
+def _identity(loaded: LoadedModel, dataset: DictConfig) -> dict:
+    """The training run's identity (recorded by train; rebuilt from the config for older
+    checkpoints), with the dataset it is scored on now."""
+    identity = dict(loaded.run or {})
+    config = loaded.config
+    if not identity:
+        identity = {
+            "dataset": config["dataset"]["name"],
+            "sensor": config["dataset"].get("sensor"),
+            "backbone": config["backbone"]["name"],
+            "fusion": config["fusion"]["mode"],
+            "loss": config["loss"]["pixel"],
+            "seed": config.get("seed"),
+            "overrides": [],
+        }
+    identity["trained_on"] = identity["dataset"]
+    identity["dataset"] = dataset.name
+    identity["sensor"] = dataset.get("sensor")
+    return identity
+
+
+def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path) -> dict:
+    """Score one checkpoint; writes ``metrics.json`` and ``per_image.csv`` into ``output_dir``."""
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    loaded = load_model(
+        ckpt_path,
+        fusion=cfg.fusion.mode if cfg.get("fusion") else None,
+        backbone=cfg.backbone.name if cfg.get("backbone") else None,
+    )
+    # Resolved here: once detached from the root config its ${...} references could not be.
+    chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
+    dataset = OmegaConf.create(dataset_config(loaded, chosen))
+    check_dataset(dataset, loaded.fusion)
+    L.seed_everything(cfg.seed, workers=True)
+    output_dir = Path(output_dir)
+    protocol = EvalProtocol.from_config(cfg.eval, dataset.min_depth, dataset.max_depth)
+    module = DepthModule(net=loaded.net, conditions=list(dataset.get("conditions") or ()))
+    module.set_protocol(protocol)
+    datamodule = DepthDataModule(
+        reader=instantiate(dataset.reader),
+        batch_size=cfg.data.batch_size,
+        num_workers=cfg.data.num_workers,
+        test_split=cfg.split,
+    )
+    logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
+    progress = cfg.trainer.enable_progress_bar
+    trainer = instantiate(
+        cfg.trainer,
+        default_root_dir=str(output_dir),
+        callbacks=[],
+        logger=logger,
+        enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
+        enable_model_summary=False,
+    )
+    # The fusion/backbone guards only name a choice; their other keys refer to a training config.
+    settings = OmegaConf.masked_copy(cfg, [k for k in cfg if k not in ("fusion", "backbone")])
+    resolved = {
+        "evaluate": {
+            **OmegaConf.to_container(settings, resolve=True),
+            "fusion": loaded.fusion,
+            "backbone": loaded.backbone,
+        },
+        "dataset": OmegaConf.to_container(dataset, resolve=True),
+        "checkpoint_config": loaded.config,
+    }
+    write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
+    if logger:
+        logger.log_hyperparams(resolved)
+    trainer.test(module, datamodule=datamodule, verbose=False)
+    record = evaluation_record(module.test_results, protocol, cfg.split, module.test_latency)
+    results = {
+        "status": "ok",
+        "run": _identity(loaded, dataset),
+        **record,
+        "checkpoint": str(Path(ckpt_path).resolve()),
+        "seed": cfg.seed,
+        "versions": provenance(),
+    }
+    log_to_loggers(trainer.loggers, record)
+    path = write_record(output_dir, results, module.test_per_image)
+    print(
+        f"\n{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
+        f"{dataset.name}):\n{results_tables(record)}\nWritten to {path}",
+        flush=True,
+    )
+    return results
+
+
+def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
+    """(run folder relative to ``folder``, best checkpoint) of every training run below it."""
+    found = []
+    for metrics in sorted(folder.rglob(METRICS_FILE)):
+        try:
+            best = json.loads(metrics.read_text()).get("best_checkpoint")
+        except (json.JSONDecodeError, AttributeError) as err:
+            raise ValueError(f"{metrics}: not a fusion-depth metrics file ({err})") from err
+        if best and Path(best).is_file():
+            found.append((metrics.parent.relative_to(folder), Path(best)))
+        elif best:
+            log.warning("skipping %s: its best checkpoint %s is gone", metrics.parent, best)
+    if not found:
+        raise FileNotFoundError(
+            f"ckpt_path={folder}: no training run with a best checkpoint below it (looked for "
+            f"{METRICS_FILE} files naming one)"
+        )
+    return found
+
+
+def evaluate(cfg: DictConfig) -> list[dict]:
+    """Score ``cfg.ckpt_path``: one checkpoint, or every run below a folder."""
+    path = Path(cfg.ckpt_path).expanduser()
+    output_dir = Path(cfg.paths.output_dir)
+    if path.is_dir():
+        return [
+            evaluate_checkpoint(cfg, ckpt, output_dir / run) for run, ckpt in find_checkpoints(path)
+        ]
+    # A missing file is reported by load_model, naming ckpt_path.
+    return [evaluate_checkpoint(cfg, path, output_dir)]
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> float:
+    return evaluate(cfg)[-1]["test"]["rmse"]
+
+
+if __name__ == "__main__":
+    main()

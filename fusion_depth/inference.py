@@ -1,0 +1,68 @@
+"""Depth in metres from a trained network, at the resolution of the ground truth or the input.
+
+Shared by evaluation (test stage, ``evaluate``) and ``predict``, so every entry point turns the
+network's half-resolution reciprocal output into metres the same way.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from fusion_depth.models import DepthNet
+
+UPSAMPLING = ("bilinear", "nearest")
+
+
+def _check_upsample(mode: str) -> None:
+    if mode not in UPSAMPLING:
+        raise ValueError(f"eval.upsample={mode!r}: expected one of {list(UPSAMPLING)}")
+
+
+def resize_depth(
+    depth: torch.Tensor, size: tuple[int, int], mode: str = "bilinear"
+) -> torch.Tensor:
+    """Depth ``(B, 1, h, w)`` → ``(B, 1, *size)`` by ``bilinear`` or ``nearest`` interpolation."""
+    _check_upsample(mode)
+    if tuple(depth.shape[-2:]) == tuple(size):
+        return depth
+    if mode == "nearest":
+        return F.interpolate(depth, size=size, mode="nearest")
+    return F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
+
+
+@torch.no_grad()
+def predict_depth(
+    net: DepthNet,
+    image: torch.Tensor,
+    sparse: torch.Tensor | None = None,
+    flip_tta: bool = False,
+    size: tuple[int, int] | None = None,
+    upsample: str = "bilinear",
+) -> torch.Tensor:
+    """Depth in metres ``(B, 1, H, W)`` for images ``(B, 3, H, W)`` in [0, 1].
+
+    ``flip_tta`` averages the prediction with the mirrored prediction of the mirrored input
+    (DenseDepth's test-time augmentation). The half-resolution output is resized to ``size``
+    (default: the input's) with ``upsample``. Inputs whose sides are not multiples of 32 are
+    padded at the bottom/right by edge replication (sparse maps with 0 = no return) and the
+    padding is cut off again, so any image size works.
+    """
+    _check_upsample(upsample)
+    sparse = sparse if net.fusion.uses_sparse else None
+    height, width = image.shape[-2:]
+    pad_h, pad_w = -height % 32, -width % 32
+    if pad_h or pad_w:
+        image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
+        if sparse is not None:
+            sparse = F.pad(sparse, (0, pad_w, 0, pad_h))
+    depth = net.predict_depth(image, sparse)
+    if flip_tta:
+        mirrored = net.predict_depth(
+            image.flip(-1), None if sparse is None else sparse.flip(-1)
+        ).flip(-1)
+        depth = (depth + mirrored) / 2
+    if pad_h or pad_w:
+        # Back to the input's frame: the output is at half resolution, padding included.
+        depth = resize_depth(depth, (height + pad_h, width + pad_w), upsample)[..., :height, :width]
+    return resize_depth(depth, size or (height, width), upsample)

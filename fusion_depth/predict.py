@@ -1,0 +1,561 @@
+"""Depth maps for new images from a trained checkpoint.
+
+python -m fusion_depth.predict ckpt_path=best.ckpt input=photos/ sparse=radar_pngs/
+python -m fusion_depth.predict ckpt_path=best.ckpt input=frame.jpg sparse=frame_radar.png npy=true
+python -m fusion_depth.predict ckpt_path=best.ckpt input=split:test limit=20   # a dataset split
+
+``input`` is a folder of images (``.png``, ``.jpg``, ``.jpeg``, sorted by name), one image file, or
+``split:<train|val|test>``: that split of the checkpoint's dataset (or of ``dataset=<name>``).
+``sparse`` (and ``ground_truth``, shown in the visualisation only) is a folder of depth PNGs named
+``<image stem>.png`` or, for one image, a single PNG; a checkpoint trained with sparse input
+needs it for file and folder inputs. For every input ``<stem>`` (``<split>_<index:06d>`` for
+splits), ``output_dir`` receives:
+
+* ``<stem>.png``: the depth as a single-channel uint16 PNG in 1/256 m (KITTI's convention:
+  ``value / 256`` = metres, 0 = none; lossless to 1/512 m and readable by every depth tool).
+  The format ends at 65535/256 ≈ 256 m: deeper values are clipped to it (the network's own
+  range, ``max_depth``, normally ends well before);
+* ``<stem>.npy``: float32 (H, W) metres, with ``npy=true``;
+* ``<stem>.viz.png``: image | sparse input | prediction | ground truth (when there is one) and a
+  colour bar in metres, with ``visualize=true`` (the default).
+
+Depth is predicted at each image's own resolution. Every file is written under a temporary name
+and renamed, so nothing half-written is left. An input that cannot be read (or whose sparse map
+does not match the image) is reported as ``skipped <path>: <reason>`` and the others are still
+written; the run ends with a summary line and exits with status 1 if anything was skipped.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model
+from fusion_depth.console import quiet_known_noise
+from fusion_depth.data import SPLITS
+from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
+from fusion_depth.inference import predict_depth
+from fusion_depth.visualize import depth_panel, with_colorbar
+
+log = logging.getLogger("fusion_depth.predict")  # not "__main__" under python -m
+quiet_known_noise()
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+SPLIT_PREFIX = "split:"
+
+
+@dataclass
+class Frame:
+    """One input: image (3, H, W) in [0, 1]; sparse and target (1, H, W) metres, 0 = none."""
+
+    name: str  # output stem
+    source: str  # what error messages call it: a path, or "<split> #<index>"
+    image: torch.Tensor
+    sparse: torch.Tensor | None = None
+    target: torch.Tensor | None = None
+
+
+@dataclass
+class Skipped:
+    """An input that could not be predicted, and why."""
+
+    source: str
+    reason: str
+
+
+@dataclass
+class PredictSummary:
+    """What a folder or split run wrote (depth PNG paths) and skipped (with reasons)."""
+
+    output_dir: Path
+    total: int = 0
+    written: list[Path] = field(default_factory=list)
+    skipped: list[Skipped] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.skipped
+
+    def line(self) -> str:
+        text = f"predicted {len(self.written)} of {self.total} inputs into {self.output_dir}"
+        if self.skipped:
+            text += f"; skipped {len(self.skipped)}: " + ", ".join(s.source for s in self.skipped)
+        return text
+
+
+# --------------------------------------------------------------------------- reading inputs
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """The images of ``folder`` (``.png``/``.jpg``/``.jpeg``, any case), sorted by name.
+
+    Hidden files (``.name``, e.g. another writer's temporary files) are left out.
+    """
+    folder = Path(folder)
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+    )
+
+
+def _read_image(path: Path) -> torch.Tensor:
+    return torch.from_numpy(read_rgb(path).copy()).permute(2, 0, 1).float() / 255.0
+
+
+def _read_depth_like(path: Path, image: torch.Tensor, image_path: Path, what: str) -> torch.Tensor:
+    depth = read_depth_png(path)
+    if depth.shape != tuple(image.shape[-2:]):
+        raise ValueError(
+            f"{path}: {what} is {depth.shape[0]}×{depth.shape[1]}, but the image {image_path} is "
+            f"{image.shape[-2]}×{image.shape[-1]}; expected the same size"
+        )
+    return torch.from_numpy(depth)[None]
+
+
+def _companion(spec: Path | None, image_path: Path) -> Path | None:
+    """The sparse/ground-truth PNG for ``image_path``: ``spec`` itself, or ``spec/<stem>.png``."""
+    if spec is None:
+        return None
+    return spec / f"{image_path.stem}.png" if spec.is_dir() else spec
+
+
+def _load_frame(
+    image_path: Path,
+    sparse: Path | None,
+    ground_truth: Path | None,
+    needs_sparse: bool,
+) -> Frame:
+    """Image, sparse map and ground truth of one file input (errors name the file)."""
+    image = _read_image(image_path)
+    frame = Frame(name=image_path.stem, source=str(image_path), image=image)
+    sparse_path = _companion(sparse, image_path)
+    if sparse_path is not None and (sparse_path.is_file() or needs_sparse):
+        if not sparse_path.is_file():
+            raise FileNotFoundError(f"{sparse_path}: missing sparse depth PNG for {image_path}")
+        frame.sparse = _read_depth_like(sparse_path, image, image_path, "the sparse depth")
+    target_path = _companion(ground_truth, image_path)
+    if target_path is not None and target_path.is_file():
+        frame.target = _read_depth_like(target_path, image, image_path, "the ground truth")
+    return frame
+
+
+def _check_sparse(loaded: LoadedModel, sparse: Path | None, where: str) -> None:
+    if sparse is None and loaded.net.fusion.uses_sparse:
+        raise ValueError(
+            f"sparse=null: ckpt_path={loaded.path} was trained with fusion={loaded.fusion}, which "
+            f"needs a sparse depth map for every image; pass sparse=<{where}> (depth PNGs in "
+            "1/256 m, 0 = no return) or use an RGB-only (fusion=rgb) checkpoint"
+        )
+    if sparse is not None and not sparse.exists():
+        raise FileNotFoundError(f"sparse={sparse}: no such file or folder")
+    if sparse is not None and not loaded.net.fusion.uses_sparse:
+        log.info(
+            "ckpt_path=%s has fusion=%s: sparse=%s is shown in the visualisation but not used",
+            loaded.path,
+            loaded.fusion,
+            sparse,
+        )
+
+
+def _check_outputs_apart(output_dir: Path, *inputs: Path | None) -> None:
+    """Refuse an output_dir that is an input folder: ``<stem>.png`` would replace inputs."""
+    out = output_dir.expanduser().resolve()
+    for path in inputs:
+        if path is not None and path.is_dir() and path.resolve() == out:
+            raise ValueError(
+                f"output_dir={output_dir} is the input folder {path}; writing <stem>.png there "
+                "would overwrite the inputs: choose another output_dir"
+            )
+
+
+# --------------------------------------------------------------------------- writing outputs
+
+
+def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.save(f, array)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_outputs(
+    output_dir: Path, frame: Frame, depth: np.ndarray, net: Any, npy: bool, visualize: bool
+) -> Path:
+    depth_path = output_dir / f"{frame.name}.png"
+    write_depth_png(depth_path, depth)
+    if npy:
+        _save_npy_atomic(output_dir / f"{frame.name}.npy", depth.astype(np.float32))
+    if visualize:
+        sparse = frame.sparse if frame.sparse is not None else torch.zeros_like(frame.image[:1])
+        panel = depth_panel(
+            frame.image,
+            sparse,
+            torch.from_numpy(depth),
+            frame.target,
+            net.min_depth,
+            net.max_depth,
+        )
+        write_rgb_png(
+            output_dir / f"{frame.name}.viz.png",
+            with_colorbar(panel, net.min_depth, net.max_depth),
+        )
+    return depth_path
+
+
+# --------------------------------------------------------------------------- the prediction loop
+
+
+def _predict_frames(net: Any, frames: list[Frame], flip_tta: bool) -> list[np.ndarray]:
+    """Depth (H, W) float32 metres for frames of one size, in one batch on the net's device."""
+    device = next(net.parameters()).device
+    images = torch.stack([f.image for f in frames]).to(device)
+    sparse = None
+    if net.fusion.uses_sparse:
+        sparse = torch.stack([f.sparse for f in frames]).to(device)
+    depth = predict_depth(net, images, sparse, flip_tta=flip_tta)
+    return [d[0].float().cpu().numpy() for d in depth]
+
+
+class _Progress:
+    """A rich progress bar on stderr (nothing when disabled)."""
+
+    def __init__(self, total: int, description: str, enabled: bool) -> None:
+        self.enabled = enabled
+        if enabled:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeRemainingColumn,
+            )
+
+            self.bar = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeRemainingColumn(),
+                console=Console(stderr=True),
+            )
+            self.task = self.bar.add_task(description, total=total)
+
+    def __enter__(self) -> Callable[[int], None]:
+        if not self.enabled:
+            return lambda n: None
+        self.bar.__enter__()
+        return lambda n: self.bar.advance(self.task, n)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.enabled:
+            self.bar.__exit__(*exc)
+
+
+def _run(
+    loaded: LoadedModel,
+    items: Iterable[Frame | Skipped],
+    total: int,
+    output_dir: Path,
+    *,
+    npy: bool,
+    visualize: bool,
+    flip_tta: bool,
+    batch_size: int,
+    progress: bool | None,
+    description: str,
+) -> PredictSummary:
+    if not isinstance(batch_size, int) or batch_size < 1:
+        raise ValueError(f"batch_size={batch_size}: expected an integer ≥ 1")
+    net = loaded.net.eval()
+    summary = PredictSummary(output_dir=Path(output_dir), total=total)
+    batch: list[Frame] = []
+    enabled = sys.stderr.isatty() if progress is None else progress
+
+    with _Progress(total, description, enabled) as advance:
+
+        def flush() -> None:
+            if batch:
+                for frame, depth in zip(batch, _predict_frames(net, batch, flip_tta), strict=True):
+                    summary.written.append(
+                        _write_outputs(summary.output_dir, frame, depth, net, npy, visualize)
+                    )
+                advance(len(batch))
+                batch.clear()
+
+        for item in items:
+            if isinstance(item, Skipped):
+                summary.skipped.append(item)
+                log.warning("skipped %s: %s", item.source, item.reason)
+                advance(1)
+                continue
+            if batch and (len(batch) >= batch_size or batch[0].image.shape != item.image.shape):
+                flush()
+            batch.append(item)
+        flush()
+    (log.warning if summary.skipped else log.info)("%s", summary.line())
+    return summary
+
+
+def _reason(err: BaseException, source: str) -> str:
+    """The error's message without a leading ``<source>: `` (the log line names it already)."""
+    text = str(err)
+    return text[len(source) + 2 :] if text.startswith(f"{source}: ") else text
+
+
+def _check_limit(limit: int | None) -> None:
+    if limit is not None and (not isinstance(limit, int) or limit < 1):
+        raise ValueError(f"limit={limit}: expected null (everything) or an integer ≥ 1")
+
+
+# --------------------------------------------------------------------------- public entry points
+
+
+def predict_file(
+    loaded: LoadedModel,
+    image: str | os.PathLike,
+    output_dir: str | os.PathLike,
+    sparse: str | os.PathLike | None = None,
+    ground_truth: str | os.PathLike | None = None,
+    *,
+    npy: bool = False,
+    visualize: bool = True,
+    flip_tta: bool = False,
+) -> np.ndarray:
+    """Predict one image file; returns the depth (H, W) float32 metres that was written.
+
+    ``sparse``/``ground_truth``: a depth PNG, or a folder holding ``<image stem>.png``. Unlike a
+    folder run, an unreadable input raises (naming the file) instead of being skipped.
+    """
+    image, output_dir = Path(image).expanduser(), Path(output_dir).expanduser()
+    sparse = None if sparse is None else Path(sparse).expanduser()
+    ground_truth = None if ground_truth is None else Path(ground_truth).expanduser()
+    if not image.is_file():
+        raise FileNotFoundError(f"input={image}: no such file")
+    _check_sparse(loaded, sparse, "a depth PNG of the same size as the image")
+    targets = {(output_dir / f"{image.stem}{s}").resolve() for s in (".png", ".npy", ".viz.png")}
+    for path in (image, sparse, ground_truth):
+        if path is not None and path.resolve() in targets:
+            raise ValueError(
+                f"output_dir={output_dir}: writing the outputs of {image} there would overwrite "
+                f"the input {path}: choose another output_dir"
+            )
+    frame = _load_frame(image, sparse, ground_truth, loaded.net.fusion.uses_sparse)
+    (depth,) = _predict_frames(loaded.net.eval(), [frame], flip_tta)
+    _write_outputs(output_dir, frame, depth, loaded.net, npy, visualize)
+    log.info("predicted 1 of 1 inputs (%s) into %s", image, output_dir)
+    return depth
+
+
+def predict_folder(
+    loaded: LoadedModel,
+    folder: str | os.PathLike,
+    output_dir: str | os.PathLike,
+    sparse: str | os.PathLike | None = None,
+    ground_truth: str | os.PathLike | None = None,
+    *,
+    npy: bool = False,
+    visualize: bool = True,
+    flip_tta: bool = False,
+    batch_size: int = 1,
+    limit: int | None = None,
+    progress: bool | None = None,
+) -> PredictSummary:
+    """Predict every image of ``folder`` (sorted by name; the first ``limit`` when given).
+
+    ``sparse``/``ground_truth`` are folders of ``<image stem>.png`` depth maps. Unreadable
+    inputs are logged as ``skipped <path>: <reason>`` and listed in the summary; images of the
+    same size are batched ``batch_size`` at a time. ``progress``: None = when stderr is a tty.
+    """
+    folder, output_dir = Path(folder).expanduser(), Path(output_dir).expanduser()
+    sparse = None if sparse is None else Path(sparse).expanduser()
+    ground_truth = None if ground_truth is None else Path(ground_truth).expanduser()
+    if not folder.is_dir():
+        raise FileNotFoundError(f"input={folder}: no such folder")
+    _check_limit(limit)
+    _check_sparse(loaded, sparse, "a folder of <image stem>.png depth maps")
+    for key, path in (("sparse", sparse), ("ground_truth", ground_truth)):
+        if path is not None and not path.is_dir():
+            raise ValueError(
+                f"{key}={path}: with a folder input, expected a folder of <image stem>.png "
+                "depth maps"
+            )
+    _check_outputs_apart(output_dir, folder, sparse, ground_truth)
+    images = list_images(folder)
+    if not images:
+        raise ValueError(
+            f"input={folder}: no images in it (expected files ending in "
+            f"{', '.join(IMAGE_SUFFIXES)})"
+        )
+    images = images[:limit]
+    needs_sparse = loaded.net.fusion.uses_sparse
+
+    def items() -> Iterator[Frame | Skipped]:
+        used: dict[str, Path] = {}
+        for path in images:
+            if path.stem in used:
+                yield Skipped(
+                    str(path),
+                    f"same name as {used[path.stem].name}; outputs {path.stem}.png would collide",
+                )
+                continue
+            used[path.stem] = path
+            try:
+                yield _load_frame(path, sparse, ground_truth, needs_sparse)
+            except (ValueError, OSError) as err:
+                yield Skipped(str(path), _reason(err, str(path)))
+
+    return _run(
+        loaded,
+        items(),
+        len(images),
+        output_dir,
+        npy=npy,
+        visualize=visualize,
+        flip_tta=flip_tta,
+        batch_size=batch_size,
+        progress=progress,
+        description=f"predict {folder.name or folder}",
+    )
+
+
+def predict_split(
+    loaded: LoadedModel,
+    split: str,
+    output_dir: str | os.PathLike,
+    dataset: dict | DictConfig | None = None,
+    *,
+    npy: bool = False,
+    visualize: bool = True,
+    flip_tta: bool = False,
+    batch_size: int = 1,
+    limit: int | None = None,
+    progress: bool | None = None,
+) -> PredictSummary:
+    """Predict the frames of a dataset split; outputs are named ``<split>_<index:06d>``.
+
+    ``dataset``: a dataset block (``dataset=<name>`` composed from ``conf/``); None = the one the
+    checkpoint was trained on. Visualisations show the split's ground truth.
+    """
+    if split not in SPLITS:
+        raise ValueError(f"input={SPLIT_PREFIX}{split}: expected a split of {list(SPLITS)}")
+    _check_limit(limit)
+    if isinstance(dataset, DictConfig):
+        dataset = OmegaConf.to_container(dataset, resolve=True)
+    block = dataset_config(loaded, dataset)
+    reader = instantiate(block["reader"])(split=split)
+    total = len(reader) if limit is None else min(limit, len(reader))
+    if total == 0:
+        raise ValueError(f"input={SPLIT_PREFIX}{split}: dataset={block.get('name')} has no frames")
+
+    def items() -> Iterator[Frame | Skipped]:
+        for index in range(total):
+            source = f"{split} #{index}"
+            try:
+                item = reader[index]
+            except (ValueError, OSError) as err:
+                yield Skipped(source, str(err))
+                continue
+            yield Frame(
+                name=f"{split}_{index:06d}",
+                source=source,
+                image=item["image"].float(),
+                sparse=item.get("sparse"),
+                target=item.get("depth"),
+            )
+
+    return _run(
+        loaded,
+        items(),
+        total,
+        Path(output_dir).expanduser(),
+        npy=npy,
+        visualize=visualize,
+        flip_tta=flip_tta,
+        batch_size=batch_size,
+        progress=progress,
+        description=f"predict {block.get('name')} {split}",
+    )
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` → cuda when available, else cpu; anything else as torch names it."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(
+            f"device={name}: expected auto, cpu, cuda or cuda:<index> ({err})"
+        ) from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name}: CUDA is not available here; use device=cpu or auto")
+    return device
+
+
+def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
+    """Run a ``conf/predict.yaml`` config.
+
+    Returns the summary for a folder or split input, the depth (H, W) for a single file.
+    """
+    source = str(cfg.input)
+    sparse, ground_truth = cfg.get("sparse"), cfg.get("ground_truth")
+    options = {"npy": cfg.npy, "visualize": cfg.visualize, "flip_tta": cfg.flip_tta}
+    if source.startswith(SPLIT_PREFIX):
+        for key, value in (("sparse", sparse), ("ground_truth", ground_truth)):
+            if value is not None:
+                raise ValueError(
+                    f"{key}={value}: input={source} reads it from the dataset; drop {key}="
+                )
+    else:
+        path = Path(source).expanduser()
+        if not path.exists():
+            raise FileNotFoundError(
+                f"input={source}: no such file or folder (expected a folder of images, an "
+                f"image file, or {SPLIT_PREFIX}<{'|'.join(SPLITS)}>)"
+            )
+    loaded = load_model(cfg.ckpt_path)
+    loaded.net.to(resolve_device(str(cfg.device)))
+    output_dir = Path(cfg.output_dir)
+    batching = {"batch_size": cfg.batch_size, "limit": cfg.limit, "progress": cfg.progress}
+    if source.startswith(SPLIT_PREFIX):
+        return predict_split(
+            loaded,
+            source[len(SPLIT_PREFIX) :],
+            output_dir,
+            cfg.get("dataset"),
+            **options,
+            **batching,
+        )
+    if path.is_dir():
+        return predict_folder(loaded, path, output_dir, sparse, ground_truth, **options, **batching)
+    return predict_file(loaded, path, output_dir, sparse, ground_truth, **options)
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="predict")
+def main(cfg: DictConfig) -> None:
+    """Hydra entry point; exits with status 1 when any input was skipped."""
+    result = predict(cfg)
+    if isinstance(result, PredictSummary) and not result.ok:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

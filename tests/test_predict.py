@@ -1,0 +1,278 @@
+"""``python -m fusion_depth.predict``: depth PNGs, .npy, visualisations, skipping bad inputs.
+
+Checkpoints are built by hand (an untrained DepthNet saved the way training saves it), so no
+test trains.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import REPO, compose_config, save_untrained_checkpoint
+from hydra.core.global_hydra import GlobalHydra
+
+from fusion_depth.checkpoint import load_model
+from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
+from fusion_depth.inference import predict_depth
+from fusion_depth.predict import (
+    PredictSummary,
+    list_images,
+    predict,
+    predict_file,
+    predict_folder,
+    predict_split,
+)
+from fusion_depth.visualize import colorbar_ticks, colorize_depth, depth_colorbar
+
+MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
+H, W = 64, 96
+PNG_STEP = 1 / 256
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory: pytest.TempPathFactory, smoke_dataset: dict) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("ckpt")
+    return {
+        fusion: save_untrained_checkpoint(root / f"{fusion}.ckpt", fusion, smoke_dataset)
+        for fusion in ("concat", "rgb")
+    }
+
+
+@pytest.fixture(scope="module")
+def fusion_model(checkpoints: dict[str, Path]):
+    return load_model(checkpoints["concat"])
+
+
+@pytest.fixture(scope="module")
+def rgb_model(checkpoints: dict[str, Path]):
+    return load_model(checkpoints["rgb"])
+
+
+def _write_inputs(
+    root: Path, sizes: dict[str, tuple[int, int]], suffix: str = ".png"
+) -> tuple[Path, Path]:
+    """``root/images/<stem><suffix>`` and ``root/sparse/<stem>.png`` with a few returns each."""
+    rng = np.random.default_rng(0)
+    images, sparse = root / "images", root / "sparse"
+    for stem, (height, width) in sizes.items():
+        image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+        if suffix == ".png":
+            write_rgb_png(images / f"{stem}.png", image)
+        else:
+            images.mkdir(parents=True, exist_ok=True)
+            from PIL import Image
+
+            Image.fromarray(image).save(images / f"{stem}{suffix}")
+        points = np.zeros((height, width), np.float32)
+        rows, cols = rng.integers(0, height, 30), rng.integers(0, width, 30)
+        points[rows, cols] = rng.uniform(2.0, 60.0, 30)
+        write_depth_png(sparse / f"{stem}.png", points)
+    return images, sparse
+
+
+def _colorbar_width(height: int) -> int:
+    return depth_colorbar(height, MIN_DEPTH, MAX_DEPTH).shape[1]
+
+
+def _assert_round_trip(png: Path, depth: np.ndarray) -> None:
+    """The PNG holds the prediction rounded to 1/256 m: at most half a step off."""
+    stored = read_depth_png(png)
+    assert stored.shape == depth.shape
+    assert np.abs(stored - depth).max() <= PNG_STEP / 2 + 1e-5
+    assert np.abs(stored - depth).max() < PNG_STEP
+
+
+def test_folder_png_round_trips_to_the_predicted_metres(fusion_model, tmp_path: Path) -> None:
+    # Two sizes, batched two at a time: batches must only hold images of one size.
+    sizes = {"a": (H, W), "b": (H, W), "c": (50, 70)}
+    images, sparse = _write_inputs(tmp_path, sizes)
+    out = tmp_path / "out"
+    summary = predict_folder(
+        fusion_model, images, out, sparse, npy=True, batch_size=2, progress=False
+    )
+
+    assert isinstance(summary, PredictSummary) and summary.ok
+    assert [p.name for p in summary.written] == ["a.png", "b.png", "c.png"]
+    for stem, (height, width) in sizes.items():
+        depth = np.load(out / f"{stem}.npy")
+        assert depth.dtype == np.float32 and depth.shape == (height, width)
+        assert MIN_DEPTH - 1e-4 <= depth.min() and depth.max() <= MAX_DEPTH + 1e-4
+        _assert_round_trip(out / f"{stem}.png", depth)
+        viz = read_rgb(out / f"{stem}.viz.png")  # no ground truth: 3 tiles + colour bar
+        assert viz.shape == (height, 3 * width + _colorbar_width(height), 3)
+        if stem != "b":
+            continue
+        # The batched prediction (b went with a) is the one of the image on its own.
+        image = torch.from_numpy(read_rgb(images / f"{stem}.png").copy()).permute(2, 0, 1)
+        alone = predict_depth(
+            fusion_model.net,
+            image[None].float() / 255,
+            torch.from_numpy(read_depth_png(sparse / f"{stem}.png"))[None, None],
+        )[0, 0].numpy()
+        np.testing.assert_allclose(depth, alone, atol=1e-3)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+
+def test_a_bad_input_is_skipped_by_name_and_the_rest_written(
+    fusion_model, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W), "c": (H, W)})
+    (images / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    write_depth_png(sparse / "c.png", np.ones((H // 2, W), np.float32))  # wrong size
+    (images / "d.jpg").write_bytes(b"")  # empty file
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO, logger="fusion_depth.predict"):
+        summary = predict_folder(fusion_model, images, out, sparse, progress=False)
+
+    assert [p.name for p in summary.written] == ["a.png"]
+    assert [s.source for s in summary.skipped] == [
+        str(images / n) for n in ("b.png", "c.png", "d.jpg")
+    ]
+    assert not summary.ok and summary.total == 4
+    for name in ("b.png", "c.png", "d.jpg"):
+        assert f"skipped {images / name}: " in caplog.text
+    assert "sparse depth is 32×96" in caplog.text
+    assert "predicted 1 of 4 inputs" in caplog.text and str(images / "d.jpg") in summary.line()
+    assert sorted(p.name for p in out.iterdir()) == ["a.png", "a.viz.png"]
+
+
+def test_single_file(fusion_model, tmp_path: Path) -> None:
+    images, sparse = _write_inputs(tmp_path, {"frame": (H, W)}, suffix=".jpg")
+    out = tmp_path / "out"
+    depth = predict_file(fusion_model, images / "frame.jpg", out, sparse / "frame.png")
+
+    assert depth.shape == (H, W)
+    _assert_round_trip(out / "frame.png", depth)
+    assert not (out / "frame.npy").exists()  # npy is opt-in
+    # A ground truth given: the 4th tile appears.
+    gt = tmp_path / "gt.png"
+    write_depth_png(gt, np.full((H, W), 10.0, np.float32))
+    predict_file(fusion_model, images / "frame.jpg", out, sparse / "frame.png", gt, npy=True)
+    assert read_rgb(out / "frame.viz.png").shape == (H, 4 * W + _colorbar_width(H), 3)
+    np.testing.assert_allclose(np.load(out / "frame.npy"), depth, atol=1e-5)
+
+
+def test_split_panels_show_the_ground_truth(fusion_model, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    summary = predict_split(fusion_model, "test", out, limit=3, batch_size=2, progress=False)
+
+    assert summary.ok and summary.total == 3
+    assert [p.name for p in summary.written] == [f"test_{i:06d}.png" for i in range(3)]
+    viz = read_rgb(out / "test_000000.viz.png")
+    assert viz.shape == (H, 4 * W + _colorbar_width(H), 3)
+    assert viz[:, 3 * W : 4 * W].any()  # the ground-truth tile is not empty
+    _assert_round_trip(out / "test_000002.png", read_depth_png(out / "test_000002.png"))
+
+
+def test_rgb_checkpoint_needs_no_sparse_and_ignores_it(rgb_model, tmp_path: Path) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W)})
+    without = predict_file(rgb_model, images / "a.png", tmp_path / "without", visualize=False)
+    with_sparse = predict_file(rgb_model, images / "a.png", tmp_path / "with", sparse / "a.png")
+    np.testing.assert_array_equal(without, with_sparse)
+    assert not (tmp_path / "without" / "a.viz.png").exists()
+    summary = predict_folder(rgb_model, images, tmp_path / "folder", progress=False)
+    assert summary.ok and [p.name for p in summary.written] == ["a.png"]
+
+
+def test_fusion_checkpoint_without_sparse_is_a_clear_error(fusion_model, tmp_path: Path) -> None:
+    images, _ = _write_inputs(tmp_path, {"a": (H, W)})
+    with pytest.raises(ValueError, match=r"sparse=null: ckpt_path=.*concat\.ckpt.*fusion=concat"):
+        predict_folder(fusion_model, images, tmp_path / "out", progress=False)
+    with pytest.raises(ValueError, match="sparse=null"):
+        predict_file(fusion_model, images / "a.png", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_inputs_are_checked_before_any_work(fusion_model, tmp_path: Path) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W)})
+    with pytest.raises(FileNotFoundError, match=r"input=.*nowhere: no such folder"):
+        predict_folder(fusion_model, tmp_path / "nowhere", tmp_path / "out", sparse)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"input=.*empty: no images in it"):
+        predict_folder(fusion_model, tmp_path / "empty", tmp_path / "out", sparse)
+    with pytest.raises(ValueError, match="would overwrite the inputs"):
+        predict_folder(fusion_model, images, images, sparse)
+    with pytest.raises(ValueError, match="would overwrite the input"):
+        predict_file(fusion_model, images / "a.png", images, sparse)
+    with pytest.raises(ValueError, match=r"sparse=.*a\.png: with a folder input"):
+        predict_folder(fusion_model, images, tmp_path / "out", sparse / "a.png")
+    with pytest.raises(ValueError, match=r"input=split:dev: expected a split of"):
+        predict_split(fusion_model, "dev", tmp_path / "out")
+    assert list_images(images) == [images / "a.png"]
+
+
+def test_colorbar_matches_the_panels_scale() -> None:
+    bar = depth_colorbar(200, MIN_DEPTH, MAX_DEPTH)
+    ticks = colorbar_ticks(200, MIN_DEPTH, MAX_DEPTH, min_gap=16)
+    depths = [d for d, _ in ticks]
+    assert depths[0] == MAX_DEPTH and depths[-1] == MIN_DEPTH and 1.0 in depths  # far on top
+    strip = bar[:, 2]  # the colour strip's first column
+    for depth, row in ticks:
+        expected = colorize_depth(np.array([[depth]], np.float32), MIN_DEPTH, MAX_DEPTH)[0, 0]
+        assert np.abs(strip[int(round(row))].astype(int) - expected).max() <= 3
+    assert bar[:, -30:].max() > 200  # white labels were drawn
+
+
+def _compose_predict(overrides: list[str], run_dir: Path):
+    return compose_config(overrides, run_dir, config_name="predict")
+
+
+def test_config_with_another_dataset_for_a_split(checkpoints, tmp_path: Path) -> None:
+    cfg = _compose_predict(
+        [
+            f"ckpt_path={checkpoints['rgb']}",
+            "input=split:val",
+            "dataset=procedural",
+            "dataset.width=128",
+            "dataset.reader.num_val=2",
+            "npy=true",
+            "device=cpu",
+        ],
+        tmp_path / "run",
+    )
+    try:
+        summary = predict(cfg)
+    finally:
+        GlobalHydra.instance().clear()
+    out = tmp_path / "run" / "predictions"  # default output_dir: inside the Hydra run dir
+    assert summary.ok and summary.output_dir == out
+    assert np.load(out / "val_000001.npy").shape == (H, 128)  # the chosen dataset's size
+    assert read_rgb(out / "val_000001.viz.png").shape == (H, 4 * 128 + _colorbar_width(H), 3)
+
+
+def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Path) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W)})
+    (images / "b.png").write_bytes(b"garbage")
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fusion_depth.predict",
+            f"ckpt_path={checkpoints['concat']}",
+            f"input={images}",
+            f"sparse={sparse}",
+            f"output_dir={out}",
+            f"hydra.run.dir={tmp_path / 'run'}",
+            "device=cpu",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        timeout=300,
+    )
+    text = result.stdout + result.stderr
+    assert result.returncode == 1, text
+    assert f"skipped {images / 'b.png'}: " in text
+    assert f"predicted 1 of 2 inputs into {out}; skipped 1: {images / 'b.png'}" in text
+    assert (out / "a.png").is_file() and (out / "a.viz.png").is_file()
+    assert not (out / "b.png").exists()
+    assert (tmp_path / "run" / "predict.log").is_file()
