@@ -22,13 +22,7 @@ from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.datamodule import DepthDataModule
-from fusion_depth.evaluation import (
-    EvalProtocol,
-    evaluation_record,
-    log_to_loggers,
-    results_tables,
-    write_record,
-)
+from fusion_depth.evaluation import EvalProtocol, evaluation_record, publish_results
 from fusion_depth.module import DepthModule
 from fusion_depth.runs import METRICS_FILE, RESOLVED_CONFIG_FILE, provenance, write_text_atomic
 
@@ -115,13 +109,11 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         "seed": cfg.seed,
         "versions": provenance(),
     }
-    log_to_loggers(trainer.loggers, record)
-    path = write_record(output_dir, results, module.test_per_image)
-    print(
-        f"\n{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
-        f"{dataset.name}):\n{results_tables(record)}\nWritten to {path}",
-        flush=True,
+    title = (
+        f"{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
+        f"{dataset.name})"
     )
+    publish_results(output_dir, results, module.test_per_image, trainer.loggers, title)
     return results
 
 

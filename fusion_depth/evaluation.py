@@ -239,9 +239,19 @@ def log_to_loggers(loggers: Sequence[Any], record: Mapping[str, Any]) -> None:
                 logger.log_table(key=key, columns=columns, data=rows)
 
 
-def write_record(output_dir: str | os.PathLike, record: Mapping[str, Any], rows: Sequence) -> Path:
-    """Write ``per_image.csv`` then ``metrics.json`` (last, so its presence means complete)."""
+def publish_results(
+    output_dir: str | os.PathLike,
+    results: Mapping[str, Any],
+    rows: Sequence[Mapping[str, Any]],
+    loggers: Sequence[Any],
+    title: str,
+) -> Path:
+    """Send the breakdowns to W&B, write ``per_image.csv`` then ``metrics.json`` (last, so its
+    presence means the run is complete), and print ``title`` with the tables."""
+    log_to_loggers(loggers, results)
     output_dir = Path(output_dir)
     write_per_image(output_dir / PER_IMAGE_FILE, rows)
-    write_json_atomic(output_dir / METRICS_FILE, record)
-    return output_dir / METRICS_FILE
+    path = output_dir / METRICS_FILE
+    write_json_atomic(path, results)
+    print(f"\n{title}:\n{results_tables(results)}\nWritten to {path}", flush=True)
+    return path

@@ -419,25 +419,14 @@ class DepthMetrics(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         """Headline-cap metrics (and per condition); raises ValueError if nothing was scored."""
-        sums, counts, cond, _ = self._states()
-        head_sums, head_counts = self._headline(sums, counts)
-        overall = _aggregate(head_sums, head_counts, self.averaging)
-        if overall is None:
-            raise ValueError(
-                "DepthMetrics has not scored any image: no ground-truth pixel in "
-                f"({self.min_depth}, {self.max_depth}) was seen"
-            )
-        out = {k: torch.tensor(overall[k], dtype=torch.float64) for k in METRIC_KEYS}
-        for g, name in enumerate(self.conditions or ()):
-            group = _aggregate(head_sums[cond == g], head_counts[cond == g], self.averaging)
-            if group is not None:
-                out.update(
-                    {
-                        f"{name}/{k}": torch.tensor(group[k], dtype=torch.float64)
-                        for k in METRIC_KEYS
-                    }
-                )
-        return out
+        results = self.results()
+        groups = {"": results["overall"]}
+        groups.update({f"{name}/": group for name, group in results["by_condition"].items()})
+        return {
+            f"{prefix}{k}": torch.tensor(group[k], dtype=torch.float64)
+            for prefix, group in groups.items()
+            for k in METRIC_KEYS
+        }
 
     def results(self) -> dict[str, dict]:
         """Every breakdown as plain data: ``overall``, ``by_condition``, ``by_distance``

@@ -407,7 +407,8 @@ def load_per_image(run: dict, metric: str) -> PerImage:
     if not path.is_file():
         raise FileNotFoundError(
             f"{run['path']}: its per-image results {path} are missing; --compare needs "
-            f"{PER_IMAGE_FILE} (written by evaluations of this version)"
+            f"{PER_IMAGE_FILE}, which runs of older versions did not write: re-score them with "
+            f"python -m fusion_depth.evaluate ckpt_path=<sweep folder> and compare the output"
         )
     with path.open(newline="") as f:
         reader = csv.DictReader(f)

@@ -23,12 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from fusion_depth.config import validate_config
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule
-from fusion_depth.evaluation import (
-    evaluation_record,
-    log_to_loggers,
-    results_tables,
-    write_record,
-)
+from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.runs import (
     RESOLVED_CONFIG_FILE,
     provenance,
@@ -99,13 +94,11 @@ def train(cfg: DictConfig) -> dict:
         "wall_time_s": round(time.perf_counter() - start, 2),
         "versions": provenance(),
     }
-    log_to_loggers(trainer.loggers, record)
-    path = write_record(output_dir, results, model.test_per_image)
-    print(
-        f"\nTest metrics ({results['test']['num_images']} images, best checkpoint "
-        f"{best or 'last weights'}):\n{results_tables(record)}\nWritten to {path}",
-        flush=True,
+    title = (
+        f"Test metrics ({results['test']['num_images']} images, best checkpoint "
+        f"{best or 'last weights'})"
     )
+    publish_results(output_dir, results, model.test_per_image, trainer.loggers, title)
     return results
 
 

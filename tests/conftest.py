@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -87,3 +89,44 @@ def smoke_dataset(tmp_path_factory: pytest.TempPathFactory, isolated_environment
     cfg = compose_config(["experiment=smoke"], tmp_path_factory.mktemp("compose"))
     GlobalHydra.instance().clear()
     return OmegaConf.to_container(cfg.dataset, resolve=True)
+
+
+@pytest.fixture(scope="session")
+def checkpoints(tmp_path_factory: pytest.TempPathFactory, smoke_dataset: dict) -> dict[str, Path]:
+    """Untrained concat and rgb checkpoints on the smoke dataset."""
+    root = tmp_path_factory.mktemp("ckpt")
+    return {
+        fusion: save_untrained_checkpoint(root / f"{fusion}.ckpt", fusion, smoke_dataset)
+        for fusion in ("concat", "rgb")
+    }
+
+
+def run_module(args: list[str], cwd: Path, timeout: int = 1800) -> subprocess.CompletedProcess:
+    """``python -m <args>`` in a subprocess, as a user would run it."""
+    return subprocess.run(
+        [sys.executable, "-m", *args],
+        cwd=cwd,
+        env=dict(os.environ),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def run_sweep(name: str, overrides: list[str], sweep_dir: Path) -> subprocess.CompletedProcess:
+    """A ``sweeps/<name>.yaml`` sweep under ``experiment=smoke``, into ``sweep_dir``."""
+    return run_module(
+        [
+            "fusion_depth.train",
+            "--config-dir",
+            str(REPO / "sweeps"),
+            "--config-name",
+            name,
+            "-m",
+            "experiment=smoke",
+            "logger=none",
+            *overrides,
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=sweep_dir.parent,
+    )

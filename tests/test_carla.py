@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_module, run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
@@ -470,3 +471,18 @@ def test_training_and_testing_on_a_recording(recording, make_config) -> None:
     assert set(results["test_by_condition"]) <= {"day", "rain"}
     assert all(math.isfinite(v) for v in results["test"].values())
     assert os.path.isfile(results["best_checkpoint"])
+
+
+def test_the_carla_sweep_runs_under_the_smoke_experiment(recording, tmp_path) -> None:
+    sweep = tmp_path / "sweep"
+    result = run_sweep(
+        "carla_loss_fusion_grid",
+        [f"dataset.root={recording}", "seed=42", "loss=l1", "fusion=rgb,concat"],
+        sweep,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "2 ok, 0 failed" in result.stdout
+    args = ["fusion_depth.report", str(sweep), "--compare", "fusion=rgb", "--resamples", "200"]
+    report = run_module(args, cwd=tmp_path, timeout=120)
+    assert report.returncode == 0, report.stderr
+    assert "RGB-Fusion" in report.stdout

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import REPO, compose_config, save_untrained_checkpoint
+from conftest import REPO, compose_config
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
@@ -22,15 +22,6 @@ from fusion_depth.checkpoint import CheckpointError, load_model
 from fusion_depth.evaluate import evaluate
 from fusion_depth.inference import predict_depth
 from fusion_depth.metrics import METRIC_KEYS, DepthMetrics
-
-
-@pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory: pytest.TempPathFactory, smoke_dataset: dict) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("ckpt")
-    return {
-        fusion: save_untrained_checkpoint(root / f"{fusion}.ckpt", fusion, smoke_dataset)
-        for fusion in ("concat", "rgb")
-    }
 
 
 def _evaluate(overrides: list[str], run_dir: Path) -> list[dict]:

@@ -7,10 +7,12 @@ Frames are 40x100 (real ones ~375x1242): uint16 PNGs of metres x 256 with known 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf.errors import MissingMandatoryValue
@@ -483,3 +485,44 @@ def test_the_sweep_config_reproduces_the_papers_kitti_table(tmp_path) -> None:
     assert set(cfg.hydra.sweeper.params.fusion.split(",")) == {"rgb", "concat", "add"}
     assert cfg.loss.pixel == "l1" and cfg.trainer.max_epochs == 20
     assert cfg.backbone.pretrained is True and cfg.dataset.max_depth == 80.0
+
+
+def test_the_kitti_sweep_runs_under_smoke_and_scores_inside_the_garg_crop(
+    kitti_data, tmp_path
+) -> None:
+    sweep = tmp_path / "sweep"
+    result = run_sweep(
+        "kitti_fusion",
+        [
+            f"dataset.root={kitti_data['root']}",
+            f"dataset.raw_root={kitti_data['raw_root']}",
+            "dataset.train_stride=1",
+            "seed=42",
+            "fusion=concat",  # one job of the grid: the config and the crop are what is tested
+            "trainer.limit_test_batches=null",
+        ],
+        sweep,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "1 ok, 0 failed" in result.stdout
+    (saved,) = [json.loads(p.read_text()) for p in sweep.glob("*/metrics.json")]
+    assert saved["run"]["fusion"] == "concat" and saved["protocol"]["crop"] == "garg"
+    # The scored pixels are exactly the measured ones inside Garg's crop of each full frame.
+    test = KittiDepth(
+        "test",
+        kitti_data["root"],
+        kitti_data["raw_root"],
+        os.environ["FUSION_DEPTH_CACHE"],
+        height=64,
+        width=96,
+        fill="colorization",
+        train_stride=1,
+    )
+    expected = 0
+    for i in range(len(test)):
+        sample = test[i]
+        depth = sample["depth"][0]
+        inside = crop_mask(tuple(depth.shape), "garg", sample["frame_box"][None])[0]
+        expected += int(((depth > 1.0) & (depth < 80.0) & inside).sum())
+    assert saved["test"]["num_pixels"] == expected
+    assert saved["test"]["num_images"] == len(test)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, compose_config, save_untrained_checkpoint
+from conftest import REPO, compose_config
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.checkpoint import load_model
@@ -34,15 +34,6 @@ from fusion_depth.visualize import colorbar_ticks, colorize_depth, depth_colorba
 MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
 H, W = 64, 96
 PNG_STEP = 1 / 256
-
-
-@pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory: pytest.TempPathFactory, smoke_dataset: dict) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("ckpt")
-    return {
-        fusion: save_untrained_checkpoint(root / f"{fusion}.ckpt", fusion, smoke_dataset)
-        for fusion in ("concat", "rgb")
-    }
 
 
 @pytest.fixture(scope="module")

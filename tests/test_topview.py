@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_module, run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
@@ -225,3 +226,15 @@ def test_training_and_testing_on_a_folder(folder, make_config) -> None:
     assert results["run"]["dataset"] == "topview" and results["run"]["sensor"] == "none"
     assert set(results["test_by_condition"]) == {"day"}
     assert all(math.isfinite(v) for v in results["test"].values())
+
+
+def test_the_topview_sweep_runs_under_the_smoke_experiment(folder, tmp_path) -> None:
+    sweep = tmp_path / "sweep"
+    overrides = [f"dataset.root={folder}", "seed=42,43", "loss=l1"]
+    result = run_sweep("topview_loss_grid", overrides, sweep)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "2 ok, 0 failed" in result.stdout
+    report = run_module(["fusion_depth.report", str(sweep)], cwd=tmp_path, timeout=120)
+    assert report.returncode == 0, report.stderr
+    rows = [line for line in report.stdout.splitlines() if line.startswith("| RGB")]
+    assert len(rows) == 1 and "±" in rows[0]  # mean ± std over the two seeds

@@ -4,30 +4,15 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from conftest import compose_config, run_module, run_sweep
 from omegaconf import OmegaConf
 
 from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.train import train
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _cli(args: list[str], cwd: Path, timeout: int = 900) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", *args],
-        cwd=cwd,
-        env=dict(os.environ),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
 
 
 def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_path) -> None:
@@ -77,22 +62,11 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
 
 def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     sweep = tmp_path / "sweep"
-    result = _cli(
-        [
-            "fusion_depth.train",
-            "-m",
-            "experiment=smoke",
-            "logger=csv",
-            "loss=l1,l2,berhu",
-            "fusion=rgb,concat,add",
-            f"hydra.sweep.dir={sweep}",
-        ],
-        cwd=tmp_path,
-    )
+    result = run_sweep("loss_fusion_grid", ["seed=42"], sweep)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "9 ok, 0 failed" in result.stdout
     assert len(list(sweep.glob("*/metrics.json"))) == 9
-    report = _cli(["fusion_depth.report", str(sweep)], cwd=tmp_path, timeout=120)
+    report = run_module(["fusion_depth.report", str(sweep)], cwd=tmp_path, timeout=120)
     assert report.returncode == 0, report.stderr
     rows = [line for line in report.stdout.splitlines() if line.startswith("| RGB")]
     assert len(rows) == 9
@@ -102,9 +76,25 @@ def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     }
 
 
+def test_the_weather_sweep_runs_and_report_compares_per_condition(tmp_path) -> None:
+    """sweeps/procedural_weather.yaml under the smoke experiment (two seeds, two modes), then the table
+    the README shows: each fusion mode against rgb, image by image, per condition."""
+    sweep = tmp_path / "weather"
+    result = run_sweep("procedural_weather", ["seed=42,43", "fusion=rgb,concat"], sweep)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "4 ok, 0 failed" in result.stdout
+    # Job folders are named after their overrides, so a re-run lands in the same place.
+    assert (sweep / "fusion=concat,seed=43" / "per_image.csv").is_file()
+    args = ["fusion_depth.report", str(sweep), "--by", "condition", "--compare", "fusion=rgb"]
+    report = run_module([*args, "--resamples", "500"], cwd=tmp_path, timeout=120)
+    assert report.returncode == 0, report.stderr
+    assert "RGB-Fusion" in report.stdout
+    assert "night" in report.stdout and "fog" in report.stdout
+
+
 def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     sweep = tmp_path / "sweep"
-    result = _cli(
+    result = run_module(
         [
             "fusion_depth.train",
             "-m",
@@ -130,8 +120,6 @@ def test_the_same_seed_gives_the_same_metrics(make_config, tmp_path) -> None:
     """Reproducibility: seed_everything(seed, workers=True) covers init, shuffling and
     augmentation, so a second run with the same seed prints the same numbers."""
     first = train(make_config("experiment=smoke", "logger=none", "seed=7"))
-    from conftest import compose_config
-
     second = train(compose_config(["experiment=smoke", "logger=none", "seed=7"], tmp_path / "b"))
     for key in METRIC_KEYS:
         assert f"{first['test'][key]:.3f}" == f"{second['test'][key]:.3f}", key
