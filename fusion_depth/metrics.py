@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from contextlib import AbstractContextManager
 
 import torch
 from torch import Tensor
@@ -419,7 +420,7 @@ class DepthMetrics(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         """Headline-cap metrics (and per condition); raises ValueError if nothing was scored."""
-        results = self.results()
+        results = self._results()  # torchmetrics has already gathered the states of all processes
         groups = {"": results["overall"]}
         groups.update({f"{name}/": group for name, group in results["by_condition"].items()})
         return {
@@ -431,7 +432,16 @@ class DepthMetrics(Metric):
     def results(self) -> dict[str, dict]:
         """Every breakdown as plain data: ``overall``, ``by_condition``, ``by_distance``
         (``"0-10"``, ... m, within the headline cap) and ``by_cap`` (``"50"``, ...), each with
-        ``num_images`` and ``num_pixels``; groups without a scored image are left out."""
+        ``num_images`` and ``num_pixels``; groups without a scored image are left out. Under
+        distributed evaluation the images of every process count."""
+        with self._gathered():
+            return self._results()
+
+    def _gathered(self) -> AbstractContextManager:
+        """The states of every process while inside (nothing to do when already synced)."""
+        return self.sync_context(should_sync=not self._is_synced, should_unsync=not self._is_synced)
+
+    def _results(self) -> dict[str, dict]:
         sums, counts, cond, _ = self._states()
         head_sums, head_counts = self._headline(sums, counts)
         overall = _aggregate(head_sums, head_counts, self.averaging)
@@ -464,8 +474,10 @@ class DepthMetrics(Metric):
 
     def per_image(self) -> list[dict]:
         """One record per scored image (headline cap): ``index``, ``condition``, ``num_pixels``
-        and every metric; ordered by ``index``."""
-        sums, counts, cond, index = self._states()
+        and every metric; ordered by ``index``; every process's images under distributed
+        evaluation."""
+        with self._gathered():
+            sums, counts, cond, index = self._states()
         head_sums, head_counts = self._headline(sums, counts)
         scored = head_counts > 0
         values = metrics_from_sums(head_sums[scored], head_counts[scored])

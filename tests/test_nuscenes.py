@@ -689,3 +689,17 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
     assert all(math.isfinite(v) for v in results["test"].values())
     assert Path(cfg.paths.output_dir, "metrics.json").is_file()
     assert list(Path(os.environ["FUSION_DEPTH_CACHE"]).glob("nuscenes/*/train/index.json"))
+
+
+def test_the_nuscenes_sweep_runs_under_the_smoke_experiment(nusc_root, tmp_path) -> None:
+    from conftest import run_sweep
+
+    root, _ = nusc_root
+    sweep = tmp_path / "sweep"
+    overrides = [f"dataset.root={root}", "dataset.version=v1.0-mini", "seed=42", "loss=l1"]
+    result = run_sweep("nuscenes_loss_fusion_grid", [*overrides, "fusion=concat"], sweep)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "1 ok, 0 failed" in result.stdout
+    (saved,) = [json.loads(p.read_text()) for p in sweep.glob("*/metrics.json")]
+    assert saved["run"]["dataset"] == "nuscenes" and saved["run"]["fusion"] == "concat"
+    assert (sweep / "0" / "per_image.csv").is_file()
