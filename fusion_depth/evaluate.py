@@ -71,7 +71,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     module.set_protocol(protocol)
     datamodule = DepthDataModule(
         reader=instantiate(dataset.reader),
-        batch_size=cfg.data.batch_size,
+        batch_size=cfg.data.eval_batch_size,
         num_workers=cfg.data.num_workers,
         test_split=cfg.split,
     )
