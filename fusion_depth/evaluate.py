@@ -23,6 +23,7 @@ from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.evaluation import EvalProtocol, evaluation_record, publish_results
+from fusion_depth.loggers import closing
 from fusion_depth.module import DepthModule
 from fusion_depth.runs import METRICS_FILE, RESOLVED_CONFIG_FILE, provenance, write_text_atomic
 
@@ -97,23 +98,24 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         "checkpoint_config": loaded.config,
     }
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
-    if logger:
-        logger.log_hyperparams(resolved)
-    trainer.test(module, datamodule=datamodule, verbose=False)
-    record = evaluation_record(module.test_results, protocol, cfg.split, module.test_latency)
-    results = {
-        "status": "ok",
-        "run": _identity(loaded, dataset),
-        **record,
-        "checkpoint": str(Path(ckpt_path).resolve()),
-        "seed": cfg.seed,
-        "versions": provenance(),
-    }
-    title = (
-        f"{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
-        f"{dataset.name})"
-    )
-    publish_results(output_dir, results, module.test_per_image, trainer.loggers, title)
+    with closing(logger):
+        if logger:
+            logger.log_hyperparams(resolved)
+        trainer.test(module, datamodule=datamodule, verbose=False)
+        record = evaluation_record(module.test_results, protocol, cfg.split, module.test_latency)
+        results = {
+            "status": "ok",
+            "run": _identity(loaded, dataset),
+            **record,
+            "checkpoint": str(Path(ckpt_path).resolve()),
+            "seed": cfg.seed,
+            "versions": provenance(),
+        }
+        title = (
+            f"{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
+            f"{dataset.name})"
+        )
+        publish_results(output_dir, results, module.test_per_image, trainer.loggers, title)
     return results
 
 

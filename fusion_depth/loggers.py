@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import netrc
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from lightning.pytorch.loggers import WandbLogger
 
@@ -64,3 +66,23 @@ def wandb_logger(
         tags=list(tags),
         log_model=False,
     )
+
+
+@contextmanager
+def closing(logger: Any) -> Iterator[Any]:
+    """Finish the logger's W&B run on leaving, also on error.
+
+    Lightning's WandbLogger leaves the run open, and the next WandbLogger in the same process
+    (the next job of a Hydra multirun) would then log into it; finishing each job's run keeps
+    the jobs of a sweep apart.
+    """
+    failed = True
+    try:
+        yield logger
+        failed = False
+    finally:
+        if isinstance(logger, WandbLogger) and logger._experiment is not None:
+            import wandb
+
+            if wandb.run is not None:
+                wandb.finish(exit_code=1 if failed else 0)

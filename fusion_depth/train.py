@@ -24,6 +24,7 @@ from fusion_depth.config import validate_config
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.evaluation import evaluation_record, publish_results
+from fusion_depth.loggers import closing
 from fusion_depth.runs import (
     RESOLVED_CONFIG_FILE,
     provenance,
@@ -61,44 +62,45 @@ def train(cfg: DictConfig) -> dict:
     model.run_config = run_config
     model.run_identity = run_identity(cfg)
     logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
-    callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
-    if logger:
-        logger.log_hyperparams(run_config)
-    else:  # Lightning refuses a learning-rate monitor with nothing to log to
-        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
-    progress = cfg.trainer.enable_progress_bar
-    trainer = instantiate(
-        cfg.trainer,
-        callbacks=callbacks,
-        logger=logger,
-        enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
-    )
+    with closing(logger):
+        callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
+        if logger:
+            logger.log_hyperparams(run_config)
+        else:  # Lightning refuses a learning-rate monitor with nothing to log to
+            callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
+        progress = cfg.trainer.enable_progress_bar
+        trainer = instantiate(
+            cfg.trainer,
+            callbacks=callbacks,
+            logger=logger,
+            enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
+        )
 
-    start = time.perf_counter()
-    trainer.fit(model, datamodule=datamodule)
-    best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    trainer.test(model, datamodule=datamodule, ckpt_path=best or None, verbose=False)
-    record = evaluation_record(model.test_results, model.protocol, "test", model.test_latency)
-    results = {
-        "status": "ok",
-        "run": model.run_identity,
-        **record,
-        "best_checkpoint": best or None,
-        "best_val_rmse": (
-            float(trainer.checkpoint_callback.best_model_score)
-            if best and trainer.checkpoint_callback.best_model_score is not None
-            else None
-        ),
-        "epochs": trainer.current_epoch,
-        "global_step": trainer.global_step,
-        "wall_time_s": round(time.perf_counter() - start, 2),
-        "versions": provenance(),
-    }
-    title = (
-        f"Test metrics ({results['test']['num_images']} images, best checkpoint "
-        f"{best or 'last weights'})"
-    )
-    publish_results(output_dir, results, model.test_per_image, trainer.loggers, title)
+        start = time.perf_counter()
+        trainer.fit(model, datamodule=datamodule)
+        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+        trainer.test(model, datamodule=datamodule, ckpt_path=best or None, verbose=False)
+        record = evaluation_record(model.test_results, model.protocol, "test", model.test_latency)
+        results = {
+            "status": "ok",
+            "run": model.run_identity,
+            **record,
+            "best_checkpoint": best or None,
+            "best_val_rmse": (
+                float(trainer.checkpoint_callback.best_model_score)
+                if best and trainer.checkpoint_callback.best_model_score is not None
+                else None
+            ),
+            "epochs": trainer.current_epoch,
+            "global_step": trainer.global_step,
+            "wall_time_s": round(time.perf_counter() - start, 2),
+            "versions": provenance(),
+        }
+        title = (
+            f"Test metrics ({results['test']['num_images']} images, best checkpoint "
+            f"{best or 'last weights'})"
+        )
+        publish_results(output_dir, results, model.test_per_image, trainer.loggers, title)
     return results
 
 
