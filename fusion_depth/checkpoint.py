@@ -155,6 +155,12 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
     (``fusion_depth.data.*``) are accepted, so a crafted file cannot make us call anything else.
     """
     if chosen is not None:
+        if "reader" not in chosen:  # e.g. experiment=smoke sets dataset sizes without a dataset=
+            raise ValueError(
+                f"dataset settings {sorted(chosen)} were given but no dataset was chosen: add "
+                "dataset=<name> (e.g. dataset=procedural) to use them, or leave them out to use "
+                f"the dataset ckpt_path={loaded.path} was trained on"
+            )
         return chosen
     block = loaded.config.get("dataset")
     target = (block or {}).get("reader", {}).get("_target_", "")

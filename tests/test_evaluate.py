@@ -209,3 +209,9 @@ def test_the_command_line_entry_point(checkpoints, tmp_path) -> None:
     assert "Inference latency per frame (64x96" in result.stdout
     assert "Tip" not in result.stdout + result.stderr
     assert (tmp_path / "run" / "metrics.json").is_file()
+
+
+def test_dataset_settings_without_a_dataset_choice_are_refused(checkpoints, tmp_path) -> None:
+    # experiment=smoke sets dataset sizes; without dataset=<name> they would silently not apply.
+    with pytest.raises(ValueError, match=r"no dataset was chosen: add dataset=<name>"):
+        _evaluate([f"ckpt_path={checkpoints['rgb']}", "experiment=smoke"], tmp_path / "run")
