@@ -196,7 +196,7 @@ def results_tables(record: Mapping[str, Any]) -> str:
     if len(record.get("test_by_cap", {})) > 1:
         parts.append(
             format_table(
-                ["Cap (m)", *header], _rows({f"≤ {k}": v for k, v in record["test_by_cap"].items()})
+                ["Cap (m)", *header], _rows({f"< {k}": v for k, v in record["test_by_cap"].items()})
             )
         )
     latency = record.get("latency") or {}
