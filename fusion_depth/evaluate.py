@@ -26,6 +26,7 @@ from fusion_depth.evaluation import EvalProtocol, evaluation_record, publish_res
 from fusion_depth.loggers import closing
 from fusion_depth.module import DepthModule
 from fusion_depth.runs import METRICS_FILE, RESOLVED_CONFIG_FILE, provenance, write_text_atomic
+from fusion_depth.speed import PRECISIONS, accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
 quiet_known_noise()
@@ -52,6 +53,18 @@ def _identity(loaded: LoadedModel, dataset: DictConfig) -> dict:
     return identity
 
 
+def evaluation_precision(requested: str, loaded: LoadedModel, accelerator: str) -> str:
+    """``checkpoint`` (evaluate's default): the precision the run trained and was tested in,
+    so a re-score reproduces its test stage; ``auto`` where it recorded none or where that
+    precision needs a GPU this machine lacks. Any other value as for training."""
+    device = accelerator_device(accelerator)
+    if requested == "checkpoint":
+        trained = (loaded.config.get("trainer") or {}).get("precision")
+        usable = trained in PRECISIONS and not (trained == "16-mixed" and device.type != "cuda")
+        requested = trained if usable else "auto"
+    return resolve_precision(requested, device)
+
+
 def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path) -> dict:
     """Score one checkpoint; writes ``metrics.json`` and ``per_image.csv`` into ``output_dir``."""
     if cfg.split not in SPLITS:
@@ -68,7 +81,13 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     L.seed_everything(cfg.seed, workers=True)
     output_dir = Path(output_dir)
     protocol = EvalProtocol.from_config(cfg.eval, dataset.min_depth, dataset.max_depth)
-    module = DepthModule(net=loaded.net, conditions=list(dataset.get("conditions") or ()))
+    module = DepthModule(
+        net=loaded.net,
+        conditions=list(dataset.get("conditions") or ()),
+        channels_last=cfg.model.channels_last,
+        compile=cfg.model.compile,
+        compile_mode=cfg.model.compile_mode,
+    )
     module.set_protocol(protocol)
     datamodule = DepthDataModule(
         reader=instantiate(dataset.reader),
@@ -83,6 +102,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         default_root_dir=str(output_dir),
         callbacks=[],
         logger=logger,
+        precision=evaluation_precision(cfg.trainer.precision, loaded, cfg.trainer.accelerator),
         enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
         enable_model_summary=False,
     )

@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import platform
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ import torch
 from fusion_depth.inference import UPSAMPLING
 from fusion_depth.metrics import METRIC_KEYS, DepthMetrics
 from fusion_depth.runs import METRICS_FILE, PER_IMAGE_FILE, write_json_atomic, write_text_atomic
+from fusion_depth.speed import cpu_model
 
 # (metric key, column header) of the printed tables, in the paper's order plus MAE.
 TABLE_COLUMNS = (
@@ -105,16 +105,7 @@ def device_name(device: torch.device | str) -> str:
     device = torch.device(device)
     if device.type == "cuda":
         return f"cuda: {torch.cuda.get_device_name(device)}"
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            model = next(
-                (line.split(":", 1)[1].strip() for line in f if line.startswith("model name")),
-                model,
-            )
-    except OSError:
-        pass
-    return f"cpu: {model} ({torch.get_num_threads()} threads)"
+    return f"cpu: {cpu_model()} ({torch.get_num_threads()} threads)"
 
 
 def latency_summary(

@@ -18,6 +18,7 @@ from fusion_depth.inference import predict_depth, resize_depth
 from fusion_depth.losses import DepthLoss
 from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
+from fusion_depth.speed import speed_up
 from fusion_depth.visualize import depth_panel
 
 
@@ -44,6 +45,8 @@ class DepthModule(L.LightningModule):
     Scoring follows ``evaluation`` (the ``eval`` config group, see :class:`EvalProtocol`):
     predictions are resized from the network's half resolution to the ground truth's, and the
     test stage may add flip test-time augmentation. Validation scores the same way without it.
+    ``channels_last``, ``compile`` (true/false/auto) and ``compile_mode`` are applied once the
+    device is known (:func:`fusion_depth.speed.speed_up`); the precision is the Trainer's.
     ``run_config`` (the resolved run config, plain data) is saved in every checkpoint so
     evaluation can rebuild the run without unpickling code. ``loss`` and ``optimizer`` may be
     None for a module that only evaluates.
@@ -59,6 +62,9 @@ class DepthModule(L.LightningModule):
         conditions: Sequence[str] = (),
         num_val_panels: int = 4,
         evaluation: Mapping[str, Any] | None = None,
+        channels_last: bool = False,
+        compile: bool | str = False,
+        compile_mode: str = "default",
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["net", "loss", "optimizer", "scheduler", "augmentation"])
@@ -79,6 +85,11 @@ class DepthModule(L.LightningModule):
         self.val_panels: list[np.ndarray] = []
         self.run_config: dict | None = None
         self.run_identity: dict | None = None
+
+    def setup(self, stage: str) -> None:
+        device = self.trainer.strategy.root_device if self._trainer is not None else self.device
+        hp = self.hparams
+        speed_up(self.net, hp.channels_last, hp.compile, device, hp.compile_mode)
 
     def set_protocol(self, protocol: EvalProtocol) -> None:
         """Score the test stage by ``protocol`` from now on (``evaluate``'s options)."""
@@ -105,11 +116,17 @@ class DepthModule(L.LightningModule):
         return batch
 
     def _loss(self, reciprocal: torch.Tensor, depth: torch.Tensor) -> dict[str, torch.Tensor]:
-        target, mask = downsample_depth(depth, tuple(reciprocal.shape[-2:]))
-        return self.loss(reciprocal, self.net.to_reciprocal(target), mask)
+        # In fp32 under mixed precision too: SSIM's local variances lose too much in bf16.
+        with torch.autocast(reciprocal.device.type, enabled=False):
+            target, mask = downsample_depth(depth, tuple(reciprocal.shape[-2:]))
+            return self.loss(reciprocal, self.net.to_reciprocal(target), mask)
+
+    def step_losses(self, batch: dict) -> dict[str, torch.Tensor]:
+        """The training loss of a batch (``"loss"``) and its terms; what ``bench`` times."""
+        return self._loss(self._reciprocal(batch), batch["depth"])
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        losses = self._loss(self._reciprocal(batch), batch["depth"])
+        losses = self.step_losses(batch)
         self.log("train/loss", losses["loss"], prog_bar=True, batch_size=len(batch["image"]))
         self.log_dict(
             {f"train/{k}": v for k, v in losses.items() if k != "loss"},

@@ -30,7 +30,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +46,8 @@ from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
 from fusion_depth.inference import predict_depth
+from fusion_depth.runs import write_atomic
+from fusion_depth.speed import autocast, resolve_device, resolve_precision, speed_up
 from fusion_depth.visualize import depth_panel, with_colorbar
 
 log = logging.getLogger("fusion_depth.predict")  # not "__main__" under python -m
@@ -184,25 +185,16 @@ def _check_outputs_apart(output_dir: Path, *inputs: Path | None) -> None:
 # --------------------------------------------------------------------------- writing outputs
 
 
-def _save_npy_atomic(path: Path, array: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.save(f, array)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_outputs(
     output_dir: Path, frame: Frame, depth: np.ndarray, net: Any, npy: bool, visualize: bool
 ) -> Path:
     depth_path = output_dir / f"{frame.name}.png"
     write_depth_png(depth_path, depth)
     if npy:
-        _save_npy_atomic(output_dir / f"{frame.name}.npy", depth.astype(np.float32))
+        array = depth.astype(np.float32)
+        write_atomic(
+            output_dir / f"{frame.name}.npy", lambda tmp: np.save(tmp, array), suffix=".npy"
+        )
     if visualize:
         sparse = frame.sparse if frame.sparse is not None else torch.zeros_like(frame.image[:1])
         panel = depth_panel(
@@ -495,21 +487,6 @@ def predict_split(
     )
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` → cuda when available, else cpu; anything else as torch names it."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError as err:
-        raise ValueError(
-            f"device={name}: expected auto, cpu, cuda or cuda:<index> ({err})"
-        ) from err
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name}: CUDA is not available here; use device=cpu or auto")
-    return device
-
-
 def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
     """Run a ``conf/predict.yaml`` config.
 
@@ -532,21 +509,22 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
                 f"image file, or {SPLIT_PREFIX}<{'|'.join(SPLITS)}>)"
             )
     loaded = load_model(cfg.ckpt_path)
-    loaded.net.to(resolve_device(str(cfg.device)))
+    device = resolve_device(str(cfg.device))
+    precision = resolve_precision(cfg.precision, device)
+    speed_up(loaded.net.to(device), cfg.channels_last, False, device)
     output_dir = Path(cfg.output_dir)
     batching = {"batch_size": cfg.batch_size, "limit": cfg.limit, "progress": cfg.progress}
-    if source.startswith(SPLIT_PREFIX):
-        return predict_split(
-            loaded,
-            source[len(SPLIT_PREFIX) :],
-            output_dir,
-            cfg.get("dataset"),
-            **options,
-            **batching,
-        )
-    if path.is_dir():
-        return predict_folder(loaded, path, output_dir, sparse, ground_truth, **options, **batching)
-    return predict_file(loaded, path, output_dir, sparse, ground_truth, **options)
+    with autocast(precision, device):
+        if source.startswith(SPLIT_PREFIX):
+            split = source[len(SPLIT_PREFIX) :]
+            return predict_split(
+                loaded, split, output_dir, cfg.get("dataset"), **options, **batching
+            )
+        if path.is_dir():
+            return predict_folder(
+                loaded, path, output_dir, sparse, ground_truth, **options, **batching
+            )
+        return predict_file(loaded, path, output_dir, sparse, ground_truth, **options)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="predict")

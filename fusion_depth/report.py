@@ -40,7 +40,6 @@ import io
 import os
 import statistics
 import sys
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import reduce
@@ -49,7 +48,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fusion_depth.runs import PER_IMAGE_FILE, load_runs
+from fusion_depth.runs import PER_IMAGE_FILE, load_runs, write_atomic
 from fusion_depth.stats import BootstrapResult, paired_bootstrap
 
 if TYPE_CHECKING:  # Matplotlib is imported by the plots only: a table should print at once.
@@ -711,15 +710,11 @@ def _save_figure_atomic(fig: Figure, out: str | os.PathLike) -> Path:
             f"--plot {out}: expected a file name ending in one of "
             f"{', '.join('.' + f for f in sorted(formats))}"
         )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=f".{fmt}", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            canvas.print_figure(f, format=fmt, dpi=150, bbox_inches="tight")
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(
+        out,
+        lambda tmp: canvas.print_figure(tmp, format=fmt, dpi=150, bbox_inches="tight"),
+        suffix=f".{fmt}",
+    )
     return out
 
 

@@ -8,6 +8,7 @@ import os
 import subprocess
 import tempfile
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,18 +52,42 @@ def provenance() -> dict[str, Any]:
     }
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write to a temporary sibling, then rename: readers never see a half-written file."""
+def _file_mode() -> int:
+    """The mode a plainly created file gets (0o666 less the umask); mkstemp's is 0o600."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def write_atomic(
+    path: str | os.PathLike,
+    write: Callable[[Path], None],
+    check: Callable[[Path], Any] = lambda tmp: None,
+    suffix: str = ".tmp",
+) -> Any:
+    """``write(tmp)`` then ``check(tmp)`` on a temporary sibling, renamed to ``path`` only if
+    both succeed: readers never see a half-written file, and an existing one survives a
+    failure. ``suffix`` is the temporary name's (for writers that go by the extension).
+    Returns what ``check`` returned."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        write(tmp)
+        result = check(tmp)
+        os.chmod(tmp, _file_mode())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
+    return result
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """``text`` written atomically (see :func:`write_atomic`)."""
+    write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def write_json_atomic(path: str | os.PathLike, data: Any) -> None:

@@ -31,6 +31,7 @@ from fusion_depth.runs import (
     record_failure,
     write_text_atomic,
 )
+from fusion_depth.speed import accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +55,10 @@ def run_identity(cfg: DictConfig) -> dict:
 def train(cfg: DictConfig) -> dict:
     """Fit, test the best checkpoint, write ``metrics.json``; returns its contents."""
     run_config = validate_config(cfg)
+    precision = resolve_precision(
+        cfg.trainer.precision, accelerator_device(cfg.trainer.accelerator)
+    )
+    run_config["trainer"]["precision"] = precision  # what ran, not "auto"
     L.seed_everything(cfg.seed, workers=True)
     output_dir = Path(cfg.paths.output_dir)
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), **cfg.data)
@@ -73,6 +78,7 @@ def train(cfg: DictConfig) -> dict:
             cfg.trainer,
             callbacks=callbacks,
             logger=logger,
+            precision=precision,
             enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
         )
 

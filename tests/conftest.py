@@ -75,6 +75,7 @@ def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int 
         "fusion": {"mode": fusion},
         "backbone": {"name": "densenet169"},
         "loss": {"pixel": "l1"},
+        "trainer": {"precision": "32-true"},  # what evaluate scores in by default
         "seed": seed,
         "dataset": dataset,
     }

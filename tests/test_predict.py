@@ -7,15 +7,12 @@ test trains.
 from __future__ import annotations
 
 import logging
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, compose_config
+from conftest import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.checkpoint import load_model
@@ -242,10 +239,8 @@ def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Pa
     images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W)})
     (images / "b.png").write_bytes(b"garbage")
     out = tmp_path / "out"
-    result = subprocess.run(
+    result = run_module(
         [
-            sys.executable,
-            "-m",
             "fusion_depth.predict",
             f"ckpt_path={checkpoints['concat']}",
             f"input={images}",
@@ -255,9 +250,6 @@ def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Pa
             "device=cpu",
         ],
         cwd=REPO,
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
         timeout=300,
     )
     text = result.stdout + result.stderr

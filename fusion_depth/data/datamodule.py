@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import lightning as L
@@ -25,6 +26,18 @@ class IndexedDataset(Dataset):
         return {**self.dataset[index], "index": index}
 
 
+def resolve_num_workers(num_workers: int | str) -> int:
+    """``data.num_workers``: a count, or ``auto``: with a GPU, one loader process per spare CPU
+    core (at most 8) so decoding never starves it; on a CPU-only machine 0, since worker
+    processes would take cores from the training itself."""
+    if num_workers == "auto":
+        cores = os.cpu_count() or 1
+        return min(8, max(cores - 1, 1)) if torch.cuda.is_available() else 0
+    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
+        raise ValueError(f"data.num_workers={num_workers!r}: expected auto or an integer ≥ 0")
+    return num_workers
+
+
 class DepthDataModule(L.LightningDataModule):
     """Builds split datasets from ``reader(split=...)``, a partial from the dataset config.
 
@@ -38,7 +51,7 @@ class DepthDataModule(L.LightningDataModule):
         reader: Callable[..., Dataset],
         batch_size: int = 2,
         eval_batch_size: int | None = None,
-        num_workers: int = 0,
+        num_workers: int | str = "auto",
         pin_memory: bool | None = None,
         persistent_workers: bool | None = None,
         test_split: str = "test",
@@ -49,13 +62,11 @@ class DepthDataModule(L.LightningDataModule):
         self.reader = reader
         self.batch_size = batch_size
         self.eval_batch_size = eval_batch_size or batch_size
-        self.num_workers = num_workers
+        self.num_workers = resolve_num_workers(num_workers)
         # Pinned memory and persistent workers only pay off when a GPU consumes the batches.
         self.pin_memory = torch.cuda.is_available() if pin_memory is None else pin_memory
-        self.persistent_workers = (
-            num_workers > 0
-            if persistent_workers is None
-            else persistent_workers and num_workers > 0
+        self.persistent_workers = self.num_workers > 0 and (
+            persistent_workers is None or persistent_workers
         )
         if test_split not in SPLITS:
             raise ValueError(f"split={test_split!r}: expected one of {list(SPLITS)}")

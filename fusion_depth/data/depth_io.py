@@ -9,11 +9,12 @@ every writer goes through a temporary sibling and a rename, so a reader never se
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
+
+from fusion_depth.runs import write_atomic
 
 DEPTH_PNG_SCALE = 256.0
 _UINT16_MAX = np.iinfo(np.uint16).max
@@ -55,15 +56,7 @@ def encode_depth(depth: np.ndarray, scale: float = DEPTH_PNG_SCALE) -> np.ndarra
 
 
 def _save_atomic(image: Image.Image, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        image.save(tmp, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, lambda tmp: image.save(tmp, format="PNG"))
 
 
 def write_depth_png(

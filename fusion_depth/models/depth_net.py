@@ -59,7 +59,9 @@ class DepthNet(nn.Module):
             raise ValueError(
                 f"input size {height}×{width}: height and width must be multiples of 32"
             )
-        return self.decoder(self.encoder(self.fusion(image, sparse)))
+        # fp32 out even under autocast: depth = scale / reciprocal, the loss and the metrics
+        # need more than bf16's 3 significant digits.
+        return self.decoder(self.encoder(self.fusion(image, sparse))).float()
 
     def to_reciprocal(self, depth: torch.Tensor) -> torch.Tensor:
         """Metres → clipped reciprocal depth (invalid zeros map to the far end; mask them)."""

@@ -1,0 +1,125 @@
+"""The benchmark's output schema and its arithmetic on a tiny configuration (no timing asserts)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+
+from fusion_depth import bench
+
+TINY = ["--runs", "2", "--train-steps", "1", "--warmup", "0", "--data-batches", "2"]
+REQUIRED = (
+    "infer_latency_s_median",
+    "infer_latency_s_p95",
+    "train_samples_per_s",
+    "data_samples_per_s_per_worker",
+    "peak_memory_mb",
+    "achieved_gflops",
+    "peak_gflops",
+)
+
+
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+def _run(tmp_path: Path, *args: str) -> dict:
+    out = tmp_path / "bench.json"
+    assert bench.main([*args, "--json", str(out)]) == 0
+    return json.loads(out.read_text())
+
+
+def test_bench_writes_every_key_with_the_baseline(
+    tmp_path: Path, cache: Path, capsys: pytest.CaptureFixture
+) -> None:
+    result = _run(tmp_path, "experiment=smoke", "fusion=concat", "--baseline", *TINY)
+    for key in (*REQUIRED, "baseline_infer_latency_s_median", "baseline_train_samples_per_s"):
+        assert isinstance(result[key], float) and result[key] > 0, key
+    settings = result["settings"]
+    assert settings["fusion"] == "concat" and settings["backbone"] == "densenet169"
+    assert (settings["height"], settings["width"], settings["batch_size"]) == (64, 96, 2)
+    assert settings["precision"] in ("bf16-mixed", "32-true")
+    assert result["machine"]["cpu_cores"] >= 1 and result["versions"]["torch"]
+    # The derived figures are the measured ones combined, not separate guesses.
+    assert result["infer_speedup"] == pytest.approx(
+        result["baseline_infer_latency_s_median"] / result["infer_latency_s_median"]
+    )
+    assert result["train_speedup"] == pytest.approx(
+        result["train_samples_per_s"] / result["baseline_train_samples_per_s"]
+    )
+    assert result["achieved_gflops"] == pytest.approx(
+        result["infer_gflop_per_frame"] / result["infer_latency_s_median"]
+    )
+    assert result["train_samples_per_s"] == pytest.approx(2 / result["train"]["step_s_median"])
+    # A training step (forward, backward) costs more than twice a batch-1 forward per sample.
+    assert result["train_gflop_per_step"] > 2 * 2 * result["infer_gflop_per_frame"] * 0.9
+    data = result["data"]
+    assert data["workers"] == 1 and data["dataset"] == "procedural"
+    assert data["loader_samples_per_s"] == result["data_samples_per_s_per_worker"]
+    assert data["augment_samples_per_s"] > 0 and data["pipeline_samples_per_s"] > 0
+    printed = capsys.readouterr().out
+    assert "(baseline)" in printed and "speed-up" in printed and str(tmp_path) in printed
+
+
+def test_bench_runs_only_the_stages_asked_for(tmp_path: Path, cache: Path) -> None:
+    result = _run(
+        tmp_path, "experiment=smoke", "trainer.precision=32-true", "--only", "infer", *TINY
+    )
+    assert result["infer_latency_s_median"] > 0 and result["settings"]["precision"] == "32-true"
+    for key in ("train_samples_per_s", "data_samples_per_s_per_worker", "peak_gflops"):
+        assert result[key] is None, key
+    assert "baseline_infer_latency_s_median" not in result
+    assert not (cache / "procedural").exists()  # no data stage, so nothing was rendered
+
+
+@pytest.mark.parametrize(
+    ("args", "named"),
+    [
+        (["fusion=fancy"], "fusion"),
+        (["--only", "infer,warp"], "warp"),
+        (["--runs", "0"], "--runs=0"),
+        (["dataset.height=100"], "dataset.height=100"),
+        (["trainer.precision=fp8"], "trainer.precision"),
+    ],
+)
+def test_bench_refuses_bad_input_naming_it(
+    args: list[str], named: str, capsys: pytest.CaptureFixture
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["experiment=smoke", *args])
+    assert exit_info.value.code == 2
+    assert named in capsys.readouterr().err
+
+
+def test_count_flops_counts_multiply_adds_twice() -> None:
+    layer = nn.Linear(8, 4, bias=False)
+    assert bench.count_flops(lambda: layer(torch.ones(3, 8))) == 2 * 3 * 8 * 4
+
+
+def test_time_calls_times_only_the_runs_after_warmup() -> None:
+    calls = []
+    times = bench.time_calls(lambda: calls.append(1), torch.device("cpu"), warmup=2, runs=5)
+    assert len(calls) == 7 and len(times) == 5 and all(t >= 0 for t in times)
+
+
+def test_peak_memory_sees_a_large_allocation() -> None:
+    memory = bench.PeakMemory(torch.device("cpu"))
+    memory.reset()
+    before = memory.read_mb()
+    block = torch.ones(64 * 2**20 // 4)  # 64 MB, touched
+    after = memory.read_mb()
+    del block
+    assert after >= before + 50
+
+
+def test_bench_times_the_onnx_export(tmp_path: Path, cache: Path) -> None:
+    result = _run(tmp_path, "experiment=smoke", "fusion=add", "--only", "infer", "--onnx", *TINY)
+    onnx = result["onnx_infer"]
+    assert onnx["provider"] == "CPUExecutionProvider" and onnx["runs"] == 2
+    assert result["onnx_infer_latency_s_median"] == onnx["latency_s_median"] > 0
