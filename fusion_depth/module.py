@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -20,6 +21,14 @@ from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
 from fusion_depth.speed import speed_up
 from fusion_depth.visualize import depth_panel
+
+log = logging.getLogger(__name__)
+
+NONFINITE_ACTIONS = ("stop", "skip")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The training loss became NaN or infinite (``model.on_nonfinite_loss``)."""
 
 
 def downsample_depth(
@@ -65,8 +74,21 @@ class DepthModule(L.LightningModule):
         channels_last: bool = False,
         compile: bool | str = False,
         compile_mode: str = "default",
+        on_nonfinite_loss: str = "stop",
+        max_nonfinite_skips: int = 3,
     ) -> None:
         super().__init__()
+        if on_nonfinite_loss not in NONFINITE_ACTIONS:
+            raise ValueError(
+                f"model.on_nonfinite_loss={on_nonfinite_loss!r}: expected one of "
+                f"{list(NONFINITE_ACTIONS)}"
+            )
+        if isinstance(max_nonfinite_skips, bool) or not (
+            isinstance(max_nonfinite_skips, int) and max_nonfinite_skips >= 0
+        ):
+            raise ValueError(
+                f"model.max_nonfinite_skips={max_nonfinite_skips!r}: expected an integer ≥ 0"
+            )
         self.save_hyperparameters(ignore=["net", "loss", "optimizer", "scheduler", "augmentation"])
         self.net = net
         self.loss = loss
@@ -85,6 +107,7 @@ class DepthModule(L.LightningModule):
         self.val_panels: list[np.ndarray] = []
         self.run_config: dict | None = None
         self.run_identity: dict | None = None
+        self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
 
     def setup(self, stage: str) -> None:
         device = self.trainer.strategy.root_device if self._trainer is not None else self.device
@@ -125,14 +148,44 @@ class DepthModule(L.LightningModule):
         """The training loss of a batch (``"loss"``) and its terms; what ``bench`` times."""
         return self._loss(self._reciprocal(batch), batch["depth"])
 
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor | None:
         losses = self.step_losses(batch)
+        if not torch.isfinite(losses["loss"]):
+            self._nonfinite_loss(losses, batch_idx)
+            return None  # Lightning skips the backward pass and the optimizer step
         self.log("train/loss", losses["loss"], prog_bar=True, batch_size=len(batch["image"]))
         self.log_dict(
             {f"train/{k}": v for k, v in losses.items() if k != "loss"},
             batch_size=len(batch["image"]),
         )
         return losses["loss"]
+
+    def _nonfinite_loss(self, losses: Mapping[str, torch.Tensor], batch_idx: int) -> None:
+        """Skip the batch while ``on_nonfinite_loss=skip`` has skips left, else stop the run
+        with the loss terms and the last checkpoint (written before the loss broke)."""
+        terms = ", ".join(f"{k}={v.item():.4g}" for k, v in losses.items())
+        where = f"epoch {self.current_epoch}, step {self.global_step}, batch {batch_idx}"
+        self.nonfinite_skips += 1
+        limit = self.hparams.max_nonfinite_skips
+        if self.hparams.on_nonfinite_loss == "skip" and self.nonfinite_skips <= limit:
+            log.warning(
+                "non-finite training loss at %s (%s): batch skipped (%d of at most %d)",
+                where,
+                terms,
+                self.nonfinite_skips,
+                limit,
+            )
+            return
+        callback = self._trainer.checkpoint_callback if self._trainer is not None else None
+        kept = (callback.last_model_path or callback.best_model_path) if callback else ""
+        skipped = (
+            f" after {limit} skipped batches" if self.hparams.on_nonfinite_loss == "skip" else ""
+        )
+        raise NonFiniteLossError(
+            f"non-finite training loss at {where} ({terms}){skipped}; the run stops here. "
+            f"Last checkpoint: {kept or 'none yet'}. Lower the learning rate, check the inputs "
+            "of that batch, or set model.on_nonfinite_loss=skip (model.max_nonfinite_skips=N)"
+        )
 
     @staticmethod
     def _update(metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:

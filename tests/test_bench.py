@@ -75,6 +75,7 @@ def test_bench_runs_only_the_stages_asked_for(tmp_path: Path, cache: Path) -> No
     for key in ("train_samples_per_s", "data_samples_per_s_per_worker", "peak_gflops"):
         assert result[key] is None, key
     assert "baseline_infer_latency_s_median" not in result
+    assert "train_gflop_per_step" not in result and result["infer_gflop_per_frame"] > 0
     assert not (cache / "procedural").exists()  # no data stage, so nothing was rendered
 
 

@@ -1,11 +1,18 @@
-"""Target preparation and augmentation of the LightningModule."""
+"""Target preparation, augmentation and the non-finite loss guard of the LightningModule."""
 
 from __future__ import annotations
 
+from functools import partial
+
+import lightning as L
+import pytest
 import torch
+from torch.utils.data import DataLoader
 
 from fusion_depth.data.transforms import TrainAugmentation
-from fusion_depth.module import downsample_depth
+from fusion_depth.losses import DepthLoss
+from fusion_depth.models import DepthNet
+from fusion_depth.module import DepthModule, NonFiniteLossError, downsample_depth
 
 
 def test_downsample_dense_depth_is_area_average() -> None:
@@ -56,3 +63,66 @@ def test_no_augmentation_at_zero_probability() -> None:
     out = TrainAugmentation(flip_p=0.0, color_p=0.0)(batch)
     for key in ("image", "sparse", "depth"):
         torch.testing.assert_close(out[key], batch[key])
+
+
+# --- a NaN or infinite training loss --------------------------------------------------------
+
+
+def _fit_with_nan_batches(nan_batches: set[int], **options) -> DepthModule:
+    """One epoch over 4 batches of one frame; the images of ``nan_batches`` are NaN."""
+    torch.manual_seed(0)
+    samples = [
+        {
+            "image": torch.full((3, 64, 64), torch.nan)
+            if i in nan_batches
+            else torch.rand(3, 64, 64),
+            "sparse": torch.zeros(1, 64, 64),
+            "depth": 5 + torch.rand(1, 64, 64),
+        }
+        for i in range(4)
+    ]
+    module = DepthModule(
+        DepthNet("resnet18"),
+        loss=DepthLoss(max_val=20.0),
+        optimizer=partial(torch.optim.Adam, lr=1e-4),
+        **options,
+    )
+    trainer = L.Trainer(
+        max_epochs=1,
+        accelerator="cpu",
+        precision="32-true",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=0,
+    )
+    trainer.fit(module, train_dataloaders=DataLoader(samples, batch_size=1))
+    return module
+
+
+def test_a_nan_loss_stops_the_run_saying_where_and_what() -> None:
+    with pytest.raises(NonFiniteLossError) as error:
+        _fit_with_nan_batches({2})
+    message = str(error.value)
+    assert "non-finite training loss at epoch 0, step 2, batch 2 (loss=nan" in message
+    assert "model.on_nonfinite_loss=skip" in message
+
+
+def test_skip_drops_nan_batches_up_to_the_limit() -> None:
+    module = _fit_with_nan_batches({1, 3}, on_nonfinite_loss="skip", max_nonfinite_skips=2)
+    assert module.nonfinite_skips == 2
+    optimizer = module.trainer.optimizers[0]
+    weight = module.net.decoder.head.weight
+    assert optimizer.state[weight]["step"] == 2  # only the two finite batches updated it
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+    with pytest.raises(NonFiniteLossError, match="batch 3 .* after 1 skipped batches"):
+        _fit_with_nan_batches({1, 3}, on_nonfinite_loss="skip", max_nonfinite_skips=1)
+
+
+def test_bad_nonfinite_options_are_refused_naming_the_key() -> None:
+    net = DepthNet("resnet18")
+    with pytest.raises(ValueError, match="model.on_nonfinite_loss='ignore'"):
+        DepthModule(net, on_nonfinite_loss="ignore")
+    with pytest.raises(ValueError, match="model.max_nonfinite_skips=-1"):
+        DepthModule(net, max_nonfinite_skips=-1)
