@@ -510,7 +510,7 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
             )
     loaded = load_model(cfg.ckpt_path)
     device = resolve_device(str(cfg.device))
-    precision = resolve_precision(cfg.precision, device)
+    precision = resolve_precision(cfg.precision, device, key="precision")
     speed_up(loaded.net.to(device), cfg.channels_last, False, device)
     output_dir = Path(cfg.output_dir)
     batching = {"batch_size": cfg.batch_size, "limit": cfg.limit, "progress": cfg.progress}

@@ -80,18 +80,20 @@ def supports_bf16(device: torch.device | str) -> bool:
     return False
 
 
-def resolve_precision(precision: str, device: torch.device | str) -> str:
-    """``auto`` → ``bf16-mixed`` where :func:`supports_bf16`, else ``32-true``; others checked."""
+def resolve_precision(
+    precision: str, device: torch.device | str, key: str = "trainer.precision"
+) -> str:
+    """``auto`` → ``bf16-mixed`` where :func:`supports_bf16`, else ``32-true``; others checked.
+    ``key`` is the config key errors name."""
     precision = str(precision)
     if precision not in PRECISIONS:
-        raise ValueError(f"trainer.precision={precision!r}: expected one of {list(PRECISIONS)}")
+        raise ValueError(f"{key}={precision!r}: expected one of {list(PRECISIONS)}")
     device = torch.device(device)
     if precision == "auto":
         return "bf16-mixed" if supports_bf16(device) else "32-true"
     if precision == "16-mixed" and device.type != "cuda":
         raise ValueError(
-            "trainer.precision=16-mixed: fp16 autocast needs a GPU; use bf16-mixed or 32-true "
-            "on a CPU"
+            f"{key}=16-mixed: fp16 autocast needs a GPU; use bf16-mixed or 32-true on a CPU"
         )
     return precision
 

@@ -34,6 +34,11 @@ def test_bad_precision_is_refused_naming_the_key(value: str, message: str) -> No
         speed.resolve_precision(value, "cpu")
 
 
+def test_the_error_names_the_key_the_caller_reads() -> None:
+    with pytest.raises(ValueError, match=r"^precision='fp8': expected one of"):
+        speed.resolve_precision("fp8", "cpu", key="precision")
+
+
 def test_bad_device_and_compile_values_are_refused() -> None:
     with pytest.raises(ValueError, match="device=tpu7"):
         speed.resolve_device("tpu7")
