@@ -41,12 +41,14 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 from hydra.utils import instantiate
+from lightning.fabric.utilities.apply_func import move_data_to_device
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
 from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
+from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.inference import predict_depth
 from fusion_depth.module import DepthModule
 from fusion_depth.runs import provenance, write_json_atomic
@@ -252,12 +254,7 @@ def _timed_batches(
     seen, start = -1, 0.0
     while seen < batches:
         for batch in loader:
-            work(
-                {
-                    k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v
-                    for k, v in batch.items()
-                }
-            )
+            work(move_data_to_device(batch, device))
             if seen < 0:
                 _synchronize(device)
                 start = time.perf_counter()
@@ -275,28 +272,23 @@ def bench_data(
     the training augmentation then runs on the batch on ``device`` (as in training, where it
     runs after the transfer). Timed: the loader alone (per worker: the total divided by
     ``max(workers, 1)``), the augmentation alone, and both in one loop."""
-    dataset = instantiate(cfg.dataset.reader)(split=split)
-    augmentation = instantiate(cfg.model.augmentation).to(device)
-    batch_size = int(cfg.data.batch_size)
-    loader = DataLoader(
-        dataset,
-        batch_size=batch_size,
-        shuffle=True,
+    datamodule = DepthDataModule(
+        reader=instantiate(cfg.dataset.reader),
         num_workers=workers,
         pin_memory=device.type == "cuda",
-        persistent_workers=workers > 0,
-        drop_last=True,
     )
+    augmentation = instantiate(cfg.model.augmentation).to(device)
+    batch_size = int(cfg.data.batch_size)
+    loader = datamodule.loader(split, shuffle=True, batch_size=batch_size)
     if len(loader) == 0:
         raise ValueError(
-            f"data: split {split!r} has {len(dataset)} samples, fewer than data.batch_size="
-            f"{batch_size}"
+            f"data: split {split!r} has {len(datamodule.dataset(split))} samples, fewer than "
+            f"data.batch_size={batch_size}"
         )
     samples = batches * batch_size
     loading = samples / _timed_batches(loader, batches, device, lambda batch: None)
     pipeline = samples / _timed_batches(loader, batches, device, augmentation)
-    batch = next(iter(loader))
-    batch = {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
+    batch = move_data_to_device(next(iter(loader)), device)
     times = time_calls(lambda: augmentation(batch), device, warmup=1, runs=batches)
     return {
         "samples_per_s_per_worker": loading / max(workers, 1),

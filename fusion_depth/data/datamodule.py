@@ -91,7 +91,9 @@ class DepthDataModule(L.LightningDataModule):
         for split in needed:
             self.dataset(split)
 
-    def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+    def loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+        """A DataLoader of ``split`` with this module's worker and memory settings (the one
+        way loaders are built: the stages below and ``bench``'s data stage)."""
         return DataLoader(
             self.dataset(split),
             batch_size=batch_size,
@@ -103,10 +105,10 @@ class DepthDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", True, self.batch_size)
+        return self.loader("train", True, self.batch_size)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader("val", False, self.eval_batch_size)
+        return self.loader("val", False, self.eval_batch_size)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(self.test_split, False, self.eval_batch_size)
+        return self.loader(self.test_split, False, self.eval_batch_size)
