@@ -16,8 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from fusion_depth.models import DepthNet
+from fusion_depth.runs import write_atomic
 
 CONFIG_KEY = "fusion_depth_config"
 RUN_KEY = "fusion_depth_run"
@@ -55,13 +57,16 @@ class LoadedModel:
         return self.config["backbone"]["name"]
 
 
-def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """The checkpoint's contents (weights-only load onto the CPU), with errors naming the file."""
+def load_weights_only(
+    path: str | os.PathLike, map_location: Any = "cpu", mmap: bool = False
+) -> Any:
+    """``torch.load(weights_only=True)`` of ``path``, with errors naming the file (``mmap``:
+    tensors stay on disk until touched, for reading a checkpoint's small entries)."""
     path = Path(path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"ckpt_path={path}: no such file")
     try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as err:
         unsupported = re.search(r"Unsupported global: GLOBAL (\S+)", str(err))
         if unsupported is None:
@@ -74,6 +79,12 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         raise CheckpointError(
             f"ckpt_path={path}: not a readable PyTorch checkpoint ({err})"
         ) from err
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The checkpoint's contents (weights-only load onto the CPU), with errors naming the file."""
+    path = Path(path).expanduser()
+    checkpoint = load_weights_only(path)
     if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint:
         raise CheckpointError(f"ckpt_path={path}: not a Lightning checkpoint (no 'state_dict')")
     if not isinstance(checkpoint.get(CONFIG_KEY), dict):
@@ -170,3 +181,39 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
             f"{READER_NAMESPACE}*; pass dataset=<name> to choose the dataset explicitly"
         )
     return block
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer and reader, made safe for runs that get killed.
+
+    A checkpoint is written to a temporary sibling, flushed to disk and renamed over the old
+    one, so a kill, a dead node or a full disk leaves the previous checkpoint intact rather
+    than a truncated one (Lightning's own writer opens the target itself). Reading is
+    weights-only, whatever the caller asks for: resuming never runs code from a file.
+    """
+
+    def save_checkpoint(
+        self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None
+    ) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+
+        def write(tmp: Path) -> None:
+            with tmp.open("wb") as f:
+                torch.save(checkpoint, f)
+                f.flush()
+                os.fsync(f.fileno())
+
+        try:
+            write_atomic(path, write, suffix=".ckpt.tmp")
+        except OSError as err:
+            raise OSError(
+                err.errno,
+                f"{path}: could not write the checkpoint ({err.strerror or err}); "
+                "the previous checkpoint there, if any, is untouched",
+            ) from err
+
+    def load_checkpoint(
+        self, path: Any, map_location: Any | None = None, weights_only: bool | None = None
+    ) -> dict[str, Any]:
+        return load_weights_only(path, map_location=map_location)

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import netrc
 import os
+import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.loggers import WandbLogger
+
+from fusion_depth.config import redact_overrides, redact_secrets
 
 
 def wandb_logged_in() -> bool:
@@ -24,8 +27,36 @@ def wandb_logged_in() -> bool:
     return any("wandb" in host for host in hosts)
 
 
+@contextmanager
+def _argv_redacted() -> Iterator[None]:
+    """``sys.argv`` without secrets for the duration: W&B records the command line in its run
+    (``+hydra.job.env_set.WANDB_API_KEY=...`` is a legitimate override)."""
+    argv = sys.argv
+    sys.argv = redact_overrides(argv)
+    try:
+        yield
+    finally:
+        sys.argv = argv
+
+
+class RedactingWandbLogger(WandbLogger):
+    """A WandbLogger whose run records the command line with secrets redacted."""
+
+    @property
+    def experiment(self) -> Any:
+        with _argv_redacted():
+            return super().experiment
+
+
+def wandb_mode_offline() -> bool:
+    """True when the environment asks W&B to stay on the machine (WANDB_MODE=offline or
+    dryrun): then no run goes online, even with credentials present."""
+    return os.environ.get("WANDB_MODE", "").strip().lower() in ("offline", "dryrun")
+
+
 def _hydra_run_identity() -> tuple[str | None, str | None]:
-    """(run name from the overrides, sweep group) of the current Hydra job, if any."""
+    """(run name from the overrides, sweep group) of the current Hydra job, if any; a secret
+    in an override (``x.api_key=...``) is redacted."""
     try:
         from hydra.core.hydra_config import HydraConfig
         from hydra.types import RunMode
@@ -37,7 +68,7 @@ def _hydra_run_identity() -> tuple[str | None, str | None]:
     group = None
     if hc.mode == RunMode.MULTIRUN:
         group = "_".join(Path(hc.sweep.dir).parts[-2:])
-    return name, group
+    return redact_secrets(name), redact_secrets(group)
 
 
 def wandb_logger(
@@ -47,17 +78,20 @@ def wandb_logger(
     name: str | None = None,
     group: str | None = None,
     tags: Sequence[str] = (),
+    id: str | None = None,  # noqa: A002 - W&B's name for it
 ) -> WandbLogger:
-    """A WandbLogger that is offline unless the user is logged in or asks otherwise.
+    """A WandbLogger that is offline unless the user is logged in (and WANDB_MODE is not
+    offline) or asks otherwise.
 
     Runs are named after their overrides and grouped per sweep, so the W&B UI compares the
-    jobs of one grid side by side.
+    jobs of one grid side by side. ``id``: the W&B run to create or continue (train passes
+    the interrupted run's when it resumes).
     """
     if offline is None:
-        offline = not wandb_logged_in()
+        offline = wandb_mode_offline() or not wandb_logged_in()
     auto_name, auto_group = _hydra_run_identity()
     Path(save_dir).mkdir(parents=True, exist_ok=True)
-    return WandbLogger(
+    return RedactingWandbLogger(
         project=project,
         save_dir=save_dir,
         offline=offline,
@@ -65,6 +99,8 @@ def wandb_logger(
         group=group or auto_group,
         tags=list(tags),
         log_model=False,
+        id=id,
+        resume="allow" if id else None,
     )
 
 

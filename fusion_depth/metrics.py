@@ -405,7 +405,7 @@ class DepthMetrics(Metric):
             # After a distributed sync a list state is already one concatenated tensor.
             return torch.cat(state) if isinstance(state, list) else state
 
-        if not self.image_sums:
+        if len(self.image_sums) == 0:  # an empty list, or an empty tensor after a sync
             raise ValueError("DepthMetrics has not seen any image (update was never called)")
         return (
             cat(self.image_sums).cpu(),

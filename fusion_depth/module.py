@@ -25,6 +25,7 @@ from fusion_depth.visualize import depth_panel
 log = logging.getLogger(__name__)
 
 NONFINITE_ACTIONS = ("stop", "skip")
+TRAINING_STATE_KEY = "fusion_depth_training_state"  # what a resumed run needs beyond Lightning's
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -108,6 +109,7 @@ class DepthModule(L.LightningModule):
         self.run_config: dict | None = None
         self.run_identity: dict | None = None
         self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
+        self._rng_to_restore: dict[str, Any] | None = None
 
     def setup(self, stage: str) -> None:
         device = self.trainer.strategy.root_device if self._trainer is not None else self.device
@@ -124,6 +126,27 @@ class DepthModule(L.LightningModule):
             checkpoint[CONFIG_KEY] = self.run_config
         if self.run_identity is not None:
             checkpoint[RUN_KEY] = self.run_identity
+        # The augmentation draws from torch's global generators: a resumed run continues their
+        # streams, so it trains on the same augmented batches as an uninterrupted one.
+        rng = {"cpu": torch.get_rng_state()}
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        checkpoint[TRAINING_STATE_KEY] = {"rng": rng, "nonfinite_skips": self.nonfinite_skips}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        state = checkpoint.get(TRAINING_STATE_KEY)
+        if state is not None:
+            self.nonfinite_skips = state["nonfinite_skips"]
+            self._rng_to_restore = state["rng"]
+
+    def on_train_start(self) -> None:
+        # Restored here, not on load: after the setup and sanity checks that follow loading,
+        # right before the first batch, where the uninterrupted run's stream stood.
+        rng, self._rng_to_restore = self._rng_to_restore, None
+        if rng is not None:
+            torch.set_rng_state(rng["cpu"])
+            if "cuda" in rng and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(rng["cuda"])
 
     def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
         """Depth in metres at half the input resolution."""

@@ -1,4 +1,4 @@
-"""The paper-style table of a sweep: ``python -m fusion_depth.report multirun/<date>/<time>``.
+"""The paper-style table of a sweep: ``python -m fusion_depth.report multirun/<sweep>``.
 
 Reads every ``metrics.json`` below a directory, averages runs that differ only in their seed
 (mean ± sample std), marks the best value of each column, and prints Markdown, LaTeX or CSV.

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -16,6 +17,36 @@ METRICS_FILE = "metrics.json"
 FAILURE_FILE = "failure.json"
 RESOLVED_CONFIG_FILE = "config_resolved.yaml"
 PER_IMAGE_FILE = "per_image.csv"
+TRACEBACK_FILE = "traceback.txt"
+
+
+_MAX_DIRNAME = 200  # bytes; file systems allow 255
+
+
+def run_dirname(override_dirname: str) -> str:
+    """A folder name for a run from Hydra's ``override_dirname`` (``fusion=concat,loss=l1``):
+    the same overrides give the same folder, so re-running a command finds its run again.
+    ``default`` when there are none; ``/`` in values becomes ``_``; overly long names are cut
+    and end in a hash of the whole."""
+    name = override_dirname.replace(os.sep, "_") or "default"
+    if len(name.encode()) > _MAX_DIRNAME:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:10]
+        name = f"{name.encode()[: _MAX_DIRNAME - 11].decode(errors='ignore')}-{digest}"
+    return name
+
+
+def sweep_dirname(config_name: str, override_dirname: str) -> str:
+    """A sweep's folder: the sweep config's name (``--config-name``, unless it is ``train``)
+    and the sweep's own overrides, e.g. ``loss=l1,l2,berhu``.
+
+    Registered with ``use_cache``: OmegaConf caches by the interpolation's text, and Hydra
+    copies the sweep's cache into every job's config, so all jobs share the sweep's folder
+    although each job's ``override_dirname`` is its own.
+    """
+    parts = [config_name] if config_name not in ("", "None", "train") else []
+    if override_dirname or not parts:
+        parts.append(run_dirname(override_dirname))
+    return "/".join(parts)
 
 
 def provenance() -> dict[str, Any]:
@@ -100,7 +131,7 @@ def record_failure(
 ) -> Path:
     """Save what failed (overrides, error, traceback) next to the run's other outputs."""
     output_dir = Path(output_dir)
-    trace = output_dir / "traceback.txt"
+    trace = output_dir / TRACEBACK_FILE
     output_dir.mkdir(parents=True, exist_ok=True)
     trace.write_text("".join(traceback.format_exception(error)))
     path = output_dir / FAILURE_FILE

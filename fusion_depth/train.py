@@ -7,25 +7,40 @@ python -m fusion_depth.train -m loss=l1,l2,berhu fusion=rgb,concat,add   # a swe
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
 import lightning as L
+import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException
 from hydra.types import RunMode
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import LearningRateMonitor
+from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
+from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.config import validate_config
+from fusion_depth.checkpoint import AtomicCheckpointIO
+from fusion_depth.config import (
+    check_output_dir,
+    checkpoint_bytes,
+    redact_overrides,
+    redact_secrets,
+    validate_config,
+)
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule
+from fusion_depth.distributed import launch_local_ranks, local_world_size
 from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.loggers import closing
+from fusion_depth.resume import RunStart, identity_overrides, plan_start
 from fusion_depth.runs import (
+    METRICS_FILE,
     RESOLVED_CONFIG_FILE,
     provenance,
     record_failure,
@@ -35,12 +50,31 @@ from fusion_depth.speed import accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
 
+CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+
 quiet_known_noise()
+
+
+def run_overrides() -> list[str]:
+    """The overrides that made this run, less those that do not change what it computes
+    (``hydra.job.config.override_dirname.exclude_keys``: ``resume``, the logger, ...)."""
+    if not HydraConfig.initialized():
+        return []
+    task = HydraConfig.get().overrides.task
+    return redact_overrides(identity_overrides(task, not_identity_keys()))
+
+
+def not_identity_keys() -> list[str]:
+    """Override keys that do not change what a run computes (the Hydra config's
+    ``hydra.job.config.override_dirname.exclude_keys``: ``resume``, the logger, ...)."""
+    if not HydraConfig.initialized():
+        return []
+    return list(HydraConfig.get().job.config.override_dirname.exclude_keys)
 
 
 def run_identity(cfg: DictConfig) -> dict:
     """What a run is: the choices ``report`` groups by, and the overrides that made it."""
-    overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    overrides = run_overrides()
     return {
         "dataset": cfg.dataset.name,
         "sensor": cfg.dataset.get("sensor"),
@@ -52,21 +86,76 @@ def run_identity(cfg: DictConfig) -> dict:
     }
 
 
-def train(cfg: DictConfig) -> dict:
-    """Fit, test the best checkpoint, write ``metrics.json``; returns its contents."""
+def train(cfg: DictConfig) -> dict | None:
+    """Fit, test the best checkpoint, write ``metrics.json``; returns its contents (None on
+    the ranks other than 0 of a data-parallel run that a cluster launcher started).
+
+    A run whose ``metrics.json`` is complete is not trained again, and one with a
+    ``last.ckpt`` continues from it (see :mod:`fusion_depth.resume`)."""
     run_config = validate_config(cfg)
     precision = resolve_precision(
         cfg.trainer.precision, accelerator_device(cfg.trainer.accelerator)
     )
     run_config["trainer"]["precision"] = precision  # what ran, not "auto"
-    L.seed_everything(cfg.seed, workers=True)
     output_dir = Path(cfg.paths.output_dir)
-    datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), **cfg.data)
-    model = instantiate(cfg.model, _convert_="all")
+    last_checkpoint = cfg.callbacks.get("last_checkpoint")
+    start = plan_start(
+        output_dir,
+        Path(last_checkpoint.dirpath) if last_checkpoint else None,
+        cfg.resume,
+        cfg.sweep.skip_done,
+        run_overrides(),
+        not_identity_keys(),
+    )
+    if start.finished is not None:
+        print(
+            f"Already finished: {output_dir / 'metrics.json'} (test rmse "
+            f"{start.finished['test']['rmse']:.4f}); sweep.skip_done=false or resume=never to "
+            "train it again",
+            flush=True,
+        )
+        return start.finished
+    if start.checkpoint is not None:
+        log.info("resuming from %s", start.checkpoint)
+    run_config = redact_secrets(run_config)  # what gets written anywhere from here on
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(run_config))
+    job = RankJob(cfg, run_config, {**run_identity(cfg), "wandb_id": start.wandb_id}, start)
+    world_size = local_world_size(cfg.trainer)
+    if world_size > 1:
+        launch_local_ranks(fit_and_test, job, world_size)
+        return json.loads((output_dir / METRICS_FILE).read_text())
+    return fit_and_test(job)
+
+
+@dataclass
+class RankJob:
+    """What every process of a run needs: the config, the resolved config, the run's identity
+    and where it starts (decided once, before any process starts)."""
+
+    cfg: DictConfig
+    run_config: dict
+    identity: dict
+    start: RunStart
+
+
+def fit_and_test(job: RankJob) -> dict | None:
+    """Fit, test the best checkpoint on rank 0 alone, write ``metrics.json``; its contents
+    (None on the other ranks of a data-parallel run)."""
+    cfg, run_config, start = job.cfg, job.run_config, job.start
+    precision = run_config["trainer"]["precision"]
+    output_dir = Path(cfg.paths.output_dir)
+    L.seed_everything(cfg.seed, workers=True)
+    datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
+    model = instantiate(cfg.model, _convert_="all")
+    # Fail before training when the checkpoints cannot be written: the last and best ones,
+    # each briefly twice while its new version is written beside it.
+    check_output_dir(output_dir, 4 * checkpoint_bytes(model))
     model.run_config = run_config
-    model.run_identity = run_identity(cfg)
-    logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
+    model.run_identity = job.identity
+    logger = False
+    if cfg.logger.get("_target_"):  # the W&B run of the interrupted run when resuming
+        ours = "id" in cfg.logger and cfg.logger.id is None
+        logger = instantiate(cfg.logger, **({"id": start.wandb_id} if ours else {}))
     with closing(logger):
         callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
         if logger:
@@ -74,32 +163,49 @@ def train(cfg: DictConfig) -> dict:
         else:  # Lightning refuses a learning-rate monitor with nothing to log to
             callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
         progress = cfg.trainer.enable_progress_bar
-        trainer = instantiate(
-            cfg.trainer,
-            callbacks=callbacks,
-            logger=logger,
-            precision=precision,
-            enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
-        )
+        settings = {
+            "logger": logger,
+            "precision": precision,
+            "enable_progress_bar": sys.stdout.isatty() if progress is None else progress,
+            "plugins": [AtomicCheckpointIO()],
+        }
+        trainer = instantiate(cfg.trainer, callbacks=callbacks, **settings)
 
-        start = time.perf_counter()
-        trainer.fit(model, datamodule=datamodule)
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-        trainer.test(model, datamodule=datamodule, ckpt_path=best or None, verbose=False)
+        started = time.perf_counter()
+        trainer.fit(model, datamodule=datamodule, ckpt_path=start.checkpoint, weights_only=True)
+        best_callback = next(
+            (c for c in trainer.checkpoint_callbacks if isinstance(c, ModelCheckpoint)), None
+        )
+        best = best_callback.best_model_path if best_callback else ""
+        best_score = best_callback.best_model_score if best_callback else None
+        epochs, global_step = trainer.current_epoch, trainer.global_step
+        if trainer.world_size > 1:
+            if not trainer.is_global_zero:
+                return None
+            # The test stage on one process sees every test image exactly once (a distributed
+            # sampler pads the split to a multiple of the world size).
+            torch.distributed.destroy_process_group()
+            trainer = instantiate(
+                cfg.trainer,
+                devices=1,
+                num_nodes=1,
+                strategy="auto",
+                **{**settings, "plugins": [AtomicCheckpointIO(), LightningEnvironment()]},
+            )
+        trainer.test(
+            model, datamodule=datamodule, ckpt_path=best or None, verbose=False, weights_only=True
+        )
         record = evaluation_record(model.test_results, model.protocol, "test", model.test_latency)
         results = {
             "status": "ok",
             "run": model.run_identity,
             **record,
             "best_checkpoint": best or None,
-            "best_val_rmse": (
-                float(trainer.checkpoint_callback.best_model_score)
-                if best and trainer.checkpoint_callback.best_model_score is not None
-                else None
-            ),
-            "epochs": trainer.current_epoch,
-            "global_step": trainer.global_step,
-            "wall_time_s": round(time.perf_counter() - start, 2),
+            "best_val_rmse": float(best_score) if best and best_score is not None else None,
+            "epochs": epochs,
+            "resumed_from": str(start.checkpoint) if start.checkpoint else None,
+            "global_step": global_step,
+            "wall_time_s": round(time.perf_counter() - started, 2),
             "versions": provenance(),
         }
         title = (
@@ -110,18 +216,31 @@ def train(cfg: DictConfig) -> dict:
     return results
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def test_rmse(results: dict | None) -> float | None:
+    """The sweep objective (None on ranks that do not test)."""
+    return results["test"]["rmse"] if results else None
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; in a sweep a failing job is recorded and the sweep goes on."""
     if HydraConfig.get().mode != RunMode.MULTIRUN:
-        return train(cfg)["test"]["rmse"]
+        return test_rmse(train(cfg))
     try:
-        return train(cfg)["test"]["rmse"]
+        return test_rmse(train(cfg))
     except Exception as err:  # noqa: BLE001 - one job's failure must not end the sweep
-        path = record_failure(cfg.paths.output_dir, list(HydraConfig.get().overrides.task), err)
-        log.exception("job failed; recorded in %s", path)
+        overrides = redact_overrides(list(HydraConfig.get().overrides.task))
+        path = record_failure(cfg.paths.output_dir, overrides, err)
+        if isinstance(err, CompactHydraException):  # a config error: its one line says it all
+            log.error("job failed: %s; recorded in %s", err, path)
+        else:
+            log.exception("job failed; recorded in %s", path)
         return None
 
 
 if __name__ == "__main__":
-    main()
+    # Through the module, not as __main__: launchers that pickle the task function (submitit,
+    # joblib) and the data-parallel ranks then find it by name.
+    from fusion_depth.train import main as _main
+
+    _main()

@@ -102,12 +102,15 @@ def checkpoints(tmp_path_factory: pytest.TempPathFactory, smoke_dataset: dict) -
     }
 
 
-def run_module(args: list[str], cwd: Path, timeout: int = 1800) -> subprocess.CompletedProcess:
-    """``python -m <args>`` in a subprocess, as a user would run it."""
+def run_module(
+    args: list[str], cwd: Path, timeout: int = 1800, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """``python -m <args>`` in a subprocess, as a user would run it (in ``env``, by default
+    this process's environment)."""
     return subprocess.run(
         [sys.executable, "-m", *args],
         cwd=cwd,
-        env=dict(os.environ),
+        env=dict(os.environ) if env is None else env,
         capture_output=True,
         text=True,
         timeout=timeout,

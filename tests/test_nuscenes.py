@@ -700,6 +700,7 @@ def test_the_nuscenes_sweep_runs_under_the_smoke_experiment(nusc_root, tmp_path)
     result = run_sweep("nuscenes_loss_fusion_grid", [*overrides, "fusion=concat"], sweep)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "1 ok, 0 failed" in result.stdout
-    (saved,) = [json.loads(p.read_text()) for p in sweep.glob("*/metrics.json")]
+    (metrics,) = sweep.glob("*/metrics.json")
+    saved = json.loads(metrics.read_text())
     assert saved["run"]["dataset"] == "nuscenes" and saved["run"]["fusion"] == "concat"
-    assert (sweep / "0" / "per_image.csv").is_file()
+    assert (metrics.parent / "per_image.csv").is_file()

@@ -112,10 +112,13 @@ def test_loader_defaults_use_workers_and_pinned_memory_only_with_a_gpu(
 ) -> None:
     from fusion_depth.data.datamodule import DepthDataModule
 
-    monkeypatch.setattr("os.cpu_count", lambda: 16)
+    # The cores this process may use (a SLURM job's share, not the whole node's).
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(16)))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     gpu = DepthDataModule(reader=lambda split: [])
     assert (gpu.num_workers, gpu.pin_memory, gpu.persistent_workers) == (8, True, True)
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert DepthDataModule(reader=lambda split: []).num_workers == 3
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     cpu = DepthDataModule(reader=lambda split: [])
     assert (cpu.num_workers, cpu.pin_memory, cpu.persistent_workers) == (0, False, False)

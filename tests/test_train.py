@@ -36,7 +36,7 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     )
     assert saved["latency"]["mean_s"] > 0 and saved["latency"]["device"].startswith("cpu")
     assert saved["versions"]["git_commit"] is None or len(saved["versions"]["git_commit"]) == 40
-    assert saved["run"] | {"overrides": None} == {
+    assert saved["run"] | {"overrides": None, "wandb_id": None} == {
         "dataset": "procedural",
         "sensor": "radar",
         "backbone": "densenet169",
@@ -44,6 +44,7 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
         "loss": "l1",
         "seed": 42,
         "overrides": None,
+        "wandb_id": None,
     }
     assert set(saved["test_by_condition"]) <= set(cfg.dataset.conditions)
     assert saved["global_step"] == cfg.trainer.max_epochs * cfg.trainer.limit_train_batches
@@ -54,6 +55,8 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     assert ckpt["fusion_depth_run"]["fusion"] == "concat"
     wandb_runs = list((out / "wandb").glob("offline-run-*"))
     assert wandb_runs, "W&B must log offline by default"
+    # The W&B run's id is recorded, so a resumed run continues that W&B run.
+    assert wandb_runs[0].name.endswith(f"-{saved['run']['wandb_id']}")
     tables = {p.name.rsplit("_", 2)[0] for p in wandb_runs[0].rglob("*.table.json")}
     assert {"by_condition", "by_distance", "by_cap"} <= tables, tables
     # The run was finished, so the next job of a sweep (same process) gets a W&B run of its own.
@@ -114,11 +117,12 @@ def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     assert "1 ok, 1 failed" in result.stdout
     failed = next(line for line in result.stdout.splitlines() if line.strip().startswith("failed"))
     assert "dataset.width=48" in failed and "multiple of 32" in failed
-    failure = json.loads((sweep / "0" / "failure.json").read_text())
+    # Job folders are named after their overrides (less logger=, which does not change a run).
+    failure = json.loads((sweep / "dataset.width=48,experiment=smoke" / "failure.json").read_text())
     assert Path(failure["traceback"]).is_file()
-    assert (sweep / "1" / "metrics.json").is_file()
+    assert (sweep / "dataset.width=96,experiment=smoke" / "metrics.json").is_file()
     summary = json.loads((sweep / "sweep_summary.json").read_text())
-    assert [job["status"] for job in summary] == ["failed", "ok"]
+    assert sorted(job["status"] for job in summary) == ["failed", "ok"]
 
 
 def test_the_same_seed_gives_the_same_metrics(make_config, tmp_path) -> None:

@@ -24,6 +24,9 @@ zero-padded, e.g. ``00012345``)::
 * **radar**: one row per ``carla.RadarDetection``, values as CARLA gives them: ``depth`` (m,
   range from the sensor), ``azimuth`` and ``altitude`` (radians), ``velocity`` (m/s, as CARLA
   reports it; kept, not used by the network). A header-only file is a frame without detections.
+  A row holding NaN or an infinity (``nan``, ``inf``, or a number too large for a float) is not
+  a measurement: it is dropped, with a warning naming the file. A negative depth, a row that is
+  not four numbers, or another header is an error naming the file and line.
 * **meta**: ``{"fov": 90.0, "condition": "ClearNoon", "radar_to_camera": {"location": {"x", "y",
   "z"}, "rotation": {"pitch", "yaw", "roll"}}}``: ``fov`` is the camera's horizontal field of
   view in degrees (its ``fov`` attribute); ``condition`` is the weather preset's name (or a plain
@@ -32,7 +35,10 @@ zero-padded, e.g. ``00012345``)::
   maps radar-frame points to camera-frame points. Other keys are ignored.
 
 Frames are the ``meta/*.json`` files; a frame whose image, depth or radar file is missing is an
-error naming it. Files starting with ``.`` (temporary files) are ignored.
+error naming it (FileNotFoundError), and one whose file is corrupt, truncated, in the wrong
+format or bit depth, or of another size than the camera image is a
+:class:`~fusion_depth.data.depth_io.DataFileError` naming it. Files starting with ``.``
+(temporary files) are ignored.
 
 Geometry
 --------
@@ -84,6 +90,7 @@ import logging
 import math
 import os
 import re
+import reprlib
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -91,7 +98,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from fusion_depth.data import SPLITS
 from fusion_depth.data._folders import (
@@ -105,7 +111,7 @@ from fusion_depth.data._folders import (
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.depth_io import read_rgb
+from fusion_depth.data.depth_io import DataFileError, open_image, png_bit_depth, read_rgb
 from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
 
 FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
@@ -115,6 +121,7 @@ RADAR_COLUMNS = ("depth", "azimuth", "altitude", "velocity")
 DEPTH_FAR = 1000.0  # metres at CARLA's depth code 256**3 - 1
 DEPTH_CODES = 256**3 - 1
 DEPTH_STEP = DEPTH_FAR / DEPTH_CODES  # metres per code: about 0.06 mm
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 LAYOUT = "a CARLA recording laid out as <root>/{train,val,test}/{rgb,depth,radar,meta}/<frame>.*"
 
 # First match wins: darkness and fog change the image most, then precipitation, then cloud.
@@ -166,26 +173,32 @@ def encode_carla_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def read_carla_depth(path: str | os.PathLike) -> np.ndarray:
-    """A depth camera PNG saved without a colour converter, as float64 (H, W) metres."""
+    """A depth camera PNG saved without a colour converter, as float64 (H, W) metres.
+
+    Only CARLA's exact encoding is read: an 8-bit-per-channel RGB(A) PNG. Another format (a JPEG
+    is lossy), another mode or bit depth (a 16-bit PNG, which Pillow would quietly cut to its
+    high bytes), a grey image (a converter's lossy output) or an unreadable file raises
+    DataFileError naming the file.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing CARLA depth PNG")
-    try:
-        image = Image.open(path)
-        image.load()
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise ValueError(f"{path}: unreadable CARLA depth PNG ({err})") from err
-    if image.mode not in ("RGB", "RGBA"):
-        raise ValueError(
-            f"{path}: expected CARLA's raw depth encoding, an 8-bit RGB(A) PNG, got mode "
-            f"{image.mode!r} (save the depth camera without a ColorConverter)"
+    image = open_image(path, "CARLA depth PNG")
+    bits = png_bit_depth(path)
+    if image.format != "PNG" or image.mode not in ("RGB", "RGBA") or bits != 8:
+        got = f"{image.format or 'unknown'} of mode {image.mode!r}" + (
+            f", {bits} bits per channel" if bits is not None else ""
+        )
+        raise DataFileError(
+            path,
+            f"expected CARLA's raw depth encoding, an 8-bit RGB(A) PNG, got a {got} (save the "
+            "depth camera without a ColorConverter)",
         )
     rgb = np.asarray(image)[..., :3]
     grey = (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all()
     if grey and np.unique(rgb[..., 0]).size > 1:
-        raise ValueError(
-            f"{path}: a grey image, i.e. saved with ColorConverter.Depth or LogarithmicDepth, "
-            "which loses precision; expected the raw encoding (save_to_disk without a converter)"
+        raise DataFileError(
+            path,
+            "a grey image, i.e. saved with ColorConverter.Depth or LogarithmicDepth, which loses "
+            "precision; expected the raw encoding (save_to_disk without a converter)",
         )
     return decode_carla_depth(rgb)
 
@@ -261,6 +274,9 @@ def project_radar(
     ``source_size`` is the recorded camera's (height, width), which with ``fov_deg`` fixes the
     intrinsics; ``size`` the output's, to which they are scaled per axis. See the module
     docstring for the conventions.
+
+    Detections with a non-finite depth, azimuth or altitude are skipped, and so is anything
+    whose arithmetic overflows (absurd ranges): the map is always finite and non-negative.
     """
     (src_h, src_w), (height, width) = source_size, size
     sparse = np.full((height, width), np.inf)
@@ -269,44 +285,78 @@ def project_radar(
     if len(detections):
         focal = src_w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
         fx, fy = focal * width / src_w, focal * height / src_h
-        points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
-        points += radar_to_camera[:3, 3]
-        x, y, z = points.T
-        ahead = (x > 0) & (x < max_range)
-        x, y, z = x[ahead], y[ahead], z[ahead]
-        cols = np.floor(width / 2.0 + fx * y / x).astype(np.int64)
-        rows = np.floor(height / 2.0 - fy * z / x).astype(np.int64)
-        inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-        np.minimum.at(sparse, (rows[inside], cols[inside]), x[inside])
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow gives inf/NaN: dropped
+            points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
+            points += radar_to_camera[:3, 3]
+            x, y, z = points.T
+            ahead = (x > 0) & (x < min(max_range, _FLOAT32_MAX))
+            x, y, z = x[ahead], y[ahead], z[ahead]
+            u = width / 2.0 + fx * y / x
+            v = height / 2.0 - fy * z / x
+        # NaN compares false, so this also drops what overflowed; floor(u) in [0, width) <=>
+        # u in [0, width).
+        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        cols = np.floor(u[inside]).astype(np.int64)
+        rows = np.floor(v[inside]).astype(np.int64)
+        np.minimum.at(sparse, (rows, cols), x[inside])
     sparse[np.isinf(sparse)] = 0.0
     return sparse.astype(np.float32)
 
 
 def read_radar_csv(path: str | os.PathLike) -> np.ndarray:
-    """A radar file as float64 (N, 4): ``depth, azimuth, altitude, velocity`` per detection."""
+    """A radar file as float64 (N, 4): ``depth, azimuth, altitude, velocity`` per detection.
+
+    Every value returned is finite: a row with NaN or an infinity in any column (``nan``,
+    ``inf``, ``1e999``) is not a measurement and is dropped, with a warning naming the file and
+    how many. Blank lines are skipped; a UTF-8 byte order mark is allowed. Undecodable text,
+    another header, a row that is not four numbers, or a negative depth (a range) raises
+    DataFileError naming the file and the line.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing radar file")
+    expected = f"{','.join(RADAR_COLUMNS)} (one row per carla.RadarDetection)"
     try:
-        with path.open(newline="") as f:
-            rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
-        raise ValueError(f"{path}: unreadable radar file ({err})") from err
-    header = [c.strip() for c in rows[0]] if rows else []
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = [c.strip() for c in next(reader, [])]
+            rows = [(reader.line_num, row) for row in reader if row]
+    except (OSError, ValueError, csv.Error) as err:  # UnicodeDecodeError is a ValueError
+        raise DataFileError(path, f"unreadable radar file ({err}); expected {expected}") from err
     if header != list(RADAR_COLUMNS):
-        raise ValueError(
-            f"{path}: expected the header {','.join(RADAR_COLUMNS)} (one row per "
-            f"carla.RadarDetection), got {','.join(header) or 'an empty file'}"
-        )
-    values = np.zeros((0, len(RADAR_COLUMNS)))
-    if len(rows) > 1:
+        got = reprlib.repr(",".join(header)) if header else "an empty first line"
+        raise DataFileError(path, f"expected the header {expected}, got {got}")
+    values = np.zeros((len(rows), len(RADAR_COLUMNS)))
+    for i, (line, row) in enumerate(rows):
         try:
-            values = np.array([[float(v) for v in row] for row in rows[1:] if row], dtype=float)
+            if len(row) != len(RADAR_COLUMNS):
+                raise ValueError(f"{len(row)} values")
+            values[i] = [float(v) for v in row]
         except ValueError as err:
-            raise ValueError(f"{path}: a detection that is not 4 numbers ({err})") from err
-        if values.ndim != 2 or values.shape[1] != len(RADAR_COLUMNS):
-            raise ValueError(f"{path}: expected {len(RADAR_COLUMNS)} values on every row")
-    return values.reshape(-1, len(RADAR_COLUMNS))
+            raise DataFileError(
+                path,
+                f"line {line}: {reprlib.repr(','.join(row))} is not a detection ({err}); "
+                f"expected {len(RADAR_COLUMNS)} numbers, {','.join(RADAR_COLUMNS)}",
+            ) from err
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        log.warning(
+            "%s: dropped %d of %d radar detections holding NaN or inf (not measurements)",
+            path,
+            int((~finite).sum()),
+            len(values),
+        )
+        rows = [r for r, keep in zip(rows, finite, strict=True) if keep]
+        values = values[finite]
+    negative = np.flatnonzero(values[:, 0] < 0)
+    if negative.size:
+        first = negative[0]
+        raise DataFileError(
+            path,
+            f"line {rows[first][0]}: depth {float(values[first, 0])!r} is negative "
+            f"({len(negative)} such rows); expected the range from the radar in metres, >= 0",
+        )
+    return values
 
 
 @dataclass(frozen=True)
@@ -320,37 +370,50 @@ class FrameMeta:
 
 
 def read_frame_meta(path: str | os.PathLike) -> FrameMeta:
-    """Reads and checks ``meta/<frame>.json``; every problem names the file and the key."""
+    """Reads and checks ``meta/<frame>.json``; every problem is a DataFileError naming the file
+    and the key (FileNotFoundError if it is missing)."""
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing frame metadata")
     try:
-        meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: unreadable frame metadata ({err})") from err
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as err:  # JSONDecodeError is a ValueError
+        raise DataFileError(path, f"unreadable frame metadata ({err})") from err
     expected = (
         '{"fov": degrees, "condition": weather preset, "radar_to_camera": {"location": '
         '{"x", "y", "z"}, "rotation": {"pitch", "yaw", "roll"}}}'
     )
     if not isinstance(meta, dict):
-        raise ValueError(f"{path}: expected a JSON object {expected}")
+        raise DataFileError(path, f"expected a JSON object {expected}")
     for key in ("fov", "condition", "radar_to_camera"):
         if key not in meta:
-            raise ValueError(f"{path}: missing key {key!r}; expected {expected}")
+            raise DataFileError(path, f"missing key {key!r}; expected {expected}")
     fov = meta["fov"]
     if isinstance(fov, bool) or not isinstance(fov, int | float) or not 0 < fov < 180:
-        raise ValueError(f"{path}: fov={fov!r}, expected a horizontal field of view in (0, 180)°")
+        raise DataFileError(
+            path, f"fov={reprlib.repr(fov)}, expected a horizontal field of view in (0, 180)°"
+        )
+    if not isinstance(meta["condition"], str):
+        raise DataFileError(
+            path,
+            f"condition={reprlib.repr(meta['condition'])}, expected a CARLA weather preset name "
+            "(a string, e.g. ClearNoon)",
+        )
     try:
         condition = condition_of(meta["condition"])
     except ValueError as err:
-        raise ValueError(f"{path}: {err}") from err
+        raise DataFileError(path, str(err)) from err
     try:
         matrix = transform_matrix(meta["radar_to_camera"])
-    except (KeyError, TypeError, ValueError, AttributeError) as err:
-        raise ValueError(
-            f"{path}: radar_to_camera={meta['radar_to_camera']!r} is not a transform; expected "
-            '{"location": {"x", "y", "z"} metres, "rotation": {"pitch", "yaw", "roll"} degrees}'
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
+        raise DataFileError(
+            path,
+            f"radar_to_camera={reprlib.repr(meta['radar_to_camera'])} is not a transform; "
+            'expected {"location": {"x", "y", "z"} metres, "rotation": {"pitch", "yaw", "roll"} '
+            "degrees}",
         ) from err
     if not np.isfinite(matrix).all():
-        raise ValueError(f"{path}: radar_to_camera has non-finite values")
+        raise DataFileError(path, "radar_to_camera has non-finite values")
     return FrameMeta(float(fov), condition, str(meta["condition"]), matrix)
 
 
@@ -429,9 +492,10 @@ def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> 
     image = read_rgb(frame.rgb)
     depth = read_carla_depth(frame.depth)
     if depth.shape != image.shape[:2]:
-        raise ValueError(
-            f"{frame.depth}: depth image is {depth.shape[1]}x{depth.shape[0]}, expected the "
-            f"camera image's {image.shape[1]}x{image.shape[0]} ({frame.rgb})"
+        raise DataFileError(
+            frame.depth,
+            f"depth image is {depth.shape[1]}x{depth.shape[0]}, expected the camera image's "
+            f"{image.shape[1]}x{image.shape[0]} ({frame.rgb})",
         )
     depth = np.where(depth < max_range, depth, 0.0).astype(np.float32)
     sparse = project_radar(

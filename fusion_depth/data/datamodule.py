@@ -2,14 +2,105 @@
 
 from __future__ import annotations
 
+import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from fusion_depth.data import SPLITS
+
+log = logging.getLogger(__name__)
+
+
+def epoch_seed(seed: int, epoch: int) -> int:
+    """A seed for ``epoch`` of a run seeded with ``seed``, independent of anything drawn before."""
+    return int(np.random.SeedSequence([seed, epoch]).generate_state(1)[0])
+
+
+class EpochSampler(Sampler[int]):
+    """The training order: each epoch a permutation drawn from (seed, epoch) alone.
+
+    So a run restarted at any epoch sees the order an uninterrupted run would; ``skip`` (set by
+    :class:`ResumableLoader` after a mid-epoch restore) drops the samples already trained on.
+    Lightning calls ``set_epoch`` before every epoch.
+    """
+
+    def __init__(self, size: int, seed: int) -> None:
+        self.size = size
+        self.seed = seed
+        self.epoch = 0
+        self.skip = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __iter__(self) -> Iterator[int]:
+        generator = torch.Generator().manual_seed(epoch_seed(self.seed, self.epoch))
+        order = torch.randperm(self.size, generator=generator).tolist()
+        skip, self.skip = self.skip, 0
+        yield from order[skip:]
+
+
+class ResumableLoader(DataLoader):
+    """A training DataLoader that Lightning checkpoints with the run (its stateful-loader
+    protocol, ``state_dict``/``load_state_dict``): the epoch and how many of its batches were
+    handed out. Restored mid-epoch, its next pass over that epoch starts at the following
+    batch, so a resumed run trains on exactly the batches an uninterrupted one would.
+
+    Lightning does not prefetch from a loader of known length, so the count handed out is the
+    count trained when a checkpoint is written after a batch.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.base_seed = self.generator.initial_seed() if self.generator is not None else 0
+        self.batches_handed_out = 0
+        self._resume_at: tuple[int, int] | None = None  # (epoch, batches done) after a restore
+
+    def state_dict(self) -> dict[str, int]:
+        epoch = getattr(self.sampler, "epoch", 0)
+        return {"epoch": epoch, "batches": self.batches_handed_out}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self._resume_at = (int(state["epoch"]), int(state["batches"]))
+
+    def __iter__(self) -> Iterator[Any]:
+        return self._batches()
+
+    def _batches(self) -> Iterator[Any]:
+        # A generator: runs at the first next(), after Lightning's set_epoch for this epoch.
+        sampler = self.sampler
+        epoch = getattr(sampler, "epoch", 0)
+        done = 0
+        if self._resume_at is not None:
+            resume_epoch, resume_batches = self._resume_at
+            self._resume_at = None
+            if resume_epoch == epoch and resume_batches:
+                if isinstance(sampler, EpochSampler):
+                    sampler.skip = resume_batches * (self.batch_size or 1)
+                    done = resume_batches
+                else:  # e.g. Lightning's distributed sampler wrapper under DDP
+                    log.warning(
+                        "resuming mid-epoch %d: this sampler (%s) cannot skip the %d batches "
+                        "already trained, so the epoch's first batches are seen again",
+                        epoch,
+                        type(sampler).__name__,
+                        resume_batches,
+                    )
+        if self.generator is not None:  # worker seeds per epoch, not per restart
+            self.generator.manual_seed(epoch_seed(self.base_seed, epoch))
+        self.batches_handed_out = done
+        for batch in super().__iter__():
+            self.batches_handed_out += 1
+            yield batch
 
 
 class IndexedDataset(Dataset):
@@ -31,7 +122,8 @@ def resolve_num_workers(num_workers: int | str) -> int:
     core (at most 8) so decoding never starves it; on a CPU-only machine 0, since worker
     processes would take cores from the training itself."""
     if num_workers == "auto":
-        cores = os.cpu_count() or 1
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        cores = cores or 1  # the cores this process may use: a SLURM job's, not the node's
         return min(8, max(cores - 1, 1)) if torch.cuda.is_available() else 0
     if isinstance(num_workers, bool) or not isinstance(num_workers, int) or num_workers < 0:
         raise ValueError(f"data.num_workers={num_workers!r}: expected auto or an integer ≥ 0")
@@ -55,6 +147,7 @@ class DepthDataModule(L.LightningDataModule):
         pin_memory: bool | None = None,
         persistent_workers: bool | None = None,
         test_split: str = "test",
+        seed: int = 0,
     ) -> None:
         super().__init__()
         if batch_size < 1:
@@ -71,6 +164,7 @@ class DepthDataModule(L.LightningDataModule):
         if test_split not in SPLITS:
             raise ValueError(f"split={test_split!r}: expected one of {list(SPLITS)}")
         self.test_split = test_split  # what the test stage scores (evaluate's split=)
+        self.seed = seed  # the training order's (see EpochSampler)
         self.datasets: dict[str, Dataset] = {}
 
     def dataset(self, split: str) -> Dataset:
@@ -93,16 +187,21 @@ class DepthDataModule(L.LightningDataModule):
 
     def loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
         """A DataLoader of ``split`` with this module's worker and memory settings (the one
-        way loaders are built: the stages below and ``bench``'s data stage)."""
-        return DataLoader(
-            self.dataset(split),
-            batch_size=batch_size,
-            shuffle=shuffle,
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            persistent_workers=self.persistent_workers,
-            drop_last=shuffle,
-        )
+        way loaders are built: the stages below and ``bench``'s data stage). Shuffled loaders
+        are resumable (see :class:`ResumableLoader`); every loader draws its worker seeds from
+        its own generator, so iterating one never moves the global RNG that augmentation uses."""
+        dataset = self.dataset(split)
+        common = {
+            "batch_size": batch_size,
+            "num_workers": self.num_workers,
+            "pin_memory": self.pin_memory,
+            "persistent_workers": self.persistent_workers,
+            "generator": torch.Generator().manual_seed(self.seed),
+        }
+        if shuffle:
+            sampler = EpochSampler(len(dataset), self.seed)
+            return ResumableLoader(dataset, sampler=sampler, drop_last=True, **common)
+        return DataLoader(dataset, shuffle=False, **common)
 
     def train_dataloader(self) -> DataLoader:
         return self.loader("train", True, self.batch_size)

@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion_depth.data import SPLITS
-from fusion_depth.data.depth_io import read_depth_png, read_rgb
+from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.prepared import (
     PreparedFrame,
@@ -308,9 +308,10 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
     for name in ("groundtruth", "velodyne_raw"):
         shape = depth.shape if name == "groundtruth" else sparse.shape
         if shape != image.shape[:2]:
-            raise ValueError(
-                f"{paths[name]}: {shape[0]}x{shape[1]} depth map, expected the size of its "
-                f"image {paths['image']} ({image.shape[0]}x{image.shape[1]})"
+            raise DataFileError(
+                paths[name],
+                f"{shape[0]}x{shape[1]} depth map, expected the size of its image "
+                f"{paths['image']} ({image.shape[0]}x{image.shape[1]})",
             )
     # Where the full frame lies in the sample (crop_or_pad keeps the bottom rows and the centre
     # columns of a larger frame), for evaluation crops defined on the full frame.

@@ -12,9 +12,12 @@ writes them under ``<cache root>/<dataset>/<hash of the settings>/<split>/`` as
 
 Each file goes through a temporary name and a rename, and a frame counts as done only once its
 ``.json`` exists, so an interrupted prepare restarts where it stopped and never leaves a file a
-later run would read as valid. A split with ``index.json`` is complete: preparing it again does
-nothing. Other settings hash to another folder, leaving this one alone. The user's dataset
-folder is only ever read.
+later run would read as valid (a ``.json`` that does not parse, or names another frame, is
+prepared again). A split with ``index.json`` is complete: preparing it again does nothing. Other
+settings hash to another folder, leaving this one alone. The user's dataset folder is only ever
+read. A damaged cache file (an index that does not parse, a truncated PNG, maps of different
+sizes) raises :class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache
+folder prepares it again.
 """
 
 from __future__ import annotations
@@ -33,7 +36,13 @@ import torch
 from rich.progress import track
 from torch.utils.data import Dataset
 
-from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
+from fusion_depth.data.depth_io import (
+    DataFileError,
+    read_depth_png,
+    read_rgb,
+    write_depth_png,
+    write_rgb_png,
+)
 from fusion_depth.runs import write_json_atomic
 
 PREPARED_VERSION = 1  # bump when the cache layout changes, so old caches are not reused
@@ -112,12 +121,11 @@ def prepare_split(
     ):
         stem = f"{i:06d}"
         record_path = split_dir / f"{stem}.json"
-        if record_path.is_file():
-            record = json.loads(record_path.read_text())
-            if record.get("id") == frame_id:
-                records.append(record)
-                done += 1
-                continue
+        record = _read_record(record_path)
+        if record is not None and record.get("id") == frame_id:
+            records.append(record)
+            done += 1
+            continue
         frame = make_frame(frame_id)
         _check_frame(frame, frame_id)
         write_rgb_png(split_dir / f"{stem}.image.png", frame.image)
@@ -146,6 +154,39 @@ def prepare_split(
     return split_dir
 
 
+def _read_record(path: Path) -> dict | None:
+    """A finished frame's record, or None when there is none or it is damaged (redo the frame)."""
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as err:
+        log.warning("%s: unreadable frame record (%s); preparing the frame again", path, err)
+        return None
+    return record if _valid_record(record) else None
+
+
+def _valid_record(record: Any) -> bool:
+    """Whether ``record`` is a frame record as :func:`prepare_split` writes it (``file`` all
+    digits, so a damaged index can never point outside the split folder)."""
+    if not isinstance(record, dict):
+        return False
+    box = record.get("frame_box")
+    return (
+        isinstance(record.get("id"), str)
+        and isinstance(record.get("file"), str)
+        and record["file"].isdigit()
+        and isinstance(record.get("condition"), str)
+        and isinstance(record.get("filled"), bool)
+        and (
+            box is None
+            or isinstance(box, list)
+            and len(box) == 4
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in box)
+        )
+    )
+
+
 def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
     h, w = frame.image.shape[:2]
     maps = {"sparse": frame.sparse, "depth": frame.depth, "filled": frame.filled}
@@ -166,9 +207,21 @@ class PreparedSplit(Dataset):
         index = self.split_dir / INDEX_FILE
         if not index.is_file():
             raise FileNotFoundError(f"{index}: not a prepared split (run fusion_depth.prepare)")
-        self.frames: list[dict] = json.loads(index.read_text())["frames"]
-        if not self.frames:
-            raise ValueError(f"{index}: the split has no frames")
+        again = f"delete {self.split_dir} to prepare the split again"
+        try:
+            data = json.loads(index.read_text(encoding="utf-8"))
+        except (OSError, ValueError, RecursionError) as err:
+            raise DataFileError(index, f"unreadable prepared index ({err}); {again}") from err
+        frames = data.get("frames") if isinstance(data, dict) else None
+        if not isinstance(frames, list) or not all(_valid_record(f) for f in frames):
+            raise DataFileError(
+                index,
+                'expected {"split": name, "frames": [{"id", "file", "condition", "filled"}, '
+                f"...]}} as prepare_split writes it; {again}",
+            )
+        if not frames:
+            raise DataFileError(index, "the split has no frames")
+        self.frames: list[dict] = frames
         self.use_filled = use_filled
         self.conditions = [frame["condition"] for frame in self.frames]
 
@@ -179,11 +232,24 @@ class PreparedSplit(Dataset):
         frame = self.frames[index]
         stem = self.split_dir / frame["file"]
         depth_file = "filled" if self.use_filled and frame["filled"] else "depth"
-        image = read_rgb(f"{stem}.image.png")
+        # verify=False: the platform wrote these files (atomically); truncated or garbled ones
+        # still fail, and a second inflate per file would slow every epoch.
+        image = read_rgb(f"{stem}.image.png", verify=False)
+        maps = {}
+        for key, name in (("sparse", "sparse"), ("depth", depth_file)):
+            path = f"{stem}.{name}.png"
+            maps[key] = read_depth_png(path, verify=False)
+            if maps[key].shape != image.shape[:2]:
+                raise DataFileError(
+                    path,
+                    f"{maps[key].shape[0]}x{maps[key].shape[1]} depth map, expected the size of "
+                    f"{stem}.image.png ({image.shape[0]}x{image.shape[1]}); delete "
+                    f"{self.split_dir} to prepare the split again",
+                )
         sample = {
             "image": torch.from_numpy(image.transpose(2, 0, 1).copy()).float().div_(255.0),
-            "sparse": torch.from_numpy(read_depth_png(f"{stem}.sparse.png"))[None],
-            "depth": torch.from_numpy(read_depth_png(f"{stem}.{depth_file}.png"))[None],
+            "sparse": torch.from_numpy(maps["sparse"])[None],
+            "depth": torch.from_numpy(maps["depth"])[None],
             "condition": frame["condition"],
         }
         if "frame_box" in frame:

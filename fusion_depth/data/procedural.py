@@ -230,7 +230,8 @@ class ProceduralDepth(Dataset):
     def _open(self) -> dict[str, np.ndarray]:
         if self._arrays is None:
             self._arrays = {
-                name: np.load(self.split_dir / f"{name}.npy", mmap_mode="r") for name in _ARRAYS
+                name: np.load(self.split_dir / f"{name}.npy", mmap_mode="r", allow_pickle=False)
+                for name in _ARRAYS
             }
         return self._arrays
 

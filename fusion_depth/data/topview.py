@@ -19,10 +19,13 @@ Folder format
   installed), and a ``.exr`` depth file fails naming the file; convert it to NPY (float) or
   16-bit PNG first.
 
-Zero, negative or non-finite depths are invalid, and so is anything at or beyond ``max_range``
-(default 250 m: the cache stores 1/256 m in uint16). Every frame gets the condition ``condition``
-(default ``day``: the renders are daylight scenes). Files starting with ``.`` are ignored; an
-image without a depth map, or a depth map in two formats, is an error naming the files.
+Zero, negative or non-finite depths (and NPY values too large for a float32) are invalid, and so
+is anything at or beyond ``max_range`` (default 250 m: the cache stores 1/256 m in uint16). Every
+frame gets the condition ``condition`` (default ``day``: the renders are daylight scenes). Files
+starting with ``.`` are ignored; an image without a depth map, or a depth map in two formats, is
+an error naming the files. A corrupt or truncated file, a depth PNG that is not 16-bit
+single-channel, an NPY that is not a numeric (H, W) array, or a depth map of another size than
+its image is a :class:`~fusion_depth.data.depth_io.DataFileError` naming the file.
 
 Preparing
 ---------
@@ -55,47 +58,71 @@ from fusion_depth.data._folders import (
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.depth_io import read_depth_png, read_rgb
+from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
 
 FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
 CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".png", ".npy", ".exr")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 LAYOUT = "a Top-View dataset laid out as <root>/{train,val,test}/{rgb,depth}/<name>.*"
 
 log = logging.getLogger(__name__)
 
 
 def read_depth_file(path: str | os.PathLike, depth_unit: float) -> np.ndarray:
-    """A depth map (16-bit PNG or NPY) as float32 (H, W) metres; invalid values become 0."""
+    """A depth map (16-bit PNG or NPY) as float32 (H, W) metres; invalid values (zero,
+    negative, NaN, inf, beyond float32) become 0, so the result is finite and >= 0.
+
+    A missing file raises FileNotFoundError; an unsupported, corrupt or truncated one, or an NPY
+    that is not a non-empty numeric (H, W) or (H, W, 1) array, raises DataFileError naming it.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".exr":
-        raise ValueError(
-            f"{path}: EXR depth maps are not supported (no EXR reader is installed); export or "
-            "convert them to .npy (float array, metres = value x dataset.reader.depth_unit) or "
-            "16-bit PNG"
+        raise DataFileError(
+            path,
+            "EXR depth maps are not supported (no EXR reader is installed); export or convert "
+            "them to .npy (float array, metres = value x dataset.reader.depth_unit) or 16-bit PNG",
         )
     if suffix == ".png":
         depth = read_depth_png(path, scale=1.0).astype(np.float64) * depth_unit
     elif suffix == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: missing depth map")
-        try:
-            array = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as err:
-            raise ValueError(f"{path}: unreadable NPY depth map ({err})") from err
-        if array.ndim == 3 and array.shape[2] == 1:
-            array = array[..., 0]
-        if array.ndim != 2 or array.dtype.kind not in "fiu":
-            raise ValueError(
-                f"{path}: expected a (H, W) numeric depth array, got {array.dtype} {array.shape}"
-            )
-        depth = array.astype(np.float64) * depth_unit
+        depth = _read_npy(path).astype(np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            depth *= depth_unit
     else:
-        raise ValueError(f"{path}: expected a depth map ending in {', '.join(DEPTH_SUFFIXES)}")
-    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        raise DataFileError(path, f"expected a depth map ending in {', '.join(DEPTH_SUFFIXES)}")
+    valid = np.isfinite(depth) & (depth > 0) & (depth <= _FLOAT32_MAX)
+    return np.where(valid, depth, 0.0).astype(np.float32)
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    """The (H, W) array of an NPY file. Its header is checked first, against the file's size (by
+    a memory map that is never read): a header promising more data than the file holds fails
+    without allocating it; pickled objects are refused."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing depth map")
+    expected = "a non-empty (H, W) numeric depth array saved with numpy.save"
+    try:
+        header = np.load(path, mmap_mode="r", allow_pickle=False)
+        if not isinstance(header, np.ndarray):  # a .npz archive under a .npy name
+            header.close()
+            raise DataFileError(path, f"a {type(header).__name__}, expected {expected}")
+        shape, dtype = header.shape, header.dtype
+        del header
+        if len(shape) == 3 and shape[2] == 1:
+            shape = shape[:2]
+        if len(shape) != 2 or dtype.kind not in "fiu" or 0 in shape:
+            raise DataFileError(path, f"expected {expected}, got {dtype} {shape}")
+        return np.load(path, allow_pickle=False).reshape(shape)
+    except DataFileError:
+        raise
+    except Exception as err:  # numpy raises ValueError, OSError, EOFError, ... for bad bytes
+        raise DataFileError(
+            path, f"unreadable NPY depth map ({type(err).__name__}: {err}); expected {expected}"
+        ) from err
 
 
 @dataclass(frozen=True)
@@ -155,9 +182,10 @@ def load_frame(
     image = read_rgb(frame.rgb)
     depth = read_depth_file(frame.depth, depth_unit)
     if depth.shape != image.shape[:2]:
-        raise ValueError(
-            f"{frame.depth}: depth map is {depth.shape[1]}x{depth.shape[0]}, expected the "
-            f"image's {image.shape[1]}x{image.shape[0]} ({frame.rgb})"
+        raise DataFileError(
+            frame.depth,
+            f"depth map is {depth.shape[1]}x{depth.shape[0]}, expected the image's "
+            f"{image.shape[1]}x{image.shape[0]} ({frame.rgb})",
         )
     depth = np.where(depth < max_range, depth, 0.0).astype(np.float32)
     return PreparedFrame(

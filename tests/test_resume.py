@@ -1,0 +1,253 @@
+"""Runs that survive: a SIGKILLed run resumes where its last checkpoint left it and ends where an
+uninterrupted run ends; a sweep re-run skips finished jobs and resumes the broken one."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import compose_config, run_module
+
+from fusion_depth.checkpoint import RUN_KEY, AtomicCheckpointIO, CheckpointError
+from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
+from fusion_depth.metrics import METRIC_KEYS
+from fusion_depth.resume import plan_start
+from fusion_depth.runs import run_dirname
+from fusion_depth.train import train
+
+TESTS = Path(__file__).resolve().parent
+# Three epochs of three batches; last.ckpt after every optimizer step and epoch.
+RESUMABLE = [
+    "experiment=smoke",
+    "logger=none",
+    "trainer.max_epochs=3",
+    "callbacks.last_checkpoint.every_n_epochs=1",
+    "callbacks.last_checkpoint.every_n_train_steps=1",
+]
+
+
+PROBE = "+callbacks.probe._target_=resume_probe.Probe"  # tests/resume_probe.py
+
+
+def probe_env(tmp_path: Path, at_step: int, action: str, **extra: str) -> dict[str, str]:
+    """The environment of a training command with PROBE: tests/ importable, and the probe's
+    settings (it breaks the run at ``at_step`` once: ``stall`` or ``fail``)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(TESTS), env.get("PYTHONPATH")]))
+    settings = {
+        "log": str(tmp_path / "probe.jsonl"),
+        "marker": str(tmp_path / "probe.marker"),
+        "at_step": at_step,
+        "action": action,
+        **extra,
+    }
+    env["FUSION_DEPTH_TEST_PROBE"] = json.dumps(settings)
+    return env
+
+
+def probe_records(tmp_path: Path) -> list[dict]:
+    return [json.loads(line) for line in (tmp_path / "probe.jsonl").read_text().splitlines()]
+
+
+def test_a_killed_run_resumes_mid_epoch_and_ends_like_an_uninterrupted_one(tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    command = [
+        sys.executable,
+        "-m",
+        "fusion_depth.train",
+        *RESUMABLE,
+        PROBE,
+        f"hydra.run.dir={run_dir}",
+    ]
+    env = probe_env(tmp_path, at_step=5, action="stall")
+    first = subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 900
+    while not (tmp_path / "probe.marker").exists():
+        assert first.poll() is None, first.stderr.read().decode()[-3000:]
+        assert time.monotonic() < deadline, "the first run never reached step 5"
+        time.sleep(0.5)
+    # Step 5 (epoch 1, batch 2) was trained; its checkpoint was not written yet: kill -9.
+    first.send_signal(signal.SIGKILL)
+    first.wait(timeout=60)
+    first.stderr.close()
+    assert first.returncode == -signal.SIGKILL
+    assert not (run_dir / "metrics.json").exists()
+    assert not list((run_dir / "checkpoints").glob(".*tmp")), "no half-written checkpoint"
+    saved = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True, mmap=True)
+    assert saved["global_step"] == 4 and saved["epoch"] == 1  # mid-epoch: 1 of 3 batches done
+
+    second = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900
+    )
+    assert second.returncode == 0, second.stderr[-3000:]
+    records = probe_records(tmp_path)
+    pids = list(dict.fromkeys(r["pid"] for r in records))
+    assert len(pids) == 2
+    before = [(r["epoch"], r["batch"], r["step"]) for r in records if r["pid"] == pids[0]]
+    after = [(r["epoch"], r["batch"], r["step"]) for r in records if r["pid"] == pids[1]]
+    assert before == [(0, 0, 1), (0, 1, 2), (0, 2, 3), (1, 0, 4), (1, 1, 5)]
+    # Continued from step 4's checkpoint: step 5 again (its update was lost), no epoch twice.
+    assert after == [(1, 1, 5), (1, 2, 6), (2, 0, 7), (2, 1, 8), (2, 2, 9)]
+    resumed = json.loads((run_dir / "metrics.json").read_text())
+    assert resumed["resumed_from"] == str(run_dir / "checkpoints" / "last.ckpt")
+    assert resumed["global_step"] == 9 and resumed["epochs"] == 3
+
+    # The same run without the kill: the same metrics, to the printed precision.
+    uninterrupted = train(compose_config(RESUMABLE, tmp_path / "uninterrupted"))
+    assert uninterrupted["resumed_from"] is None
+    for key in METRIC_KEYS:
+        assert f"{resumed['test'][key]:.3f}" == f"{uninterrupted['test'][key]:.3f}", key
+    assert resumed["best_val_rmse"] == pytest.approx(uninterrupted["best_val_rmse"], rel=1e-6)
+
+
+SWEEP = [
+    "fusion_depth.train",
+    "-m",
+    "experiment=smoke",
+    "logger=none",
+    "fusion=rgb,concat",
+    "callbacks.last_checkpoint.every_n_epochs=1",
+    PROBE,
+]
+
+
+def test_a_sweep_rerun_skips_finished_jobs_and_resumes_the_failed_one(tmp_path) -> None:
+    env = probe_env(tmp_path, at_step=4, action="fail", only_fusion="concat")
+    first = run_module(SWEEP, cwd=tmp_path, env=env)
+    assert first.returncode == 1, first.stderr[-3000:]
+    assert "1 ok, 1 failed" in first.stdout
+    # Folders named after the overrides, not the time: the same command finds them again.
+    (sweep,) = (tmp_path / "multirun").iterdir()
+    assert sweep.name == run_dirname(f"{PROBE},experiment=smoke,fusion=rgb,concat")
+    jobs = {
+        m: sweep / run_dirname(f"{PROBE},experiment=smoke,fusion={m}") for m in ("rgb", "concat")
+    }
+    assert sorted(p for p in sweep.iterdir() if p.is_dir()) == sorted(jobs.values())
+    failure = json.loads((jobs["concat"] / "failure.json").read_text())
+    assert "failing on purpose at step 4" in failure["error"]
+    done = jobs["rgb"] / "metrics.json"
+    done_before = (done.stat().st_mtime_ns, done.read_text())
+
+    second = run_module(SWEEP, cwd=tmp_path, env=env)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "2 ok, 0 failed" in second.stdout
+    assert f"Already finished: {done}" in second.stdout
+    assert (done.stat().st_mtime_ns, done.read_text()) == done_before  # not trained again
+    resumed = json.loads((jobs["concat"] / "metrics.json").read_text())
+    assert resumed["resumed_from"] == str(jobs["concat"] / "checkpoints" / "last.ckpt")
+    assert resumed["global_step"] == 6
+    assert not (jobs["concat"] / "failure.json").exists()
+    # The second attempt trained only epoch 1 of the concat job (epoch 0 was checkpointed).
+    pids = list(dict.fromkeys(r["pid"] for r in probe_records(tmp_path)))
+    assert len(pids) == 2
+    second_steps = [r["step"] for r in probe_records(tmp_path) if r["pid"] == pids[1]]
+    assert second_steps == [4, 5, 6]
+
+
+def fake_checkpoint(path: Path, overrides: list[str], wandb_id: str = "abcd1234") -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": {}, RUN_KEY: {"overrides": overrides, "wandb_id": wandb_id}}, path)
+    return path
+
+
+def test_plan_start_resumes_skips_refuses_and_starts_over(tmp_path) -> None:
+    run, ckpts = tmp_path / "run", tmp_path / "run" / "checkpoints"
+    ours = ["experiment=smoke", "fusion=concat"]
+    assert plan_start(run, ckpts, "auto", True, ours).checkpoint is None  # nothing there yet
+    last = fake_checkpoint(ckpts / "last.ckpt", [*ours, "resume=auto"])
+    (run / "failure.json").write_text("{}")
+    start = plan_start(run, ckpts, "auto", True, ours, excluded=["resume"])
+    assert (start.checkpoint, start.wandb_id, start.finished) == (last, "abcd1234", None)
+    assert not (run / "failure.json").exists()  # an earlier attempt's failure is no longer true
+    # Another configuration's checkpoint in the same folder (a shared hydra.run.dir) is refused.
+    with pytest.raises(ValueError, match="belongs to another run.*fusion=rgb"):
+        plan_start(run, ckpts, "auto", True, ["experiment=smoke", "fusion=rgb"])
+    (ckpts / "last.ckpt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match=r"last\.ckpt.*resume=never"):
+        plan_start(run, ckpts, "auto", True, ours)
+    # A finished run is skipped, or with skip_done=false continued from its last checkpoint.
+    fake_checkpoint(last, ours)
+    metrics = {"status": "ok", "run": {"overrides": ours}, "test": {"rmse": 1.5}}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    assert plan_start(run, ckpts, "auto", True, ours).finished == metrics
+    assert plan_start(run, ckpts, "auto", False, ours).checkpoint == last
+    # resume=never removes the previous run's results and checkpoints before starting over.
+    (ckpts / "epoch001-rmse1.5.ckpt").write_bytes(b"x")
+    start = plan_start(run, ckpts, "never", False, ours)
+    assert start.checkpoint is None and start.wandb_id != "abcd1234"
+    assert not list(ckpts.glob("*.ckpt")) and not (run / "metrics.json").exists()
+    with pytest.raises(ValueError, match="resume='sometimes'.*auto"):
+        plan_start(run, ckpts, "sometimes", True, ours)
+
+
+def test_a_failed_checkpoint_write_leaves_the_previous_one_intact(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "last.ckpt"
+    io = AtomicCheckpointIO()
+    io.save_checkpoint({"step": torch.tensor(1)}, path)
+
+    def disk_full(obj, f, *args, **kwargs):
+        f.write(b"half a checkpoint")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", disk_full)
+    with pytest.raises(OSError, match=r"last\.ckpt: could not write.*No space left.*untouched"):
+        io.save_checkpoint({"step": torch.tensor(2)}, path)
+    monkeypatch.undo()
+    assert io.load_checkpoint(path)["step"].item() == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]  # no temporary file left
+
+
+def test_checkpoints_are_loaded_weights_only(tmp_path) -> None:
+    path = tmp_path / "evil.ckpt"
+    torch.save({"state_dict": {}, "payload": subprocess.Popen}, path)  # needs unpickling code
+    with pytest.raises(CheckpointError, match="evil.ckpt: refused to load"):
+        AtomicCheckpointIO().load_checkpoint(path, weights_only=False)
+
+
+def test_a_restored_loader_hands_out_the_rest_of_its_epoch(tmp_path) -> None:
+    data = list(range(10))
+
+    def loader() -> ResumableLoader:
+        return ResumableLoader(data, batch_size=2, sampler=EpochSampler(10, seed=3), drop_last=True)
+
+    full = loader()
+    full.sampler.set_epoch(4)
+    epoch4 = [b.tolist() for b in full]
+    assert sorted(sum(epoch4, [])) == data and epoch4 != [[0, 1], [2, 3], [4, 5], [6, 7], [8, 9]]
+    full.sampler.set_epoch(5)
+    assert [b.tolist() for b in full] != epoch4  # another order each epoch
+
+    interrupted = loader()
+    interrupted.sampler.set_epoch(4)
+    it = iter(interrupted)
+    assert [next(it).tolist() for _ in range(2)] == epoch4[:2]
+    state = interrupted.state_dict()
+    assert state == {"epoch": 4, "batches": 2}
+    restored = loader()
+    restored.load_state_dict(state)
+    restored.sampler.set_epoch(4)
+    assert [b.tolist() for b in restored] == epoch4[2:]
+    assert [b.tolist() for b in restored] == epoch4  # the skip applies once
+    restored.load_state_dict(state)
+    restored.sampler.set_epoch(5)  # an epoch-end checkpoint: the next epoch starts in full
+    assert len(list(restored)) == 5
+
+
+def test_run_dirname_is_stable_and_safe() -> None:
+    assert run_dirname("") == "default"
+    assert (
+        run_dirname("dataset.root=/data/kitti,fusion=add") == "dataset.root=_data_kitti,fusion=add"
+    )
+    long = "x=" + "a" * 400
+    name = run_dirname(long)
+    assert len(name.encode()) <= 200 and name == run_dirname(long) != run_dirname(long + "b")
