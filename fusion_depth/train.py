@@ -127,6 +127,21 @@ def train(cfg: DictConfig) -> dict | None:
     return fit_and_test(job)
 
 
+def checkpoint_room(callbacks: DictConfig, model: torch.nn.Module) -> int:
+    """Bytes the run's checkpoints need on disk, checked before training: last.ckpt (weights and
+    Adam state) and the best checkpoint (weights only if so configured), each briefly twice
+    while its new version is written beside the old one."""
+    full = checkpoint_bytes(model)
+    room = 0
+    last = callbacks.get("last_checkpoint")
+    if last and (last.get("every_n_epochs") or last.get("every_n_train_steps")):
+        room += 2 * full
+    best = callbacks.get("model_checkpoint")
+    if best:
+        room += 2 * (checkpoint_bytes(model, 0) if best.get("save_weights_only") else full)
+    return room
+
+
 @dataclass
 class RankJob:
     """What every process of a run needs: the config, the resolved config, the run's identity
@@ -147,9 +162,7 @@ def fit_and_test(job: RankJob) -> dict | None:
     L.seed_everything(cfg.seed, workers=True)
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
     model = instantiate(cfg.model, _convert_="all")
-    # Fail before training when the checkpoints cannot be written: the last and best ones,
-    # each briefly twice while its new version is written beside it.
-    check_output_dir(output_dir, 4 * checkpoint_bytes(model))
+    check_output_dir(output_dir, checkpoint_room(cfg.callbacks, model))
     model.run_config = run_config
     model.run_identity = job.identity
     logger = False

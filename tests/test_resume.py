@@ -251,3 +251,18 @@ def test_run_dirname_is_stable_and_safe() -> None:
     long = "x=" + "a" * 400
     name = run_dirname(long)
     assert len(name.encode()) <= 200 and name == run_dirname(long) != run_dirname(long + "b")
+
+
+def test_the_disk_check_asks_for_room_for_the_checkpoints_the_run_writes(tmp_path) -> None:
+    from torch import nn
+
+    from fusion_depth.config import checkpoint_bytes
+    from fusion_depth.train import checkpoint_room
+
+    model = nn.Linear(100, 10)
+    full, weights = checkpoint_bytes(model), checkpoint_bytes(model, 0)
+    assert full == 3 * weights  # weights + Adam's two moments
+    default = compose_config([], tmp_path).callbacks
+    assert checkpoint_room(default, model) == 4 * full  # last + best, each written beside the old
+    smoke = compose_config(["experiment=smoke"], tmp_path).callbacks
+    assert checkpoint_room(smoke, model) == 2 * weights  # no last.ckpt, weights-only best
