@@ -46,7 +46,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
-from fusion_depth.config import check_dataset
+from fusion_depth.config import CONF_DIR, check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.inference import predict_depth
@@ -61,7 +61,6 @@ from fusion_depth.speed import (
     speed_up,
 )
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 STAGES = ("peak", "infer", "train", "data")
 # Top-level keys of every result, for scripts comparing runs (with --baseline also
 # baseline_infer_latency_s_median, baseline_train_samples_per_s and the speed-ups).
@@ -83,7 +82,7 @@ def compose_train_config(overrides: Sequence[str]) -> DictConfig:
     """``conf/train.yaml`` with ``overrides``; errors name the offending override."""
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        with initialize_config_dir(CONF_DIR, version_base="1.3"):
             cfg = compose("train", overrides=list(overrides))
     except HydraException as err:
         raise ValueError(f"bench overrides {list(overrides)}: {err}") from err

@@ -46,6 +46,10 @@ class OutputDirError(OSError, CompactHydraException):
 # --- resolvers --------------------------------------------------------------------------------
 
 
+# The Hydra configs (``conf/`` beside the package), for entry points that compose them.
+CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+
+
 def _cache_dir() -> str:
     """Where generated/prepared datasets live: $FUSION_DEPTH_CACHE or ~/.cache/fusion_depth."""
     return str(Path(os.environ.get("FUSION_DEPTH_CACHE", "~/.cache/fusion_depth")).expanduser())

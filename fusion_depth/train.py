@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import AtomicCheckpointIO
 from fusion_depth.config import (
+    CONF_DIR,
     check_output_dir,
     checkpoint_bytes,
     redact_overrides,
@@ -49,8 +50,6 @@ from fusion_depth.runs import (
 from fusion_depth.speed import accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
-
-CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 quiet_known_noise()
 
