@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -40,6 +41,23 @@ class ValidationPanels(L.Callback):
             )
 
 
+def validation_follows(trainer: L.Trainer, batch_idx: int) -> bool:
+    """Whether Lightning validates right after training batch ``batch_idx`` of this epoch: after
+    the epoch's last batch, and every ``val_check_interval`` batches (counted as Lightning
+    counts them). Time-based intervals (``val_check_interval`` as a duration) cannot be told in
+    advance: every batch counts as possibly followed by validation."""
+    if trainer._val_check_time_interval is not None:
+        return True
+    if batch_idx + 1 >= trainer.num_training_batches:
+        return True
+    every = trainer.val_check_batch
+    if not isinstance(every, int) or every <= 0:
+        return False
+    loop = trainer.fit_loop.epoch_loop
+    current = loop.total_batch_idx if trainer.check_val_every_n_epoch is None else batch_idx
+    return (current + 1) % every == 0
+
+
 class LastCheckpoint(Checkpoint):
     """Writes ``<dirpath>/last.ckpt``, the full training state a re-run resumes from
     (``resume=auto``): every ``every_n_epochs`` training epochs, and every
@@ -47,7 +65,10 @@ class LastCheckpoint(Checkpoint):
 
     As a :class:`~lightning.pytorch.callbacks.Checkpoint` it runs after the other callbacks
     and after the best-model checkpoint listed before it, so the file records that epoch's
-    validation and best model too. Writes are atomic (``AtomicCheckpointIO``).
+    validation and best model too. Step saves skip the batches that validation follows (see
+    :func:`validation_follows`), so every saved state lies either inside an epoch's training or
+    after its validation: a resumed run redoes whatever was in progress, never skips it. Each
+    save first flushes the loggers. Writes are atomic (``AtomicCheckpointIO``).
     """
 
     def __init__(
@@ -67,15 +88,30 @@ class LastCheckpoint(Checkpoint):
         self._saved_at_step = -1
 
     def _save(self, trainer: L.Trainer) -> None:
+        for logger in trainer.loggers:  # what was logged so far is on disk with the state
+            logger.save()
         trainer.save_checkpoint(self.path, weights_only=False)  # the full state, to resume from
         self._saved_at_step = trainer.global_step
 
-    def on_train_batch_end(self, trainer: L.Trainer, *args: object) -> None:
+    def on_train_batch_end(
+        self,
+        trainer: L.Trainer,
+        pl_module: L.LightningModule,
+        outputs: Any,
+        batch: Any,
+        batch_idx: int,
+    ) -> None:
         # global_step counts optimizer steps: with gradient accumulation it stays put for a
         # few batches, and only the batch that stepped is saved.
         n, step = self.every_n_train_steps, trainer.global_step
-        if n and step > 0 and step % n == 0 and step != self._saved_at_step:
-            self._save(trainer)
+        if not n or step <= 0 or step % n or step == self._saved_at_step:
+            return
+        if validation_follows(trainer, batch_idx):
+            # A state saved here would resume past the validation that follows: a run killed
+            # during it would never validate that epoch. The epoch-end save (after validation)
+            # covers this batch, and a kill before it resumes from the previous step save.
+            return
+        self._save(trainer)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # Always written when due, also right after a step save: this one holds the epoch's

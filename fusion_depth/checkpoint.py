@@ -1,29 +1,40 @@
 """Loading a trained model back from a checkpoint, without executing code from the file.
 
 Checkpoints are read with ``torch.load(weights_only=True)``, which only rebuilds tensors and
-plain containers. The network is rebuilt from the run config that training stores in every
-checkpoint (``fusion_depth_config``), using only its known ``model.net`` keys: a ``_target_``
-in the file is never imported or called.
+plain containers. Training stores its run config in every checkpoint (``fusion_depth_config``)
+as plain data, without Hydra's instantiation keys (:func:`plain_config`). A checkpoint that has
+one anywhere (``_target_``, ``_partial_``, ...) is refused before anything else is done with it.
+The network is rebuilt from the known ``model.net`` keys, and the dataset from its name in the
+package's own table (:data:`fusion_depth.data.READERS`), with the stored reader arguments
+checked against that reader's constructor.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 import os
 import pickle
-import re
+import shutil
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.errors import CompactHydraException
+from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
+from fusion_depth.data import READERS, reader_class
 from fusion_depth.models import DepthNet
 from fusion_depth.runs import write_atomic
 
 CONFIG_KEY = "fusion_depth_config"
 RUN_KEY = "fusion_depth_run"
-READER_NAMESPACE = "fusion_depth.data."  # the only reader targets a checkpoint may name
+# Hydra's instantiation keys: a config holding one names code to import and call.
+INSTANTIATION_KEYS = ("_target_", "_partial_", "_args_", "_recursive_", "_convert_")
+_PLAIN_TYPES = (str, int, float, bool, type(None))
 # The DepthNet constructor arguments a checkpoint may set (everything else in the file is ignored).
 _NET_KEYS = (
     "backbone",
@@ -35,8 +46,47 @@ _NET_KEYS = (
 )
 
 
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used as asked; the message names the file and the problem."""
+class CheckpointError(ValueError, CompactHydraException):
+    """A checkpoint that cannot be used as asked; the message names the file and the problem
+    (Hydra prints it alone, without a traceback)."""
+
+
+class CheckpointWriteError(OSError, CompactHydraException):
+    """A checkpoint could not be written (e.g. a full disk); the previous one is intact."""
+
+
+def plain_config(config: Any) -> Any:
+    """``config`` (a resolved run config: dicts, lists, scalars) without Hydra's instantiation
+    keys, as training stores it in checkpoints: what a run was, never what code to call."""
+    if isinstance(config, dict):
+        return {k: plain_config(v) for k, v in config.items() if k not in INSTANTIATION_KEYS}
+    if isinstance(config, list | tuple):
+        return [plain_config(v) for v in config]
+    return config
+
+
+def _instantiation_keys(data: Any, where: str) -> Iterator[str]:
+    """Key paths (``a.b._target_``) of the instantiation keys anywhere in ``data``."""
+    if isinstance(data, dict):
+        for key, value in data.items():
+            path = f"{where}.{key}" if where else str(key)
+            if key in INSTANTIATION_KEYS:
+                yield path
+            yield from _instantiation_keys(value, path)
+    elif isinstance(data, list | tuple):
+        for i, value in enumerate(data):
+            yield from _instantiation_keys(value, f"{where}[{i}]")
+
+
+def check_no_code(checkpoint: Any, path: Path) -> None:
+    """Refuse a checkpoint with a Hydra instantiation key anywhere in it, naming the key path:
+    a checkpoint is data, and the code it runs with is chosen by name from this package."""
+    found = next(_instantiation_keys(checkpoint, ""), None)
+    if found is not None:
+        raise CheckpointError(
+            f"ckpt_path={path}: refused; it holds the instantiation key {found}, and a "
+            "checkpoint may only hold plain data (fusion_depth.train writes none)"
+        )
 
 
 @dataclass
@@ -66,19 +116,32 @@ def load_weights_only(
     if not path.is_file():
         raise FileNotFoundError(f"ckpt_path={path}: no such file")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as err:
-        unsupported = re.search(r"Unsupported global: GLOBAL (\S+)", str(err))
-        if unsupported is None:
+        # Named from the file itself, not from torch's wording (which changes between versions).
+        objects = _unsafe_globals(path)
+        if not objects:
             raise CheckpointError(f"ckpt_path={path}: not a readable PyTorch checkpoint") from err
         raise CheckpointError(
-            f"ckpt_path={path}: refused to load; it holds a {unsupported.group(1)} object, and "
+            f"ckpt_path={path}: refused to load; it holds a {', '.join(objects)} object, and "
             "weights-only loading never runs code from a file to rebuild objects"
         ) from err
     except (RuntimeError, EOFError, OSError) as err:
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CheckpointError(
-            f"ckpt_path={path}: not a readable PyTorch checkpoint ({err})"
+            f"ckpt_path={path}: not a readable PyTorch checkpoint ({reason})"
         ) from err
+    check_no_code(checkpoint, path)
+    return checkpoint
+
+
+def _unsafe_globals(path: Path) -> list[str]:
+    """The objects a checkpoint's pickle would have to import to be rebuilt (none if the file
+    cannot even be parsed)."""
+    try:
+        return list(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+    except Exception:  # noqa: BLE001 - any parse failure means "not a readable checkpoint"
+        return []
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -160,10 +223,7 @@ def load_model(
 
 def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
     """The dataset block to score or predict on: ``chosen`` (a ``dataset=`` choice composed from
-    ``conf/``) when given, else the one the checkpoint was trained on.
-
-    A checkpoint's block names its reader by ``_target_``; only readers of this package
-    (``fusion_depth.data.*``) are accepted, so a crafted file cannot make us call anything else.
+    ``conf/``) when given, else the one the checkpoint was trained on (see :func:`make_reader`).
     """
     if chosen is not None:
         if "reader" not in chosen:  # e.g. experiment=smoke sets dataset sizes without a dataset=
@@ -174,13 +234,63 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
             )
         return chosen
     block = loaded.config.get("dataset")
-    target = (block or {}).get("reader", {}).get("_target_", "")
-    if not isinstance(target, str) or not target.startswith(READER_NAMESPACE):
+    if not isinstance(block, dict) or not isinstance(block.get("reader"), dict):
         raise CheckpointError(
-            f"ckpt_path={loaded.path}: its dataset reader {target!r} is not one of "
-            f"{READER_NAMESPACE}*; pass dataset=<name> to choose the dataset explicitly"
+            f"ckpt_path={loaded.path}: its run config records no dataset reader; pass "
+            "dataset=<name> to choose the dataset"
+        )
+    name = block.get("name")
+    if name not in READERS:
+        raise CheckpointError(
+            f"ckpt_path={loaded.path}: dataset.name={name!r} is not one of {sorted(READERS)}; "
+            "pass dataset=<name> to choose the dataset"
         )
     return block
+
+
+def _is_plain(value: Any) -> bool:
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _is_plain(v) for k, v in value.items())
+    if isinstance(value, list | tuple):
+        return all(_is_plain(v) for v in value)
+    return isinstance(value, _PLAIN_TYPES)
+
+
+def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[..., Any]:
+    """The reader of a dataset block, as a callable taking ``split=``.
+
+    With ``path`` (the block came from that checkpoint), the reader class is looked up by
+    ``dataset.name`` in :data:`fusion_depth.data.READERS` and the stored ``dataset.reader``
+    arguments must be plain data naming that constructor's parameters; otherwise (a block
+    composed from ``conf/``) Hydra instantiates it as configured.
+
+    Raises:
+        CheckpointError: an unknown dataset, an argument the reader does not take, or a value
+            that is not plain data (naming the key).
+    """
+    if path is None:
+        return instantiate(block["reader"])
+    name = block["name"]
+    try:
+        cls = reader_class(name)
+    except ImportError as err:
+        raise CheckpointError(
+            f"ckpt_path={path}: dataset={name} needs a package that is not installed ({err})"
+        ) from err
+    params = inspect.signature(cls).parameters
+    args = dict(block["reader"])
+    for key, value in args.items():
+        if key not in params or key == "split":
+            raise CheckpointError(
+                f"ckpt_path={path}: dataset.reader.{key} is not an argument of the {name} "
+                f"reader; expected some of {sorted(k for k in params if k != 'split')}"
+            )
+        if not _is_plain(value):
+            raise CheckpointError(
+                f"ckpt_path={path}: dataset.reader.{key} holds a {type(value).__name__}; "
+                "expected plain data (strings, numbers, lists)"
+            )
+    return functools.partial(cls, **args)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -198,22 +308,55 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         if storage_options is not None:
             raise TypeError(f"{type(self).__name__} takes no storage_options")
 
+        failed: list[OSError] = []  # what the file system said, under torch's own error
+
         def write(tmp: Path) -> None:
             with tmp.open("wb") as f:
-                torch.save(checkpoint, f)
+                torch.save(checkpoint, _ReportingFile(f, failed))
                 f.flush()
                 os.fsync(f.fileno())
 
         try:
             write_atomic(path, write, suffix=".ckpt.tmp")
-        except OSError as err:
-            raise OSError(
-                err.errno,
-                f"{path}: could not write the checkpoint ({err.strerror or err}); "
-                "the previous checkpoint there, if any, is untouched",
+        except (OSError, RuntimeError) as err:
+            cause = failed[0] if failed else err
+            reason = cause.strerror if isinstance(cause, OSError) and cause.strerror else cause
+            raise CheckpointWriteError(
+                getattr(cause, "errno", None) or 0,
+                f"could not write the checkpoint {path} ({reason}; "
+                f"{_free_space(Path(path).parent)} free there); the previous checkpoint there, "
+                "if any, is intact",
             ) from err
 
     def load_checkpoint(
         self, path: Any, map_location: Any | None = None, weights_only: bool | None = None
     ) -> dict[str, Any]:
         return load_weights_only(path, map_location=map_location)
+
+
+class _ReportingFile:
+    """A binary file for ``torch.save`` that keeps the OSError of a failed write: torch turns
+    it into its own ``RuntimeError`` (inline_container), which no longer says why."""
+
+    def __init__(self, file: Any, failed: list[OSError]) -> None:
+        self._file = file
+        self._failed = failed
+
+    def write(self, data: Any) -> int:
+        try:
+            return self._file.write(data)
+        except OSError as err:
+            self._failed.append(err)
+            raise
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._file, name)
+
+
+def _free_space(folder: Path) -> str:
+    """Free space on ``folder``'s file system, e.g. ``'12.3 MB'`` (``'unknown'`` if unreadable)."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return "unknown space"
+    return f"{free / 1e6:.1f} MB"

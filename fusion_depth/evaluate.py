@@ -17,7 +17,7 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model
+from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
@@ -76,7 +76,10 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     )
     # Resolved here: once detached from the root config its ${...} references could not be.
     chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
-    dataset = OmegaConf.create(dataset_config(loaded, chosen))
+    block = dataset_config(loaded, chosen)
+    # A block from the checkpoint is built from the package's table of readers, by name.
+    reader = make_reader(block, None if chosen is not None else loaded.path)
+    dataset = OmegaConf.create(block)
     check_dataset(dataset, loaded.fusion)
     L.seed_everything(cfg.seed, workers=True)
     output_dir = Path(output_dir)
@@ -90,7 +93,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     )
     module.set_protocol(protocol)
     datamodule = DepthDataModule(
-        reader=instantiate(dataset.reader),
+        reader=reader,
         batch_size=cfg.data.eval_batch_size,
         num_workers=cfg.data.num_workers,
         test_split=cfg.split,

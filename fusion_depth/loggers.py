@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import netrc
 import os
 import sys
@@ -10,7 +11,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from lightning.pytorch.loggers import WandbLogger
+from lightning.pytorch.loggers import CSVLogger, WandbLogger
 
 from fusion_depth.config import redact_overrides, redact_secrets
 
@@ -102,6 +103,66 @@ def wandb_logger(
         id=id,
         resume="allow" if id else None,
     )
+
+
+class ResumableCSVLogger(CSVLogger):
+    """Lightning's CSVLogger, flushed every step (a kill loses no row), whose ``metrics.csv``
+    continues the interrupted run's when a run resumes at optimizer step ``resume_step``.
+
+    The rows of work done before that step are kept (their ``step`` column, Lightning's count of
+    optimizer steps taken before the row was logged, is below ``resume_step``); later rows
+    belong to work the resumed run redoes, and are dropped so they are not written twice.
+    Lightning's own CSVLogger deletes the file when it starts.
+    """
+
+    def __init__(self, *args: Any, resume_step: int | None = None, **kwargs: Any) -> None:
+        kwargs.setdefault("flush_logs_every_n_steps", 1)
+        super().__init__(*args, **kwargs)
+        self._resume_step = resume_step
+
+    @property
+    def experiment(self) -> Any:
+        if self._experiment is not None:
+            return self._experiment
+        path = Path(self.log_dir) / "metrics.csv"
+        kept = _rows_before(path, self._resume_step) if self._resume_step else None
+        writer = super().experiment  # deletes an existing metrics.csv
+        if kept:
+            header, rows = kept
+            writer.metrics_keys = header
+            writer.metrics = rows
+            writer.save()
+        return writer
+
+
+def _rows_before(path: Path, step: int) -> tuple[list[str], list[dict]] | None:
+    """(header, rows) of a Lightning ``metrics.csv`` whose ``step`` is below ``step``; a last
+    line cut short by a kill is left out."""
+    try:
+        text = path.read_text()
+    except OSError:
+        return None
+    lines = text.splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines = lines[:-1]
+    reader = csv.DictReader(lines)
+    header = list(reader.fieldnames or [])
+    rows = []
+    for row in reader:
+        try:
+            if None not in row and int(row["step"]) < step:
+                rows.append(row)
+        except (KeyError, TypeError, ValueError):
+            continue
+    return (header, rows) if header and "step" in header else None
+
+
+def csv_logger(
+    save_dir: str, name: str = "csv", version: str | int = "", resume_step: int | None = None
+) -> ResumableCSVLogger:
+    """A :class:`ResumableCSVLogger` writing ``<save_dir>/<name>/<version>/metrics.csv``
+    (``resume_step``: train passes the step it resumes at)."""
+    return ResumableCSVLogger(save_dir, name=name, version=version, resume_step=resume_step)
 
 
 @contextmanager

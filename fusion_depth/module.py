@@ -35,16 +35,21 @@ class NonFiniteLossError(FloatingPointError):
 def downsample_depth(
     depth: torch.Tensor, size: tuple[int, int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth (B,1,H,W), 0 = invalid → (depth, valid mask) at ``size`` by masked average pooling.
+    """Depth (B,1,H,W) in metres → (depth, valid mask) at ``size`` by masked average pooling.
 
-    Averaging only the valid pixels of each cell keeps sparse ground truth (lidar) sparse instead
-    of diluting it with zeros, and a dense map is simply area-averaged.
+    A pixel is valid iff its depth is finite and > 0: 0 marks "no ground truth", and a NaN or
+    infinite value (a custom reader's hole) is invalid too, never averaged into a valid cell.
+    Invalid cells come back as 0. Averaging only the valid pixels of each cell keeps sparse
+    ground truth (lidar) sparse instead of diluting it with zeros, and a dense map is simply
+    area-averaged.
     """
+    valid = torch.isfinite(depth) & (depth > 0)
+    depth = torch.where(valid, depth, torch.zeros_like(depth))  # NaN * 0 would still be NaN
     if tuple(depth.shape[-2:]) == tuple(size):
-        return depth, depth > 0
-    valid = (depth > 0).to(depth.dtype)
-    total = F.adaptive_avg_pool2d(depth * valid, size)
-    weight = F.adaptive_avg_pool2d(valid, size)
+        return depth, valid
+    weight_full = valid.to(depth.dtype)
+    total = F.adaptive_avg_pool2d(depth, size)
+    weight = F.adaptive_avg_pool2d(weight_full, size)
     mask = weight > 0
     return torch.where(mask, total / weight.clamp_min(1e-12), torch.zeros_like(total)), mask
 
@@ -109,6 +114,9 @@ class DepthModule(L.LightningModule):
         self.run_config: dict | None = None
         self.run_identity: dict | None = None
         self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
+        # One record per validation epoch of the run ({"epoch", "step", metric: value}),
+        # carried through resumes in the checkpoint; metrics.json's "validation".
+        self.val_history: list[dict[str, float | int]] = []
         self._rng_to_restore: dict[str, Any] | None = None
 
     def setup(self, stage: str) -> None:
@@ -131,13 +139,18 @@ class DepthModule(L.LightningModule):
         rng = {"cpu": torch.get_rng_state()}
         if torch.cuda.is_available() and torch.cuda.is_initialized():
             rng["cuda"] = torch.cuda.get_rng_state_all()
-        checkpoint[TRAINING_STATE_KEY] = {"rng": rng, "nonfinite_skips": self.nonfinite_skips}
+        checkpoint[TRAINING_STATE_KEY] = {
+            "rng": rng,
+            "nonfinite_skips": self.nonfinite_skips,
+            "val_history": [dict(r) for r in self.val_history],
+        }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         state = checkpoint.get(TRAINING_STATE_KEY)
         if state is not None:
             self.nonfinite_skips = state["nonfinite_skips"]
             self._rng_to_restore = state["rng"]
+            self.val_history = [dict(r) for r in state.get("val_history", [])]
 
     def on_train_start(self) -> None:
         # Restored here, not on load: after the setup and sanity checks that follow loading,
@@ -250,8 +263,12 @@ class DepthModule(L.LightningModule):
         self.val_panels = []
 
     def on_validation_epoch_end(self) -> None:
-        self.log_dict({f"val/{k}": v for k, v in self.val_metrics.compute().items()})
+        values = self.val_metrics.compute()
+        self.log_dict({f"val/{k}": v for k, v in values.items()})
         self.val_metrics.reset()
+        if self._trainer is not None and not self.trainer.sanity_checking:
+            record = {"epoch": self.current_epoch, "step": self.global_step}
+            self.val_history.append({**record, **{k: float(v) for k, v in values.items()}})
 
     def on_test_epoch_start(self) -> None:
         self._latencies = []

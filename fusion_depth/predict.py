@@ -38,10 +38,9 @@ from typing import Any
 import hydra
 import numpy as np
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model
+from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
@@ -452,7 +451,7 @@ def predict_split(
     if isinstance(dataset, DictConfig):
         dataset = OmegaConf.to_container(dataset, resolve=True)
     block = dataset_config(loaded, dataset)
-    reader = instantiate(block["reader"])(split=split)
+    reader = make_reader(block, None if dataset is not None else loaded.path)(split=split)
     total = len(reader) if limit is None else min(limit, len(reader))
     if total == 0:
         raise ValueError(f"input={SPLIT_PREFIX}{split}: dataset={block.get('name')} has no frames")

@@ -8,13 +8,19 @@ again (``sweep.skip_done=true``).
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
+import os
+import socket
+import time
 import uuid
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from hydra.errors import CompactHydraException
 
 from fusion_depth.checkpoint import RUN_KEY, CheckpointError, load_weights_only
 from fusion_depth.runs import FAILURE_FILE, METRICS_FILE, PER_IMAGE_FILE, TRACEBACK_FILE
@@ -23,6 +29,8 @@ log = logging.getLogger(__name__)
 
 RESUME_MODES = ("auto", "never")
 LAST_CHECKPOINT = "last.ckpt"
+LOCK_FILE = ".run.lock"
+TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.runs.write_atomic's temporary names
 
 
 @dataclass
@@ -32,6 +40,85 @@ class RunStart:
     finished: dict | None = None  # the finished run's metrics.json: nothing to train
     checkpoint: Path | None = None  # resume from this checkpoint
     wandb_id: str = ""  # the W&B run to log into (the interrupted run's, when resuming)
+    global_step: int = 0  # the checkpoint's optimizer steps (0 when starting afresh)
+
+
+class RunLockedError(RuntimeError, CompactHydraException):
+    """Another live process is using the run folder."""
+
+
+class RunLock:
+    """One run folder, one process: an exclusive ``flock`` on ``<run dir>/.run.lock``, which
+    records the holder's PID and host for the message a second process gets.
+
+    The kernel drops the lock when its process dies, however it dies, so a lock left by a killed
+    run is simply taken over by the next command. Use as a context manager.
+
+    Raises:
+        RunLockedError: a live process holds the lock (named by PID and host).
+    """
+
+    def __init__(self, run_dir: str | os.PathLike) -> None:
+        self.path = Path(run_dir) / LOCK_FILE
+        self._fd: int | None = None
+
+    def __enter__(self) -> RunLock:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _lock_holder(fd)
+            os.close(fd)
+            raise RunLockedError(
+                f"{self.path.parent} is in use by {holder}: wait for it to finish (or stop it); "
+                "two processes in one run folder would train over each other"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()}\n".encode())
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # releases the flock; the file stays (removing it would race)
+            self._fd = None
+
+
+def _lock_holder(fd: int) -> str:
+    """What the holder wrote into the lock file (it writes right after locking: wait briefly)."""
+    for _ in range(20):
+        text = os.pread(fd, 200, 0).decode(errors="replace").strip()
+        if text:
+            return f"process {text.removeprefix('pid ')}"
+        time.sleep(0.05)
+    return "another process"
+
+
+def is_lead_process() -> bool:
+    """False in the ranks > 0 that a cluster launcher (SLURM, torchrun) starts for one run:
+    they share the lead process's run folder and lock."""
+    for variable in ("RANK", "SLURM_PROCID"):
+        value = os.environ.get(variable)
+        if value is not None and value.strip().isdigit():
+            return int(value) == 0
+    return True
+
+
+def remove_leftovers(output_dir: Path, checkpoint_dir: Path | None, keep: Collection[Path]) -> None:
+    """Remove what an interrupted attempt left (the caller holds the run lock): temporary files
+    of writes it never finished, and checkpoints its resumed state does not know (``keep``:
+    ``last.ckpt`` and the best checkpoints it records). Such a checkpoint was written after
+    ``last.ckpt``, by work that is about to be redone."""
+    folders = [output_dir, *([checkpoint_dir] if checkpoint_dir else [])]
+    stale = [p for folder in folders if folder.is_dir() for p in folder.glob(TEMPORARY_GLOB)]
+    if checkpoint_dir is not None and checkpoint_dir.is_dir():
+        # By name: a recorded path may be relative to another working directory.
+        known = {Path(p).name for p in keep}
+        stale += [p for p in checkpoint_dir.glob("*.ckpt") if p.name not in known]
+    for path in sorted(set(stale)):
+        log.info("removing %s, left by an interrupted attempt", path)
+        path.unlink(missing_ok=True)
 
 
 def override_key(override: str) -> str:
@@ -46,15 +133,18 @@ def identity_overrides(overrides: Sequence[str], excluded: Collection[str]) -> l
 
 
 def finished_results(output_dir: Path) -> dict | None:
-    """The run's ``metrics.json`` if it holds a finished run's results, else None."""
+    """The run's ``metrics.json`` if it holds a finished run's results (status ok, test metrics,
+    at least one optimizer step trained), else None."""
     path = output_dir / METRICS_FILE
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-    if isinstance(data, dict) and data.get("status") == "ok" and isinstance(data.get("test"), dict):
-        return data
-    return None
+    if not isinstance(data, dict) or data.get("status") != "ok":
+        return None
+    steps = data.get("global_step")
+    trained = isinstance(steps, int) and not isinstance(steps, bool) and steps > 0
+    return data if trained and isinstance(data.get("test"), dict) else None
 
 
 def _check_same_run(
@@ -101,7 +191,9 @@ def plan_start(
 
     ``overrides`` (already filtered by :func:`identity_overrides`) must match those recorded in
     the results or checkpoint found, so a shared ``hydra.run.dir`` never resumes another
-    configuration. A failure record from an earlier attempt is removed either way.
+    configuration. A failure record from an earlier attempt is removed either way, and so are
+    the leftovers of an interrupted attempt (:func:`remove_leftovers`): call it holding the
+    run's :class:`RunLock`.
     """
     if resume not in RESUME_MODES:
         raise ValueError(f"resume={resume!r}: expected one of {list(RESUME_MODES)}")
@@ -113,16 +205,42 @@ def plan_start(
     for name in (FAILURE_FILE, TRACEBACK_FILE):
         (output_dir / name).unlink(missing_ok=True)
     if checkpoint_dir is None:
+        remove_leftovers(output_dir, None, keep=())
         return fresh
     if resume == "never":
         _clear_previous(output_dir, checkpoint_dir)
+        remove_leftovers(output_dir, checkpoint_dir, keep=())
         return fresh
     last = checkpoint_dir / LAST_CHECKPOINT
     if not last.is_file():
+        remove_leftovers(output_dir, checkpoint_dir, keep=())
         return fresh
     try:
-        identity = load_weights_only(last, mmap=True).get(RUN_KEY) or {}
+        # Also refuses a checkpoint that names code anywhere in it (check_no_code).
+        checkpoint = load_weights_only(last, mmap=True)
     except CheckpointError as err:
         raise CheckpointError(f"{err}; resume=never starts this run over") from err
+    identity = checkpoint.get(RUN_KEY) or {}
     _check_same_run(last, identity.get("overrides"), overrides, excluded)
-    return RunStart(checkpoint=last, wandb_id=identity.get("wandb_id") or fresh.wandb_id)
+    remove_leftovers(output_dir, checkpoint_dir, keep=[last, *known_checkpoints(checkpoint)])
+    return RunStart(
+        checkpoint=last,
+        wandb_id=identity.get("wandb_id") or fresh.wandb_id,
+        global_step=int(checkpoint.get("global_step", 0)),
+    )
+
+
+def known_checkpoints(checkpoint: dict) -> list[Path]:
+    """The checkpoint files a saved training state refers to: every ModelCheckpoint's best and
+    top-k models (Lightning stores them under ``callbacks``)."""
+    known: list[Path] = []
+    for state in (checkpoint.get("callbacks") or {}).values():
+        if not isinstance(state, dict):
+            continue
+        for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+            if isinstance(state.get(key), str) and state[key]:
+                known.append(Path(state[key]))
+        top_k = state.get("best_k_models")
+        if isinstance(top_k, dict):
+            known += [Path(p) for p in top_k if isinstance(p, str)]
+    return known

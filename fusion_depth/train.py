@@ -7,6 +7,7 @@ python -m fusion_depth.train -m loss=l1,l2,berhu fusion=rgb,concat,add   # a swe
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
@@ -25,7 +26,7 @@ from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.checkpoint import AtomicCheckpointIO
+from fusion_depth.checkpoint import AtomicCheckpointIO, plain_config
 from fusion_depth.config import (
     CONF_DIR,
     check_output_dir,
@@ -35,11 +36,18 @@ from fusion_depth.config import (
     validate_config,
 )
 from fusion_depth.console import quiet_known_noise
-from fusion_depth.data.datamodule import DepthDataModule
+from fusion_depth.data.datamodule import DepthDataModule, check_batches
 from fusion_depth.distributed import launch_local_ranks, local_world_size
 from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.loggers import closing
-from fusion_depth.resume import RunStart, identity_overrides, plan_start
+from fusion_depth.resume import (
+    RunLock,
+    RunLockedError,
+    RunStart,
+    identity_overrides,
+    is_lead_process,
+    plan_start,
+)
 from fusion_depth.runs import (
     METRICS_FILE,
     RESOLVED_CONFIG_FILE,
@@ -97,6 +105,12 @@ def train(cfg: DictConfig) -> dict | None:
     )
     run_config["trainer"]["precision"] = precision  # what ran, not "auto"
     output_dir = Path(cfg.paths.output_dir)
+    # One process per run folder (the lead one of a cluster-launched data-parallel run).
+    with RunLock(output_dir) if is_lead_process() else contextlib.nullcontext():
+        return _train_locked(cfg, run_config, output_dir)
+
+
+def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> dict | None:
     last_checkpoint = cfg.callbacks.get("last_checkpoint")
     start = plan_start(
         output_dir,
@@ -162,12 +176,16 @@ def fit_and_test(job: RankJob) -> dict | None:
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
     model = instantiate(cfg.model, _convert_="all")
     check_output_dir(output_dir, checkpoint_room(cfg.callbacks, model))
-    model.run_config = run_config
+    model.run_config = plain_config(run_config)  # checkpoints hold data, never code to call
     model.run_identity = job.identity
     logger = False
-    if cfg.logger.get("_target_"):  # the W&B run of the interrupted run when resuming
-        ours = "id" in cfg.logger and cfg.logger.id is None
-        logger = instantiate(cfg.logger, **({"id": start.wandb_id} if ours else {}))
+    if cfg.logger.get("_target_"):
+        resuming = {}  # the interrupted run's W&B run; its CSV log, continued
+        if "id" in cfg.logger and cfg.logger.id is None:
+            resuming["id"] = start.wandb_id
+        if "resume_step" in cfg.logger and cfg.logger.resume_step is None:
+            resuming["resume_step"] = start.global_step
+        logger = instantiate(cfg.logger, **resuming)
     with closing(logger):
         callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
         if logger:
@@ -182,6 +200,8 @@ def fit_and_test(job: RankJob) -> dict | None:
             "plugins": [AtomicCheckpointIO()],
         }
         trainer = instantiate(cfg.trainer, callbacks=callbacks, **settings)
+        # Zero work is a failure: refused here, not reported as a run that trained nothing.
+        check_batches(datamodule, cfg.trainer, cfg.dataset.name, trainer.world_size)
 
         started = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=start.checkpoint, weights_only=True)
@@ -191,6 +211,12 @@ def fit_and_test(job: RankJob) -> dict | None:
         best = best_callback.best_model_path if best_callback else ""
         best_score = best_callback.best_model_score if best_callback else None
         epochs, global_step = trainer.current_epoch, trainer.global_step
+        validation = list(model.val_history)  # before test loads the best checkpoint's older one
+        if global_step == 0:
+            raise RuntimeError(
+                f"{output_dir}: the run trained no optimizer step (every batch skipped?), so "
+                "there is no trained model to test; nothing is reported as done"
+            )
         if trainer.world_size > 1:
             if not trainer.is_global_zero:
                 return None
@@ -217,6 +243,7 @@ def fit_and_test(job: RankJob) -> dict | None:
             "epochs": epochs,
             "resumed_from": str(start.checkpoint) if start.checkpoint else None,
             "global_step": global_step,
+            "validation": validation,
             "wall_time_s": round(time.perf_counter() - started, 2),
             "versions": provenance(),
         }
@@ -240,6 +267,9 @@ def main(cfg: DictConfig) -> float | None:
         return test_rmse(train(cfg))
     try:
         return test_rmse(train(cfg))
+    except RunLockedError as err:  # the folder is another live process's: write nothing there
+        log.error("job not run: %s", err)
+        return None
     except Exception as err:  # noqa: BLE001 - one job's failure must not end the sweep
         overrides = redact_overrides(list(HydraConfig.get().overrides.task))
         path = record_failure(cfg.paths.output_dir, overrides, err)

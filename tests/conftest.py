@@ -58,6 +58,7 @@ def make_config(tmp_path: Path) -> Callable[..., DictConfig]:
 def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int = 0) -> Path:
     """An untrained DepthNet saved the way training saves it (weights + run config), so tests of
     evaluate/predict need no training run."""
+    from fusion_depth.checkpoint import plain_config
     from fusion_depth.models import DepthNet
 
     torch.manual_seed(seed)
@@ -80,7 +81,7 @@ def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int 
         "dataset": dataset,
     }
     state = {f"net.{k}": v for k, v in net.state_dict().items()}
-    torch.save({"state_dict": state, "fusion_depth_config": config}, path)
+    torch.save({"state_dict": state, "fusion_depth_config": plain_config(config)}, path)
     return path
 
 

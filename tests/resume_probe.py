@@ -1,7 +1,8 @@
 """A test-only Lightning callback, added to real training commands with
 ``+callbacks.probe._target_=resume_probe.Probe`` (``tests/`` on PYTHONPATH, its settings as JSON
 in $FUSION_DEPTH_TEST_PROBE so they stay out of the run's folder name): it records every
-trained batch and breaks the run once, on purpose, so tests can check what a re-run does."""
+trained batch and validation, and breaks the run once, on purpose, so tests can check what a
+re-run does."""
 
 from __future__ import annotations
 
@@ -14,33 +15,55 @@ import lightning as L
 
 
 class Probe(L.Callback):
-    """Appends ``{"pid", "epoch", "batch", "step"}`` per trained batch to ``log``. At global
-    step ``at_step``, once (while ``marker`` does not exist; it is created), either stalls
-    forever (``action=stall``, for a test to SIGKILL the process) or raises (``action=fail``).
-    ``only_fusion``: break only a run of this fusion mode."""
+    """Appends ``{"pid", "epoch", "batch", "step"}`` per trained batch and ``{"pid",
+    "val_epoch"}`` per validation epoch to ``log``.
+
+    Breaks the run once per break point, each while its marker file does not exist (it is
+    created): at global step ``at_step`` it stalls forever (``action=stall``, for a test to
+    SIGKILL the process) or raises (``action=fail``); with ``val_epoch`` it stalls inside the
+    validation of that epoch; with ``in_test`` inside the test stage. ``only_fusion``: break
+    only a run of this fusion mode.
+    """
 
     def __init__(self) -> None:
         settings = json.loads(os.environ["FUSION_DEPTH_TEST_PROBE"])
         self.log_file = Path(settings["log"])
         self.marker = Path(settings["marker"])
-        self.at_step = settings["at_step"]
+        self.at_step = settings.get("at_step")
         self.action = settings.get("action", "stall")
+        self.val_epoch = settings.get("val_epoch")
+        self.in_test = settings.get("in_test", False)
         self.only_fusion = settings.get("only_fusion")
 
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module, outputs, batch, batch_idx) -> None:
-        record = {
-            "pid": os.getpid(),
-            "epoch": trainer.current_epoch,
-            "batch": batch_idx,
-            "step": trainer.global_step,
-        }
+    def _write(self, record: dict) -> None:
         self.log_file.parent.mkdir(parents=True, exist_ok=True)
         with self.log_file.open("a") as f:
-            f.write(json.dumps(record) + "\n")
+            f.write(json.dumps({"pid": os.getpid(), **record}) + "\n")
+
+    def _break_once(self, marker: Path, action: str, where: str) -> None:
+        if marker.exists():
+            return
+        marker.touch()
+        if action == "fail":
+            raise RuntimeError(f"probe: failing on purpose at {where}")
+        while True:  # until the test kills this process
+            time.sleep(1)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = trainer.global_step
+        self._write({"epoch": trainer.current_epoch, "batch": batch_idx, "step": step})
         armed = self.only_fusion in (None, pl_module.net.fusion.mode)
-        if armed and trainer.global_step == self.at_step and not self.marker.exists():
-            self.marker.touch()
-            if self.action == "fail":
-                raise RuntimeError(f"probe: failing on purpose at step {self.at_step}")
-            while True:  # until the test kills this process
-                time.sleep(1)
+        if armed and self.at_step is not None and step == self.at_step:
+            self._break_once(self.marker, self.action, f"step {self.at_step}")
+
+    def on_validation_batch_end(self, trainer: L.Trainer, *args: object, **kwargs: object) -> None:
+        if not trainer.sanity_checking and trainer.current_epoch == self.val_epoch:
+            self._break_once(self.marker.with_suffix(".val"), self.action, "validation")
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module) -> None:
+        if not trainer.sanity_checking:
+            self._write({"val_epoch": trainer.current_epoch, "step": trainer.global_step})
+
+    def on_test_batch_end(self, trainer: L.Trainer, *args: object, **kwargs: object) -> None:
+        if self.in_test:
+            self._break_once(self.marker.with_suffix(".test"), self.action, "test")

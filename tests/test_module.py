@@ -32,6 +32,33 @@ def test_downsample_keeps_sparse_points_undiluted() -> None:
     assert mask.tolist() == [[[[True, False], [False, True]]]]
 
 
+def test_non_finite_ground_truth_is_invalid_at_every_size() -> None:
+    depth = torch.full((1, 1, 4, 4), 10.0)
+    depth[0, 0, 0, 0] = float("nan")  # one NaN in the top-left cell, next to valid pixels
+    depth[0, 0, 2:, 2:] = float("inf")  # a whole cell of inf
+    depth[0, 0, 3, 0] = -float("inf")
+    out, mask = downsample_depth(depth, (2, 2))
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out, torch.tensor([[[[10.0, 10.0], [10.0, 0.0]]]]))
+    assert mask.tolist() == [[[[True, True], [True, False]]]]
+    same, valid = downsample_depth(depth, (4, 4))
+    assert torch.isfinite(same).all() and valid.sum() == 16 - 1 - 4 - 1
+
+
+def test_a_nan_in_the_ground_truth_leaves_the_training_loss_finite() -> None:
+    module = DepthModule(DepthNet("resnet18", "concat", pretrained=False), loss=DepthLoss())
+    torch.manual_seed(0)
+    batch = {
+        "image": torch.rand(2, 3, 64, 64),
+        "sparse": torch.rand(2, 1, 64, 64) * 10,
+        "depth": torch.rand(2, 1, 64, 64) * 50 + 1,
+    }
+    batch["depth"][0, 0, :9, :13] = float("nan")  # not aligned with the 2×2 pooling cells
+    batch["depth"][1, 0, 40:, 30:] = float("inf")
+    losses = module.step_losses(batch)
+    assert all(torch.isfinite(v) for v in losses.values()), losses
+
+
 def _batch() -> dict:
     torch.manual_seed(0)
     return {

@@ -1,4 +1,33 @@
 """Datasets: one module per dataset, plus the shared datamodule and transforms."""
 
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
 # The split names every dataset reader accepts (their order also keys the procedural seed streams).
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+
+# The package's own table of dataset readers, by the name a dataset config and a checkpoint
+# record (``dataset.name``): module and class. A checkpoint names its dataset; its reader is
+# looked up here, never imported from a path stored in the file. Modules are imported on first
+# use, since some need optional packages (nuScenes: the devkit).
+READERS: dict[str, tuple[str, str]] = {
+    "procedural": ("fusion_depth.data.procedural", "ProceduralDepth"),
+    "kitti": ("fusion_depth.data.kitti", "KittiDepth"),
+    "carla": ("fusion_depth.data.carla", "CarlaDepth"),
+    "topview": ("fusion_depth.data.topview", "TopViewDepth"),
+    "nuscenes": ("fusion_depth.data.nuscenes", "NuScenesDepth"),
+}
+
+
+def reader_class(name: str) -> Any:
+    """The reader class of dataset ``name`` (a key of :data:`READERS`).
+
+    Raises:
+        KeyError: ``name`` is not a dataset of this package.
+    """
+    if name not in READERS:
+        raise KeyError(f"dataset {name!r} is not one of {sorted(READERS)}")
+    module, cls = READERS[name]
+    return getattr(importlib.import_module(module), cls)

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import logging
+import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import lightning as L
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
+from fusion_depth.config import ConfigError
 from fusion_depth.data import SPLITS
 
 log = logging.getLogger(__name__)
@@ -211,3 +213,55 @@ class DepthDataModule(L.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self.loader(self.test_split, False, self.eval_batch_size)
+
+
+def _batches_left(limit: Any, batches: int) -> int:
+    """The batches Lightning runs of ``batches`` under ``trainer.limit_*_batches`` (None: all;
+    an int: at most that many; a float: that fraction, rounded down)."""
+    if limit is None:
+        return batches
+    if isinstance(limit, float) and limit <= 1.0:
+        return int(batches * limit)
+    return min(int(limit), batches)
+
+
+def check_batches(
+    datamodule: DepthDataModule, trainer: Mapping[str, Any], dataset: str, world_size: int = 1
+) -> None:
+    """Refuse, before any training, a run in which a stage would see no batch: a split with no
+    frames, a training split smaller than one batch (the last partial batch is dropped), or a
+    ``trainer.limit_{train,val,test}_batches`` that leaves none. Each process of a
+    ``world_size``-process run gets its share of the training and validation frames; the test
+    stage runs on one process.
+
+    Raises:
+        ConfigError: one line naming the split, its size and the batch size (or the limit).
+    """
+    stages = (
+        ("train", "train", datamodule.batch_size, "data.batch_size"),
+        ("val", "val", datamodule.eval_batch_size, "data.eval_batch_size"),
+        ("test", datamodule.test_split, datamodule.eval_batch_size, "data.eval_batch_size"),
+    )
+    for stage, split, batch_size, batch_key in stages:
+        frames = len(datamodule.dataset(split))
+        if frames == 0:
+            raise ConfigError(f"dataset={dataset}: the {split} split has no frames")
+        share = frames if stage == "test" else math.ceil(frames / world_size)
+        if stage == "train":
+            batches = share // batch_size  # drop_last: a partial batch is never trained
+            if batches == 0:
+                per = f" per process of {world_size}" if world_size > 1 else ""
+                raise ConfigError(
+                    f"{batch_key}={batch_size}: the train split of dataset={dataset} has "
+                    f"{share} frame{'s' if share != 1 else ''}{per}, fewer than one batch (the "
+                    "last partial batch is dropped); lower the batch size or add frames"
+                )
+        else:
+            batches = math.ceil(share / batch_size)
+        limit = trainer.get(f"limit_{stage}_batches")
+        if _batches_left(limit, batches) == 0:
+            raise ConfigError(
+                f"trainer.limit_{stage}_batches={limit}: leaves no batch of the {split} split "
+                f"of dataset={dataset} ({frames} frames, {batch_key}={batch_size}, "
+                f"{batches} batch{'es' if batches != 1 else ''})"
+            )
