@@ -11,6 +11,7 @@ checked against that reader's constructor.
 
 from __future__ import annotations
 
+import _compat_pickle  # pickle's own Python 2 → 3 name table
 import functools
 import inspect
 import os
@@ -139,9 +140,21 @@ def _unsafe_globals(path: Path) -> list[str]:
     """The objects a checkpoint's pickle would have to import to be rebuilt (none if the file
     cannot even be parsed)."""
     try:
-        return list(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
     except Exception:  # noqa: BLE001 - any parse failure means "not a readable checkpoint"
         return []
+    return [_python3_name(name) for name in names]
+
+
+def _python3_name(name: str) -> str:
+    """``module.name`` as Python 3 spells it: torch pickles with protocol 2, which stores some
+    globals under their Python 2 names (``subprocess.Popen`` as ``commands.Popen``)."""
+    module, _, attr = name.rpartition(".")
+    if (module, attr) in _compat_pickle.NAME_MAPPING:
+        module, attr = _compat_pickle.NAME_MAPPING[(module, attr)]
+    else:
+        module = _compat_pickle.IMPORT_MAPPING.get(module, module)
+    return f"{module}.{attr}"
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -321,12 +334,13 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         except (OSError, RuntimeError) as err:
             cause = failed[0] if failed else err
             reason = cause.strerror if isinstance(cause, OSError) and cause.strerror else cause
-            raise CheckpointWriteError(
-                getattr(cause, "errno", None) or 0,
+            failure = CheckpointWriteError(
                 f"could not write the checkpoint {path} ({reason}; "
                 f"{_free_space(Path(path).parent)} free there); the previous checkpoint there, "
-                "if any, is intact",
-            ) from err
+                "if any, is intact"
+            )
+            failure.errno = getattr(cause, "errno", None)
+            raise failure from err
 
     def load_checkpoint(
         self, path: Any, map_location: Any | None = None, weights_only: bool | None = None

@@ -10,7 +10,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.runs import FAILURE_FILE, METRICS_FILE, write_json_atomic
+from fusion_depth.resume import finished_results
+from fusion_depth.runs import FAILURE_FILE, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -24,14 +25,14 @@ def summarize_sweep(sweep_dir: str | Path) -> list[dict]:
     ):
         job_dir = overrides_file.parent.parent
         overrides = list(OmegaConf.load(overrides_file))
-        if (job_dir / METRICS_FILE).is_file():
-            metrics = json.loads((job_dir / METRICS_FILE).read_text())["test"]
+        finished = finished_results(job_dir)  # a run that trained no step is not done
+        if finished is not None:
             jobs.append(
                 {
                     "dir": str(job_dir),
                     "overrides": overrides,
                     "status": "ok",
-                    "rmse": metrics.get("rmse"),
+                    "rmse": finished["test"].get("rmse"),
                 }
             )
         elif (job_dir / FAILURE_FILE).is_file():

@@ -43,7 +43,7 @@ def test_defaults_reproduce_the_paper_setup(make_config) -> None:
         ("loss", "l2", "loss.pixel", "l2"),
         ("loss", "berhu", "loss.pixel", "berhu"),
         ("backbone", "resnet50", "backbone.name", "resnet50"),
-        ("logger", "csv", "logger._target_", "lightning.pytorch.loggers.CSVLogger"),
+        ("logger", "csv", "logger._target_", "fusion_depth.loggers.csv_logger"),
         ("logger", "none", "logger._target_", None),
     ],
 )

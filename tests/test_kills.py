@@ -44,7 +44,14 @@ def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def command(run_dir: Path) -> list[str]:
-    return [sys.executable, "-m", "fusion_depth.train", *KILLABLE, PROBE, f"hydra.run.dir={run_dir}"]
+    return [
+        sys.executable,
+        "-m",
+        "fusion_depth.train",
+        *KILLABLE,
+        PROBE,
+        f"hydra.run.dir={run_dir}",
+    ]
 
 
 def csv_rows(run_dir: Path) -> list[dict]:
@@ -149,9 +156,7 @@ def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
     while len(kills) < 10:
         assert len(kills) < 40
         before = len(log.read_text().splitlines()) if log.exists() else 0
-        process = subprocess.Popen(
-            command(run_dir), cwd=tmp_path, env=env, stderr=subprocess.PIPE
-        )
+        process = subprocess.Popen(command(run_dir), cwd=tmp_path, env=env, stderr=subprocess.PIPE)
         mode = ("checkpoint write", "after a record", "any time")[len(kills) % 3]
         wanted = rng.randint(1, 2)  # the how-many-th checkpoint write / new record to wait for
         writes, writing = 0, False

@@ -16,7 +16,12 @@ import pytest
 import torch
 from conftest import compose_config, run_module
 
-from fusion_depth.checkpoint import RUN_KEY, AtomicCheckpointIO, CheckpointError
+from fusion_depth.checkpoint import (
+    RUN_KEY,
+    AtomicCheckpointIO,
+    CheckpointError,
+    CheckpointWriteError,
+)
 from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
 from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.resume import plan_start
@@ -179,7 +184,7 @@ def test_plan_start_resumes_skips_refuses_and_starts_over(tmp_path) -> None:
         plan_start(run, ckpts, "auto", True, ours)
     # A finished run is skipped, or with skip_done=false continued from its last checkpoint.
     fake_checkpoint(last, ours)
-    metrics = {"status": "ok", "run": {"overrides": ours}, "test": {"rmse": 1.5}}
+    metrics = {"status": "ok", "run": {"overrides": ours}, "test": {"rmse": 1.5}, "global_step": 3}
     (run / "metrics.json").write_text(json.dumps(metrics))
     assert plan_start(run, ckpts, "auto", True, ours).finished == metrics
     assert plan_start(run, ckpts, "auto", False, ours).checkpoint == last
@@ -192,19 +197,50 @@ def test_plan_start_resumes_skips_refuses_and_starts_over(tmp_path) -> None:
         plan_start(run, ckpts, "sometimes", True, ours)
 
 
-def test_a_failed_checkpoint_write_leaves_the_previous_one_intact(tmp_path, monkeypatch) -> None:
+class _FullDisk:
+    """A binary file that takes ``room`` bytes, then fails as a full disk does."""
+
+    def __init__(self, file, room: int) -> None:
+        self.file, self.room = file, room
+
+    def write(self, data) -> int:
+        size = len(memoryview(data).cast("B"))
+        if size > self.room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= size
+        return self.file.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self.file, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.file.close()
+
+
+def test_a_full_disk_shows_the_platforms_message_and_keeps_the_previous_checkpoint(
+    tmp_path, monkeypatch
+) -> None:
     path = tmp_path / "last.ckpt"
     io = AtomicCheckpointIO()
     io.save_checkpoint({"step": torch.tensor(1)}, path)
+    real_open = Path.open
 
-    def disk_full(obj, f, *args, **kwargs):
-        f.write(b"half a checkpoint")
-        raise OSError(errno.ENOSPC, "No space left on device")
+    def full_disk_open(self, mode="r", *args, **kwargs):
+        file = real_open(self, mode, *args, **kwargs)
+        return _FullDisk(file, room=100_000) if "w" in mode else file
 
-    monkeypatch.setattr(torch, "save", disk_full)
-    with pytest.raises(OSError, match=r"last\.ckpt: could not write.*No space left.*untouched"):
-        io.save_checkpoint({"step": torch.tensor(2)}, path)
+    # The disk fills up in the middle of torch's own writer (its inline_container error).
+    monkeypatch.setattr(Path, "open", full_disk_open)
+    with pytest.raises(CheckpointWriteError) as failure:
+        io.save_checkpoint({"step": torch.tensor(2), "weights": torch.randn(200_000)}, path)
     monkeypatch.undo()
+    message = str(failure.value)
+    assert message.startswith(f"could not write the checkpoint {path} (No space left on device;")
+    assert "MB free there" in message and "previous checkpoint there, if any, is intact" in message
+    assert "inline_container" not in message
     assert io.load_checkpoint(path)["step"].item() == 1
     assert [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]  # no temporary file left
 
@@ -212,7 +248,7 @@ def test_a_failed_checkpoint_write_leaves_the_previous_one_intact(tmp_path, monk
 def test_checkpoints_are_loaded_weights_only(tmp_path) -> None:
     path = tmp_path / "evil.ckpt"
     torch.save({"state_dict": {}, "payload": subprocess.Popen}, path)  # needs unpickling code
-    with pytest.raises(CheckpointError, match="evil.ckpt: refused to load"):
+    with pytest.raises(CheckpointError, match=r"evil.ckpt: refused to load.*subprocess\.Popen"):
         AtomicCheckpointIO().load_checkpoint(path, weights_only=False)
 
 
@@ -268,3 +304,140 @@ def test_the_disk_check_asks_for_room_for_the_checkpoints_the_run_writes(tmp_pat
     assert checkpoint_room(default, model) == 4 * full  # last + best, each written beside the old
     smoke = compose_config(["experiment=smoke"], tmp_path).callbacks
     assert checkpoint_room(smoke, model) == 2 * weights  # no last.ckpt, weights-only best
+
+
+def test_a_new_start_removes_what_interrupted_attempts_left(tmp_path) -> None:
+    run, ckpts = tmp_path / "run", tmp_path / "run" / "checkpoints"
+    ckpts.mkdir(parents=True)
+    tmp_files = [ckpts / ".last.ckpt.k2j4.ckpt.tmp", run / ".metrics.json.x8.tmp"]
+    for path in tmp_files:
+        path.write_bytes(b"half written")
+    orphan = ckpts / "epoch002-rmse9.0000.ckpt"  # a best written after last.ckpt, then killed
+    orphan.write_bytes(b"x")
+    best = ckpts / "epoch001-rmse9.5000.ckpt"
+    best.write_bytes(b"x")
+    last = fake_checkpoint(ckpts / "last.ckpt", ["experiment=smoke"])
+    checkpoint = torch.load(last, weights_only=True)
+    checkpoint["callbacks"] = {
+        "ModelCheckpoint{'monitor': 'val/rmse'}": {
+            "best_model_path": f"relative/elsewhere/{best.name}",  # another working directory
+            "best_k_models": {str(best): torch.tensor(9.5)},
+        }
+    }
+    checkpoint["global_step"] = 4
+    torch.save(checkpoint, last)
+    start = plan_start(run, ckpts, "auto", True, ["experiment=smoke"])
+    assert (start.checkpoint, start.global_step) == (last, 4)
+    assert sorted(p.name for p in ckpts.iterdir()) == sorted([last.name, best.name])
+    assert not (run / ".metrics.json.x8.tmp").exists()
+    # Starting afresh (no last.ckpt), every checkpoint of the abandoned attempt goes too.
+    last.unlink()
+    tmp_files[0].write_bytes(b"half written")
+    assert plan_start(run, ckpts, "auto", True, ["experiment=smoke"]).checkpoint is None
+    assert list(ckpts.iterdir()) == []
+
+
+def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
+    from fusion_depth.resume import finished_results
+    from fusion_depth.sweep import summarize_sweep
+
+    job = tmp_path / "sweep" / "job"
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text("- fusion=rgb\n")
+    for steps, done in ((0, False), (None, False), (3, True)):
+        record = {"status": "ok", "run": {}, "test": {"rmse": 1.0}, "global_step": steps}
+        (job / "metrics.json").write_text(json.dumps(record))
+        assert (finished_results(job) is not None) == done
+        assert summarize_sweep(tmp_path / "sweep")[0]["status"] == ("ok" if done else "incomplete")
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["data.batch_size=16"],
+            r"data.batch_size=16: the train split of dataset=procedural has "
+            r"8 frames, fewer than one batch \(the last partial batch is dropped\)",
+        ),
+        (["dataset.num_train=1"], r"data.batch_size=2: the train split .* has 1 frame, fewer"),
+        (
+            ["trainer.limit_train_batches=0"],
+            r"trainer.limit_train_batches=0: leaves no batch of "
+            r"the train split of dataset=procedural \(8 frames, data.batch_size=2, 4 batches\)",
+        ),
+        (["trainer.limit_val_batches=0.1"], r"trainer.limit_val_batches=0.1: leaves no batch"),
+    ],
+)
+def test_a_run_that_would_train_or_score_nothing_is_refused(tmp_path, overrides, message) -> None:
+    from fusion_depth.config import ConfigError
+
+    run_dir = tmp_path / "run"
+    with pytest.raises(ConfigError, match=message):
+        train(compose_config(["experiment=smoke", "logger=none", *overrides], run_dir))
+    assert not (run_dir / "checkpoints").exists() and not (run_dir / "metrics.json").exists()
+
+
+def test_a_split_without_frames_is_refused() -> None:
+    from fusion_depth.config import ConfigError
+    from fusion_depth.data.datamodule import DepthDataModule, check_batches
+
+    frames = {"train": 4, "val": 0, "test": 3}
+    datamodule = DepthDataModule(reader=lambda split: [{}] * frames[split], num_workers=0)
+    with pytest.raises(ConfigError, match=r"^dataset=mine: the val split has no frames$"):
+        check_batches(datamodule, {}, "mine")
+    frames["val"] = 1
+    datamodule = DepthDataModule(reader=lambda split: [{}] * frames[split], num_workers=0)
+    check_batches(datamodule, {}, "mine")  # 2 training batches, 1 validation, 2 test
+    datamodule = DepthDataModule(
+        reader=lambda split: [{}] * frames[split], batch_size=4, num_workers=0
+    )
+    check_batches(datamodule, {}, "mine")
+    with pytest.raises(ConfigError, match=r"has 2 frames per process of 2, fewer than one"):
+        check_batches(datamodule, {}, "mine", world_size=2)  # a DDP share of the 4 frames
+
+
+def test_a_run_whose_every_step_was_skipped_reports_no_result(tmp_path, monkeypatch) -> None:
+    from fusion_depth.module import DepthModule
+
+    monkeypatch.setattr(DepthModule, "training_step", lambda self, batch, batch_idx: None)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="trained no optimizer step"):
+        train(compose_config(["experiment=smoke", "logger=none"], run_dir))
+    assert not (run_dir / "metrics.json").exists()
+
+
+def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    command = ["fusion_depth.train", *RESUMABLE, PROBE, f"hydra.run.dir={run_dir}"]
+    env = probe_env(tmp_path, at_step=2, action="stall")  # whoever trains stalls at step 2
+    started = [
+        subprocess.Popen(
+            [sys.executable, "-m", *command],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    deadline = time.monotonic() + 600
+    while not (tmp_path / "probe.marker").exists() or all(p.poll() is None for p in started):
+        assert time.monotonic() < deadline, "neither trained, or neither was refused"
+        time.sleep(0.2)
+    refused = next(p for p in started if p.poll() is not None)
+    training = next(p for p in started if p is not refused)
+    assert training.poll() is None
+    stderr = refused.stderr.read()
+    assert refused.returncode == 1, stderr[-3000:]
+    assert f"{run_dir} is in use by process {training.pid} on host " in stderr, stderr[-3000:]
+    assert "Traceback" not in stderr
+    training.kill()
+    training.wait(timeout=60)
+    for p in started:
+        p.stderr.close()
+    assert {r["pid"] for r in probe_records(tmp_path)} == {training.pid}  # only one trained
+    # The killed holder's lock is taken over by the next command, which resumes the run.
+    again = run_module(command, cwd=tmp_path, env=env)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert json.loads((run_dir / "metrics.json").read_text())["global_step"] == 9

@@ -1,0 +1,157 @@
+"""Nothing from a checkpoint becomes a callable: crafted checkpoints that name code (a
+``_target_`` that walks from an allowed module into one it imports, one nested in the reader's
+arguments, one elsewhere in the stored config) are refused by evaluate, predict, export and a
+resuming train, naming the key path, and the payload never runs."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import compose_config, run_module
+
+from fusion_depth.checkpoint import (
+    CONFIG_KEY,
+    RUN_KEY,
+    CheckpointError,
+    dataset_config,
+    load_model,
+    make_reader,
+)
+from fusion_depth.data.procedural import ProceduralDepth
+from fusion_depth.evaluate import evaluate
+from fusion_depth.export import export
+from fusion_depth.predict import predict
+from fusion_depth.train import train
+
+
+def _payload(marker: Path) -> dict:
+    """A Hydra node that would create the folder ``marker`` if it were ever instantiated."""
+    return {"_target_": "os.makedirs", "name": str(marker)}
+
+
+def _craft(source: Path, path: Path, kind: str, marker: Path) -> tuple[Path, str]:
+    """A copy of the checkpoint ``source`` with a payload of ``kind``; (file, key path)."""
+    checkpoint = torch.load(source, weights_only=True)
+    config = checkpoint[CONFIG_KEY]
+    reader = config["dataset"]["reader"]
+    if kind == "prefix walk":  # starts like a reader of this package, then walks into `os`
+        reader.update(_target_="fusion_depth.data.procedural.os.makedirs", name=str(marker))
+        reader["_partial_"] = False
+        where = "dataset.reader._target_"
+    elif kind == "nested":  # the reader itself looks plain; one of its arguments is code
+        reader["root"] = _payload(marker)
+        where = "dataset.reader.root._target_"
+    else:  # somewhere nothing reads today
+        config["trainer"] = {"plugins": [_payload(marker)]}
+        where = "trainer.plugins[0]._target_"
+    torch.save(checkpoint, path)
+    return path, f"{CONFIG_KEY}.{where}"
+
+
+KINDS = ("prefix walk", "nested", "elsewhere")
+
+
+@pytest.fixture
+def crafted(checkpoints, tmp_path) -> dict[str, tuple[Path, str]]:
+    marker = tmp_path / "pwned"
+    files = {
+        kind: _craft(checkpoints["rgb"], tmp_path / f"{i}.ckpt", kind, marker)
+        for i, kind in enumerate(KINDS)
+    }
+    yield files
+    assert not marker.exists(), "the payload ran"
+
+
+def _resume_dir(crafted_ckpt: Path, root: Path) -> Path:
+    """A run folder whose last.ckpt is the crafted file (what `train` resumes from)."""
+    run_dir = root / "run"
+    (run_dir / "checkpoints").mkdir(parents=True)
+    checkpoint = torch.load(crafted_ckpt, weights_only=True)
+    checkpoint[RUN_KEY] = {"overrides": ["experiment=smoke"], "wandb_id": "x"}
+    torch.save(checkpoint, run_dir / "checkpoints" / "last.ckpt")
+    return run_dir
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_entry_point_refuses_a_checkpoint_that_names_code(crafted, kind, tmp_path) -> None:
+    path, key = crafted[kind]
+    out = tmp_path / kind.replace(" ", "_")
+    calls = {
+        "evaluate": lambda: evaluate(compose_config([f"ckpt_path={path}"], out / "e", "evaluate")),
+        "predict": lambda: predict(
+            compose_config([f"ckpt_path={path}", "input=split:test"], out / "p", "predict")
+        ),
+        "export": lambda: export(
+            compose_config([f"ckpt_path={path}", "format=torchscript"], out / "x", "export")
+        ),
+    }
+    for name, call in calls.items():
+        with pytest.raises(CheckpointError, match=rf"{path}: refused.*{key.replace('[', '.')}"):
+            call()
+        assert not list((out / name[0]).rglob("*.png")), name  # nothing was predicted
+    run_dir = _resume_dir(path, out)
+    cfg = compose_config(["experiment=smoke", "logger=none"], run_dir)
+    with pytest.raises(CheckpointError, match=rf"last\.ckpt: refused.*{key.replace('[', '.')}"):
+        train(cfg)
+    assert not (run_dir / "metrics.json").exists()
+
+
+def test_the_command_line_refuses_them_in_one_line(crafted, tmp_path) -> None:
+    """As a user runs them: exit status 1 and the one-line refusal naming the key path, for
+    each entry point and each kind of payload (round robin)."""
+    commands = []
+    for i, kind in enumerate(KINDS):
+        path, key = crafted[kind]
+        commands.append((["fusion_depth.evaluate", f"ckpt_path={path}"], key))
+        commands.append((["fusion_depth.export", f"ckpt_path={path}", "format=torchscript"], key))
+        if i == 0:
+            commands.append(
+                (["fusion_depth.predict", f"ckpt_path={path}", "input=split:test"], key)
+            )
+    path, key = crafted["nested"]
+    run_dir = _resume_dir(path, tmp_path)
+    commands.append(
+        (["fusion_depth.train", "experiment=smoke", "logger=none", f"hydra.run.dir={run_dir}"], key)
+    )
+    for args, key in commands[:4] + commands[-1:]:
+        done: subprocess.CompletedProcess = run_module(args, cwd=tmp_path)
+        assert done.returncode == 1, (args, done.stderr[-2000:])
+        assert key in done.stderr and "refused" in done.stderr, (args, done.stderr[-2000:])
+        assert "Traceback" not in done.stderr, (args, done.stderr[-2000:])
+
+
+def test_the_reader_is_looked_up_by_dataset_name(checkpoints, tmp_path) -> None:
+    loaded = load_model(checkpoints["rgb"])
+    block = dataset_config(loaded, None)
+    assert "_target_" not in block["reader"]  # training stored plain data
+    reader = make_reader(block, loaded.path)
+    assert reader.func is ProceduralDepth and reader.keywords == block["reader"]
+
+    def crafted(change) -> Path:
+        checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
+        change(checkpoint[CONFIG_KEY]["dataset"])
+        path = tmp_path / f"c{len(list(tmp_path.iterdir()))}.ckpt"
+        torch.save(checkpoint, path)
+        return path
+
+    unknown = load_model(crafted(lambda d: d.update(name="os")))
+    with pytest.raises(CheckpointError, match=r"dataset.name='os' is not one of \['carla'"):
+        dataset_config(unknown, None)
+    extra = load_model(crafted(lambda d: d["reader"].update(callback="os.system")))
+    with pytest.raises(CheckpointError, match=r"dataset.reader.callback is not an argument"):
+        make_reader(dataset_config(extra, None), extra.path)
+    tensor = load_model(crafted(lambda d: d["reader"].update(root=torch.zeros(1))))
+    with pytest.raises(CheckpointError, match=r"dataset.reader.root holds a Tensor"):
+        make_reader(dataset_config(tensor, None), tensor.path)
+
+
+def test_a_pickled_object_is_refused_by_name(checkpoints, tmp_path) -> None:
+    checkpoint = copy.deepcopy(torch.load(checkpoints["rgb"], weights_only=True))
+    checkpoint["hook"] = subprocess.Popen  # needs full unpickling to rebuild
+    torch.save(checkpoint, tmp_path / "pickled.ckpt")
+    with pytest.raises(CheckpointError, match=r"refused to load; it holds a subprocess\.Popen"):
+        load_model(tmp_path / "pickled.ckpt")
