@@ -11,7 +11,7 @@ from lightning.pytorch.callbacks import Checkpoint
 from lightning.pytorch.loggers import WandbLogger
 from PIL import Image
 
-from fusion_depth.resume import LAST_CHECKPOINT
+from fusion_depth.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
 
 
 class ValidationPanels(L.Callback):
@@ -58,6 +58,26 @@ def validation_follows(trainer: L.Trainer, batch_idx: int) -> bool:
     return (current + 1) % every == 0
 
 
+def pending_log_row(trainer: L.Trainer, epoch_end: bool) -> dict[str, Any] | None:
+    """The row Lightning's loggers receive right after the hook that is running now: a training
+    batch's step metrics (logged after ``on_train_batch_end``) or, with ``epoch_end``, the
+    epoch's (logged after ``on_train_epoch_end``). None when nothing will be logged.
+
+    Follows ``_LoggerConnector.update_train_step_metrics``/``update_train_epoch_metrics`` and
+    ``log_metrics`` (Lightning 2.6): the logged metrics, ``epoch`` and the step they log at.
+    """
+    connector = trainer._logger_connector
+    if not trainer.loggers or trainer._results is None:
+        return None
+    if not epoch_end and not (connector.should_update_logs or trainer.fast_dev_run):
+        return None
+    metrics = {k: float(v) for k, v in connector.metrics["log"].items()}
+    if not metrics:
+        return None
+    step = trainer.fit_loop.epoch_loop._batches_that_stepped - (1 if epoch_end else 0)
+    return {**metrics, "epoch": trainer.current_epoch, "step": step}
+
+
 class LastCheckpoint(Checkpoint):
     """Writes ``<dirpath>/last.ckpt``, the full training state a re-run resumes from
     (``resume=auto``): every ``every_n_epochs`` training epochs, and every
@@ -65,10 +85,15 @@ class LastCheckpoint(Checkpoint):
 
     As a :class:`~lightning.pytorch.callbacks.Checkpoint` it runs after the other callbacks
     and after the best-model checkpoint listed before it, so the file records that epoch's
-    validation and best model too. Step saves skip the batches that validation follows (see
-    :func:`validation_follows`), so every saved state lies either inside an epoch's training or
-    after its validation: a resumed run redoes whatever was in progress, never skips it. Each
-    save first flushes the loggers. Writes are atomic (``AtomicCheckpointIO``).
+    validation and best model too. Step saves happen only after a batch that stepped the
+    optimizer (never inside a gradient-accumulation window, whose gradients a checkpoint does
+    not hold) and skip the batches that validation follows (see :func:`validation_follows`), so
+    every saved state lies either between two optimizer steps of an epoch's training or after
+    its validation: a resumed run redoes whatever was in progress, never skips it.
+
+    Each save flushes the loggers first and records the log row Lightning writes right after the
+    save (:func:`pending_log_row`), so a resumed CSV log can add it if the kill came first.
+    Writes are atomic (``AtomicCheckpointIO``).
     """
 
     def __init__(
@@ -86,12 +111,24 @@ class LastCheckpoint(Checkpoint):
         self.every_n_epochs = every_n_epochs
         self.every_n_train_steps = every_n_train_steps or 0
         self._saved_at_step = -1
+        self._pending_log_row: dict[str, Any] | None = None
 
-    def _save(self, trainer: L.Trainer) -> None:
+    @property
+    def state_key(self) -> str:
+        return LAST_CHECKPOINT_STATE
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"saved_at_step": self._saved_at_step, "pending_log_row": self._pending_log_row}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._saved_at_step = int(state_dict.get("saved_at_step", -1))
+
+    def _save(self, trainer: L.Trainer, epoch_end: bool) -> None:
         for logger in trainer.loggers:  # what was logged so far is on disk with the state
             logger.save()
-        trainer.save_checkpoint(self.path, weights_only=False)  # the full state, to resume from
         self._saved_at_step = trainer.global_step
+        self._pending_log_row = pending_log_row(trainer, epoch_end)
+        trainer.save_checkpoint(self.path, weights_only=False)  # the full state, to resume from
 
     def on_train_batch_end(
         self,
@@ -101,21 +138,21 @@ class LastCheckpoint(Checkpoint):
         batch: Any,
         batch_idx: int,
     ) -> None:
-        # global_step counts optimizer steps: with gradient accumulation it stays put for a
-        # few batches, and only the batch that stepped is saved.
         n, step = self.every_n_train_steps, trainer.global_step
         if not n or step <= 0 or step % n or step == self._saved_at_step:
             return
+        if (batch_idx + 1) % trainer.accumulate_grad_batches:
+            return  # inside an accumulation window: its summed gradients are in no checkpoint
         if validation_follows(trainer, batch_idx):
             # A state saved here would resume past the validation that follows: a run killed
             # during it would never validate that epoch. The epoch-end save (after validation)
             # covers this batch, and a kill before it resumes from the previous step save.
             return
-        self._save(trainer)
+        self._save(trainer, epoch_end=False)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # Always written when due, also right after a step save: this one holds the epoch's
         # validation and best model.
         n = self.every_n_epochs
         if n and (trainer.current_epoch + 1) % n == 0:
-            self._save(trainer)
+            self._save(trainer, epoch_end=True)

@@ -112,13 +112,22 @@ class ResumableCSVLogger(CSVLogger):
     The rows of work done before that step are kept (their ``step`` column, Lightning's count of
     optimizer steps taken before the row was logged, is below ``resume_step``); later rows
     belong to work the resumed run redoes, and are dropped so they are not written twice.
+    ``resume_row``, the row Lightning logs right after the checkpoint was written (see
+    :func:`fusion_depth.callbacks.pending_log_row`), is added when a kill came before it.
     Lightning's own CSVLogger deletes the file when it starts.
     """
 
-    def __init__(self, *args: Any, resume_step: int | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        *args: Any,
+        resume_step: int | None = None,
+        resume_row: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> None:
         kwargs.setdefault("flush_logs_every_n_steps", 1)
         super().__init__(*args, **kwargs)
         self._resume_step = resume_step
+        self._resume_row = resume_row
 
     @property
     def experiment(self) -> Any:
@@ -127,8 +136,11 @@ class ResumableCSVLogger(CSVLogger):
         path = Path(self.log_dir) / "metrics.csv"
         kept = _rows_before(path, self._resume_step) if self._resume_step else None
         writer = super().experiment  # deletes an existing metrics.csv
-        if kept:
-            header, rows = kept
+        header, rows = kept or ([], [])
+        if self._resume_row and not any(_same_row(r, self._resume_row) for r in rows):
+            rows.append({k: str(v) for k, v in self._resume_row.items()})
+            header = sorted(set(header) | set(self._resume_row))
+        if rows:
             writer.metrics_keys = header
             writer.metrics = rows
             writer.save()
@@ -157,12 +169,26 @@ def _rows_before(path: Path, step: int) -> tuple[list[str], list[dict]] | None:
     return (header, rows) if header and "step" in header else None
 
 
+def _same_row(row: dict[str, str], logged: dict[str, Any]) -> bool:
+    """Whether a CSV row (strings) holds the values of ``logged``."""
+    try:
+        return all(float(row.get(k) or "nan") == float(v) for k, v in logged.items())
+    except (TypeError, ValueError):
+        return False
+
+
 def csv_logger(
-    save_dir: str, name: str = "csv", version: str | int = "", resume_step: int | None = None
+    save_dir: str,
+    name: str = "csv",
+    version: str | int = "",
+    resume_step: int | None = None,
+    resume_row: dict[str, Any] | None = None,
 ) -> ResumableCSVLogger:
     """A :class:`ResumableCSVLogger` writing ``<save_dir>/<name>/<version>/metrics.csv``
-    (``resume_step``: train passes the step it resumes at)."""
-    return ResumableCSVLogger(save_dir, name=name, version=version, resume_step=resume_step)
+    (``resume_step``, ``resume_row``: train passes where it resumes)."""
+    return ResumableCSVLogger(
+        save_dir, name=name, version=version, resume_step=resume_step, resume_row=resume_row
+    )
 
 
 @contextmanager

@@ -114,6 +114,7 @@ class DepthModule(L.LightningModule):
         self.run_config: dict | None = None
         self.run_identity: dict | None = None
         self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
+        self.trained_batches = 0  # batches whose loss was back-propagated, in this run
         # One record per validation epoch of the run ({"epoch", "step", metric: value}),
         # carried through resumes in the checkpoint; metrics.json's "validation".
         self.val_history: list[dict[str, float | int]] = []
@@ -142,6 +143,7 @@ class DepthModule(L.LightningModule):
         checkpoint[TRAINING_STATE_KEY] = {
             "rng": rng,
             "nonfinite_skips": self.nonfinite_skips,
+            "trained_batches": self.trained_batches,
             "val_history": [dict(r) for r in self.val_history],
         }
 
@@ -149,6 +151,7 @@ class DepthModule(L.LightningModule):
         state = checkpoint.get(TRAINING_STATE_KEY)
         if state is not None:
             self.nonfinite_skips = state["nonfinite_skips"]
+            self.trained_batches = state.get("trained_batches", 0)
             self._rng_to_restore = state["rng"]
             self.val_history = [dict(r) for r in state.get("val_history", [])]
 
@@ -188,7 +191,8 @@ class DepthModule(L.LightningModule):
         losses = self.step_losses(batch)
         if not torch.isfinite(losses["loss"]):
             self._nonfinite_loss(losses, batch_idx)
-            return None  # Lightning skips the backward pass and the optimizer step
+            return None  # Lightning skips the backward pass (its step counter still counts)
+        self.trained_batches += 1
         self.log("train/loss", losses["loss"], prog_bar=True, batch_size=len(batch["image"]))
         self.log_dict(
             {f"train/{k}": v for k, v in losses.items() if k != "loss"},

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 RESUME_MODES = ("auto", "never")
 LAST_CHECKPOINT = "last.ckpt"
+LAST_CHECKPOINT_STATE = "LastCheckpoint"  # its callback state's key in a checkpoint
 LOCK_FILE = ".run.lock"
 TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.runs.write_atomic's temporary names
 
@@ -41,6 +42,7 @@ class RunStart:
     checkpoint: Path | None = None  # resume from this checkpoint
     wandb_id: str = ""  # the W&B run to log into (the interrupted run's, when resuming)
     global_step: int = 0  # the checkpoint's optimizer steps (0 when starting afresh)
+    pending_log_row: dict | None = None  # the log row written right after that checkpoint
 
 
 class RunLockedError(RuntimeError, CompactHydraException):
@@ -110,6 +112,8 @@ def remove_leftovers(output_dir: Path, checkpoint_dir: Path | None, keep: Collec
     of writes it never finished, and checkpoints its resumed state does not know (``keep``:
     ``last.ckpt`` and the best checkpoints it records). Such a checkpoint was written after
     ``last.ckpt``, by work that is about to be redone."""
+    if not is_lead_process():  # the lead process holds the lock and cleans up
+        return
     folders = [output_dir, *([checkpoint_dir] if checkpoint_dir else [])]
     stale = [p for folder in folders if folder.is_dir() for p in folder.glob(TEMPORARY_GLOB)]
     if checkpoint_dir is not None and checkpoint_dir.is_dir():
@@ -223,10 +227,12 @@ def plan_start(
     identity = checkpoint.get(RUN_KEY) or {}
     _check_same_run(last, identity.get("overrides"), overrides, excluded)
     remove_leftovers(output_dir, checkpoint_dir, keep=[last, *known_checkpoints(checkpoint)])
+    state = (checkpoint.get("callbacks") or {}).get(LAST_CHECKPOINT_STATE) or {}
     return RunStart(
         checkpoint=last,
         wandb_id=identity.get("wandb_id") or fresh.wandb_id,
         global_step=int(checkpoint.get("global_step", 0)),
+        pending_log_row=state.get("pending_log_row"),
     )
 
 

@@ -155,6 +155,10 @@ def checkpoint_room(callbacks: DictConfig, model: torch.nn.Module) -> int:
     return room
 
 
+class NoTrainingError(RuntimeError, CompactHydraException):
+    """Fit ended without training a single batch: there is nothing to test or report."""
+
+
 @dataclass
 class RankJob:
     """What every process of a run needs: the config, the resolved config, the run's identity
@@ -185,6 +189,7 @@ def fit_and_test(job: RankJob) -> dict | None:
             resuming["id"] = start.wandb_id
         if "resume_step" in cfg.logger and cfg.logger.resume_step is None:
             resuming["resume_step"] = start.global_step
+            resuming["resume_row"] = start.pending_log_row
         logger = instantiate(cfg.logger, **resuming)
     with closing(logger):
         callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
@@ -212,10 +217,11 @@ def fit_and_test(job: RankJob) -> dict | None:
         best_score = best_callback.best_model_score if best_callback else None
         epochs, global_step = trainer.current_epoch, trainer.global_step
         validation = list(model.val_history)  # before test loads the best checkpoint's older one
-        if global_step == 0:
-            raise RuntimeError(
-                f"{output_dir}: the run trained no optimizer step (every batch skipped?), so "
-                "there is no trained model to test; nothing is reported as done"
+        if global_step == 0 or model.trained_batches == 0:
+            raise NoTrainingError(
+                f"{output_dir}: the run trained no batch (global step {global_step}, "
+                f"{model.nonfinite_skips} batches skipped for a non-finite loss), so there is no "
+                "trained model to test; nothing is reported as done"
             )
         if trainer.world_size > 1:
             if not trainer.is_global_zero:

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import lightning as L
+from lightning.pytorch.callbacks import Checkpoint
 
 
 class Probe(L.Callback):
@@ -20,7 +21,8 @@ class Probe(L.Callback):
 
     Breaks the run once per break point, each while its marker file does not exist (it is
     created): at global step ``at_step`` it stalls forever (``action=stall``, for a test to
-    SIGKILL the process) or raises (``action=fail``); with ``val_epoch`` it stalls inside the
+    SIGKILL the process) or raises (``action=fail``); at each ``[epoch, batch]`` of
+    ``at_batches`` likewise (each once, in order); with ``val_epoch`` it stalls inside the
     validation of that epoch; with ``in_test`` inside the test stage. ``only_fusion``: break
     only a run of this fusion mode.
     """
@@ -34,6 +36,7 @@ class Probe(L.Callback):
         self.val_epoch = settings.get("val_epoch")
         self.in_test = settings.get("in_test", False)
         self.only_fusion = settings.get("only_fusion")
+        self.at_batches = [tuple(b) for b in settings.get("at_batches", [])]
 
     def _write(self, record: dict) -> None:
         self.log_file.parent.mkdir(parents=True, exist_ok=True)
@@ -55,6 +58,13 @@ class Probe(L.Callback):
         armed = self.only_fusion in (None, pl_module.net.fusion.mode)
         if armed and self.at_step is not None and step == self.at_step:
             self._break_once(self.marker, self.action, f"step {self.at_step}")
+        for i, point in enumerate(self.at_batches):
+            marker = self.marker.with_suffix(f".batch{i}")
+            if marker.exists():
+                continue
+            if point == (trainer.current_epoch, batch_idx):
+                self._break_once(marker, self.action, f"epoch {point[0]}, batch {point[1]}")
+            break  # the break points are taken in order
 
     def on_validation_batch_end(self, trainer: L.Trainer, *args: object, **kwargs: object) -> None:
         if not trainer.sanity_checking and trainer.current_epoch == self.val_epoch:
@@ -67,3 +77,9 @@ class Probe(L.Callback):
     def on_test_batch_end(self, trainer: L.Trainer, *args: object, **kwargs: object) -> None:
         if self.in_test:
             self._break_once(self.marker.with_suffix(".test"), self.action, "test")
+
+
+class ProbeAfterSave(Checkpoint, Probe):
+    """The Probe, run after ``LastCheckpoint`` (Lightning runs checkpoint callbacks last, in
+    their order): its breaks land after that batch's step save, before Lightning logs the
+    batch."""

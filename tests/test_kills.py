@@ -195,3 +195,39 @@ def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
     )
     assert final.returncode == 0, final.stderr[-3000:]
     assert_same_as_uninterrupted(run_dir, uninterrupted)
+
+
+def _kill_at_each(tmp_path: Path, run_dir: Path, overrides: list[str], points: list) -> None:
+    """Run the command once per break point (``[epoch, batch]``, the probe stalls there once,
+    in order), SIGKILL it there, then run it to the end."""
+    env = probe_env(tmp_path, at_step=None, action="stall", at_batches=points)
+    args = [sys.executable, "-m", "fusion_depth.train", *overrides, f"hydra.run.dir={run_dir}"]
+    for i in range(len(points)):
+        process = subprocess.Popen(args, cwd=tmp_path, env=env, stderr=subprocess.PIPE)
+        wait_for(tmp_path / f"probe.batch{i}", process)
+        kill(process)
+    final = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
+    assert final.returncode == 0, final.stderr[-3000:]
+
+
+def test_a_kill_right_after_a_step_save_loses_no_log_row(tmp_path, uninterrupted) -> None:
+    """Killed after the step save of a batch, before Lightning logged that batch: the resumed
+    CSV log still has its row (recorded in the checkpoint)."""
+    run_dir = tmp_path / "run"
+    after_save = "+callbacks.probe._target_=resume_probe.ProbeAfterSave"
+    _kill_at_each(tmp_path, run_dir, [*KILLABLE, after_save], [[0, 0], [1, 1]])
+    assert_same_as_uninterrupted(run_dir, uninterrupted)
+
+
+def test_resume_is_exact_with_gradient_accumulation(tmp_path) -> None:
+    """Two successive kills in the same accumulation window: no state is saved inside a window
+    (its summed gradients are in no checkpoint), so the window is redone whole."""
+    accumulating = [*KILLABLE, "+trainer.accumulate_grad_batches=2"]
+    reference_dir = tmp_path / "reference"
+    reference = {
+        "results": train(compose_config(accumulating, reference_dir)),
+        "dir": reference_dir,
+    }
+    run_dir = tmp_path / "run"
+    _kill_at_each(tmp_path, run_dir, [*accumulating, PROBE], [[1, 1], [1, 1]])
+    assert_same_as_uninterrupted(run_dir, reference)

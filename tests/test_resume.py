@@ -396,13 +396,18 @@ def test_a_split_without_frames_is_refused() -> None:
         check_batches(datamodule, {}, "mine", world_size=2)  # a DDP share of the 4 frames
 
 
-def test_a_run_whose_every_step_was_skipped_reports_no_result(tmp_path, monkeypatch) -> None:
+def test_a_run_whose_every_batch_was_skipped_reports_no_result(tmp_path, monkeypatch) -> None:
     from fusion_depth.module import DepthModule
+    from fusion_depth.train import NoTrainingError
 
-    monkeypatch.setattr(DepthModule, "training_step", lambda self, batch, batch_idx: None)
+    def nan_loss(self, batch):
+        return {"loss": torch.tensor(float("nan"), requires_grad=True)}
+
+    monkeypatch.setattr(DepthModule, "step_losses", nan_loss)
     run_dir = tmp_path / "run"
-    with pytest.raises(RuntimeError, match="trained no optimizer step"):
-        train(compose_config(["experiment=smoke", "logger=none"], run_dir))
+    skip_all = ["model.on_nonfinite_loss=skip", "model.max_nonfinite_skips=100"]
+    with pytest.raises(NoTrainingError, match=r"trained no batch .*6 batches skipped"):
+        train(compose_config(["experiment=smoke", "logger=none", *skip_all], run_dir))
     assert not (run_dir / "metrics.json").exists()
 
 
