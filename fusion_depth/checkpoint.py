@@ -27,7 +27,8 @@ from hydra.errors import CompactHydraException
 from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from fusion_depth.data import READERS, reader_class
+from fusion_depth.config import cache_dir
+from fusion_depth.data import READERS, WRITES_INTO, reader_class
 from fusion_depth.models import DepthNet
 from fusion_depth.runs import write_atomic
 
@@ -66,27 +67,32 @@ def plain_config(config: Any) -> Any:
     return config
 
 
-def _instantiation_keys(data: Any, where: str) -> Iterator[str]:
-    """Key paths (``a.b._target_``) of the instantiation keys anywhere in ``data``."""
+def _code_in(data: Any, where: str) -> Iterator[str]:
+    """What in ``data`` would make Hydra or OmegaConf run code, each with its key path: an
+    instantiation key (``a.b._target_``) or an interpolation string (``${oc.env:...}``, which
+    runs a resolver when a config is built from it)."""
     if isinstance(data, dict):
         for key, value in data.items():
             path = f"{where}.{key}" if where else str(key)
             if key in INSTANTIATION_KEYS:
-                yield path
-            yield from _instantiation_keys(value, path)
+                yield f"the instantiation key {path}"
+            yield from _code_in(value, path)
     elif isinstance(data, list | tuple):
         for i, value in enumerate(data):
-            yield from _instantiation_keys(value, f"{where}[{i}]")
+            yield from _code_in(value, f"{where}[{i}]")
+    elif isinstance(data, str) and "${" in data:
+        yield f"an interpolation at {where} ({data[:60]!r})"
 
 
 def check_no_code(checkpoint: Any, path: Path) -> None:
-    """Refuse a checkpoint with a Hydra instantiation key anywhere in it, naming the key path:
-    a checkpoint is data, and the code it runs with is chosen by name from this package."""
-    found = next(_instantiation_keys(checkpoint, ""), None)
+    """Refuse a checkpoint that holds an instantiation key or an interpolation anywhere in it,
+    naming the key path: a checkpoint is data, and the code it runs with is chosen by name from
+    this package (training stores resolved configs without instantiation keys)."""
+    found = next(_code_in(checkpoint, ""), None)
     if found is not None:
         raise CheckpointError(
-            f"ckpt_path={path}: refused; it holds the instantiation key {found}, and a "
-            "checkpoint may only hold plain data (fusion_depth.train writes none)"
+            f"ckpt_path={path}: refused; it holds {found}, and a checkpoint may only hold "
+            "plain data (fusion_depth.train writes neither)"
         )
 
 
@@ -201,7 +207,12 @@ def load_model(
         raise CheckpointError(f"ckpt_path={path}: its run config lacks {err}") from err
     check_expected(config, path, fusion, backbone)
     # pretrained=False: the checkpoint's weights replace ImageNet's, which need not be on disk.
-    net = DepthNet(**{k: net_config[k] for k in _NET_KEYS if k in net_config}, pretrained=False)
+    try:
+        net = DepthNet(**{k: net_config[k] for k in _NET_KEYS if k in net_config}, pretrained=False)
+    except (ValueError, TypeError, KeyError) as err:
+        raise CheckpointError(
+            f"ckpt_path={path}: its model.net config cannot be built ({err})"
+        ) from err
     state = {
         key[len("net.") :]: value
         for key, value in checkpoint["state_dict"].items()
@@ -258,7 +269,9 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
             f"ckpt_path={loaded.path}: dataset.name={name!r} is not one of {sorted(READERS)}; "
             "pass dataset=<name> to choose the dataset"
         )
-    return block
+    # What the reader needs installed is checked by importing it from the table (make_reader),
+    # never by a module name the file gives.
+    return {k: v for k, v in block.items() if k != "requires"}
 
 
 def _is_plain(value: Any) -> bool:
@@ -274,8 +287,10 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
 
     With ``path`` (the block came from that checkpoint), the reader class is looked up by
     ``dataset.name`` in :data:`fusion_depth.data.READERS` and the stored ``dataset.reader``
-    arguments must be plain data naming that constructor's parameters; otherwise (a block
-    composed from ``conf/``) Hydra instantiates it as configured.
+    arguments must be plain data naming that constructor's parameters. Where the reader writes
+    (generated or prepared data, :data:`fusion_depth.data.WRITES_INTO`) is this machine's cache
+    folder, not the one the file names. Otherwise (a block composed from ``conf/``) Hydra
+    instantiates it as configured.
 
     Raises:
         CheckpointError: an unknown dataset, an argument the reader does not take, or a value
@@ -303,6 +318,9 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
                 f"ckpt_path={path}: dataset.reader.{key} holds a {type(value).__name__}; "
                 "expected plain data (strings, numbers, lists)"
             )
+    key, folder = WRITES_INTO[name]
+    if key in args:
+        args[key] = str(Path(cache_dir()) / folder)
     return functools.partial(cls, **args)
 
 

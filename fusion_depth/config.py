@@ -50,7 +50,7 @@ class OutputDirError(OSError, CompactHydraException):
 CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
 
 
-def _cache_dir() -> str:
+def cache_dir() -> str:
     """Where generated/prepared datasets live: $FUSION_DEPTH_CACHE or ~/.cache/fusion_depth."""
     return str(Path(os.environ.get("FUSION_DEPTH_CACHE", "~/.cache/fusion_depth")).expanduser())
 
@@ -58,7 +58,7 @@ def _cache_dir() -> str:
 def register_resolvers() -> None:
     """Register the ``fd.*`` resolvers (idempotent; done on ``import fusion_depth``)."""
     OmegaConf.register_new_resolver("fd.div", lambda a, b: float(a) / float(b), replace=True)
-    OmegaConf.register_new_resolver("fd.cache_dir", _cache_dir, replace=True)
+    OmegaConf.register_new_resolver("fd.cache_dir", cache_dir, replace=True)
     # conf/hydra: run folders named after the overrides (fusion_depth.runs)
     OmegaConf.register_new_resolver("fd.run_dirname", _run_dirname, replace=True)
     OmegaConf.register_new_resolver(

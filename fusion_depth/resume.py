@@ -45,6 +45,10 @@ class RunStart:
     pending_log_row: dict | None = None  # the log row written right after that checkpoint
 
 
+class OtherRunError(ValueError, CompactHydraException):
+    """The run folder holds another configuration's run."""
+
+
 class RunLockedError(RuntimeError, CompactHydraException):
     """Another live process is using the run folder."""
 
@@ -156,7 +160,7 @@ def _check_same_run(
 ) -> None:
     stored = identity_overrides(stored or [], excluded) if isinstance(stored, list) else None
     if stored is not None and stored != overrides:
-        raise ValueError(
+        raise OtherRunError(
             f"{where} belongs to another run (overrides {' '.join(stored) or '(none)'}), not to "
             f"this one ({' '.join(overrides) or '(none)'}): give this run its own "
             "hydra.run.dir, or resume=never to replace that run"

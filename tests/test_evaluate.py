@@ -105,7 +105,7 @@ def test_a_foreign_dataset_reader_in_a_checkpoint_is_not_called(checkpoints, tmp
     checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
     checkpoint["fusion_depth_config"]["dataset"]["reader"]["_target_"] = "os.system"
     torch.save(checkpoint, tmp_path / "foreign.ckpt")
-    with pytest.raises(CheckpointError, match="'os.system' is not one of fusion_depth.data"):
+    with pytest.raises(CheckpointError, match=r"instantiation key .*dataset\.reader\._target_"):
         _evaluate([f"ckpt_path={tmp_path / 'foreign.ckpt'}"], tmp_path / "run")
 
 

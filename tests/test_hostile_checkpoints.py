@@ -6,6 +6,7 @@ resuming train, naming the key path, and the payload never runs."""
 from __future__ import annotations
 
 import copy
+import importlib.util
 import subprocess
 from pathlib import Path
 
@@ -155,3 +156,36 @@ def test_a_pickled_object_is_refused_by_name(checkpoints, tmp_path) -> None:
     torch.save(checkpoint, tmp_path / "pickled.ckpt")
     with pytest.raises(CheckpointError, match=r"refused to load; it holds a subprocess\.Popen"):
         load_model(tmp_path / "pickled.ckpt")
+
+
+def test_interpolations_and_module_names_in_a_checkpoint_are_never_used(
+    checkpoints, tmp_path, monkeypatch
+) -> None:
+    """An OmegaConf interpolation would run a resolver (``${oc.env:...}`` reads a secret) when a
+    config is built from the file; a ``requires.module`` would be imported to check for it."""
+    monkeypatch.setenv("FUSION_DEPTH_TEST_SECRET", "hunter2")
+    checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
+    checkpoint[CONFIG_KEY]["dataset"]["description"] = "${oc.env:FUSION_DEPTH_TEST_SECRET}"
+    torch.save(checkpoint, tmp_path / "interpolating.ckpt")
+    with pytest.raises(CheckpointError, match=r"an interpolation at fusion_depth_config\.dataset"):
+        load_model(tmp_path / "interpolating.ckpt")
+
+    checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
+    module = "fusion_depth_test_never_imported"
+    checkpoint[CONFIG_KEY]["dataset"]["requires"] = {"module": f"{module}.x", "package": "p"}
+    # Where the reader would write: a folder of the file's choosing.
+    checkpoint[CONFIG_KEY]["dataset"]["reader"]["root"] = str(tmp_path / "chosen_by_the_file")
+    torch.save(checkpoint, tmp_path / "requiring.ckpt")
+    imported = []
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: imported.append(name) or real_find_spec(name, *a),
+    )
+    (results,) = evaluate(
+        compose_config([f"ckpt_path={tmp_path / 'requiring.ckpt'}"], tmp_path / "e", "evaluate")
+    )
+    assert results["test"]["num_images"] == 5
+    assert not [name for name in imported if name.startswith(module)]
+    assert not (tmp_path / "chosen_by_the_file").exists()  # this machine's cache was used

@@ -31,3 +31,14 @@ def reader_class(name: str) -> Any:
         raise KeyError(f"dataset {name!r} is not one of {sorted(READERS)}")
     module, cls = READERS[name]
     return getattr(importlib.import_module(module), cls)
+
+
+# Where each reader writes what it generates or prepares: (argument, folder in the cache). A
+# reader built from a checkpoint writes into this machine's cache, wherever the file says.
+WRITES_INTO: dict[str, tuple[str, str]] = {
+    "procedural": ("root", "procedural"),
+    "kitti": ("cache_root", ""),
+    "carla": ("cache_root", ""),
+    "topview": ("cache_root", ""),
+    "nuscenes": ("cache_root", ""),
+}
