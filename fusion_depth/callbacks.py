@@ -46,7 +46,7 @@ def validation_follows(trainer: L.Trainer, batch_idx: int) -> bool:
     the epoch's last batch, and every ``val_check_interval`` batches (counted as Lightning
     counts them). Time-based intervals (``val_check_interval`` as a duration) cannot be told in
     advance: every batch counts as possibly followed by validation."""
-    if trainer._val_check_time_interval is not None:
+    if getattr(trainer, "_val_check_time_interval", None) is not None:
         return True
     if batch_idx + 1 >= trainer.num_training_batches:
         return True
