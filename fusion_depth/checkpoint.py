@@ -88,7 +88,10 @@ def check_no_code(checkpoint: Any, path: Path) -> None:
     """Refuse a checkpoint that holds an instantiation key or an interpolation anywhere in it,
     naming the key path: a checkpoint is data, and the code it runs with is chosen by name from
     this package (training stores resolved configs without instantiation keys)."""
-    found = next(_code_in(checkpoint, ""), None)
+    try:
+        found = next(_code_in(checkpoint, ""), None)
+    except RecursionError:
+        raise CheckpointError(f"ckpt_path={path}: refused; it is nested too deeply") from None
     if found is not None:
         raise CheckpointError(
             f"ckpt_path={path}: refused; it holds {found}, and a checkpoint may only hold "
@@ -174,7 +177,33 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
             f"ckpt_path={path}: no '{CONFIG_KEY}' in it; only checkpoints written by "
             "fusion_depth.train can be evaluated (they record the run config)"
         )
+    for key in (CONFIG_KEY, RUN_KEY):
+        where = _not_plain(checkpoint.get(key), key)
+        if where is not None:
+            raise CheckpointError(
+                f"ckpt_path={path}: {where} is not plain data (expected strings, numbers, "
+                "lists and mappings with string keys)"
+            )
     return checkpoint
+
+
+def _not_plain(data: Any, where: str) -> str | None:
+    """The key path of the first value in ``data`` that is not plain data, or None."""
+    if isinstance(data, dict):
+        for key, value in data.items():
+            if not isinstance(key, str):
+                return f"{where}[{key!r}]"
+            found = _not_plain(value, f"{where}.{key}")
+            if found is not None:
+                return found
+        return None
+    if isinstance(data, list | tuple):
+        for i, value in enumerate(data):
+            found = _not_plain(value, f"{where}[{i}]")
+            if found is not None:
+                return found
+        return None
+    return None if isinstance(data, _PLAIN_TYPES) else f"{where} ({type(data).__name__})"
 
 
 def check_expected(
@@ -264,7 +293,7 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
             "dataset=<name> to choose the dataset"
         )
     name = block.get("name")
-    if name not in READERS:
+    if not isinstance(name, str) or name not in READERS:
         raise CheckpointError(
             f"ckpt_path={loaded.path}: dataset.name={name!r} is not one of {sorted(READERS)}; "
             "pass dataset=<name> to choose the dataset"
@@ -272,14 +301,6 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
     # What the reader needs installed is checked by importing it from the table (make_reader),
     # never by a module name the file gives.
     return {k: v for k, v in block.items() if k != "requires"}
-
-
-def _is_plain(value: Any) -> bool:
-    if isinstance(value, dict):
-        return all(isinstance(k, str) and _is_plain(v) for k, v in value.items())
-    if isinstance(value, list | tuple):
-        return all(_is_plain(v) for v in value)
-    return isinstance(value, _PLAIN_TYPES)
 
 
 def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[..., Any]:
@@ -313,7 +334,7 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
                 f"ckpt_path={path}: dataset.reader.{key} is not an argument of the {name} "
                 f"reader; expected some of {sorted(k for k in params if k != 'split')}"
             )
-        if not _is_plain(value):
+        if _not_plain(value, key) is not None:
             raise CheckpointError(
                 f"ckpt_path={path}: dataset.reader.{key} holds a {type(value).__name__}; "
                 "expected plain data (strings, numbers, lists)"

@@ -17,7 +17,13 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model, make_reader
+from fusion_depth.checkpoint import (
+    CheckpointError,
+    LoadedModel,
+    dataset_config,
+    load_model,
+    make_reader,
+)
 from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
@@ -37,13 +43,17 @@ def _identity(loaded: LoadedModel, dataset: DictConfig) -> dict:
     checkpoints), with the dataset it is scored on now."""
     identity = dict(loaded.run or {})
     config = loaded.config
-    if not identity:
+    if not isinstance(identity.get("dataset"), str):  # none recorded (or not as train writes it)
+        def recorded(group: str, key: str) -> object:
+            block = config.get(group)
+            return block.get(key) if isinstance(block, dict) else None
+
         identity = {
-            "dataset": config["dataset"]["name"],
-            "sensor": config["dataset"].get("sensor"),
-            "backbone": config["backbone"]["name"],
-            "fusion": config["fusion"]["mode"],
-            "loss": config["loss"]["pixel"],
+            "dataset": recorded("dataset", "name"),
+            "sensor": recorded("dataset", "sensor"),
+            "backbone": loaded.backbone,
+            "fusion": loaded.fusion,
+            "loss": recorded("loss", "pixel"),
             "seed": config.get("seed"),
             "overrides": [],
         }
@@ -121,6 +131,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         "checkpoint_config": loaded.config,
     }
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
+    identity = _identity(loaded, dataset)  # before the work: a malformed record fails first
     with closing(logger):
         if logger:
             logger.log_hyperparams(resolved)
@@ -128,7 +139,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         record = evaluation_record(module.test_results, protocol, cfg.split, module.test_latency)
         results = {
             "status": "ok",
-            "run": _identity(loaded, dataset),
+            "run": identity,
             **record,
             "checkpoint": str(Path(ckpt_path).resolve()),
             "seed": cfg.seed,
@@ -150,6 +161,8 @@ def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
             best = json.loads(metrics.read_text()).get("best_checkpoint")
         except (json.JSONDecodeError, AttributeError) as err:
             raise ValueError(f"{metrics}: not a fusion-depth metrics file ({err})") from err
+        if best is not None and not isinstance(best, str):
+            raise CheckpointError(f"{metrics}: best_checkpoint={best!r} is not a path")
         if best and Path(best).is_file():
             found.append((metrics.parent.relative_to(folder), Path(best)))
         elif best:

@@ -70,7 +70,13 @@ class RunLock:
 
     def __enter__(self) -> RunLock:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # never through a symbolic link: the lock file is written to
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as err:
+            raise RunLockedError(
+                f"{self.path}: cannot be used as the run's lock file ({err.strerror}); expected "
+                "a regular file or none: remove it"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -228,16 +234,68 @@ def plan_start(
         checkpoint = load_weights_only(last, mmap=True)
     except CheckpointError as err:
         raise CheckpointError(f"{err}; resume=never starts this run over") from err
+    check_resume_state(checkpoint, last)
     identity = checkpoint.get(RUN_KEY) or {}
     _check_same_run(last, identity.get("overrides"), overrides, excluded)
     remove_leftovers(output_dir, checkpoint_dir, keep=[last, *known_checkpoints(checkpoint)])
-    state = (checkpoint.get("callbacks") or {}).get(LAST_CHECKPOINT_STATE) or {}
+    state = checkpoint["callbacks"].get(LAST_CHECKPOINT_STATE) or {}
     return RunStart(
         checkpoint=last,
         wandb_id=identity.get("wandb_id") or fresh.wandb_id,
         global_step=int(checkpoint.get("global_step", 0)),
         pending_log_row=state.get("pending_log_row"),
     )
+
+
+_CHECKPOINT_PATH_KEYS = ("best_model_path", "kth_best_model_path", "last_model_path")
+
+
+def _refuse(last: Path, what: str) -> CheckpointError:
+    return CheckpointError(f"ckpt_path={last}: refused; {what}; resume=never starts this run over")
+
+
+def check_resume_state(checkpoint: Any, last: Path) -> None:
+    """Refuse a ``last.ckpt`` whose training state is not what training writes, before Lightning
+    restores it: the run identity and callback states must be mappings, the step an integer,
+    the logged row plain numbers, and every checkpoint file a ModelCheckpoint state names must
+    lie directly in that state's own folder (Lightning deletes the files it names when better
+    ones arrive, and tests the best one).
+
+    Raises:
+        CheckpointError: one line naming the key.
+    """
+    if not isinstance(checkpoint, dict):
+        raise _refuse(last, "it is not a mapping")
+    if not isinstance(checkpoint.get(RUN_KEY, {}), dict):
+        raise _refuse(last, f"{RUN_KEY} is not a mapping")
+    step = checkpoint.get("global_step", 0)
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise _refuse(last, f"global_step={step!r} is not a step count")
+    callbacks = checkpoint.setdefault("callbacks", {})
+    if not isinstance(callbacks, dict) or not all(isinstance(v, dict) for v in callbacks.values()):
+        raise _refuse(last, "callbacks is not a mapping of callback states")
+    row = (callbacks.get(LAST_CHECKPOINT_STATE) or {}).get("pending_log_row")
+    if row is not None and not (
+        isinstance(row, dict)
+        and all(isinstance(k, str) for k in row)
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in row.values())
+    ):
+        raise _refuse(last, f"callbacks.{LAST_CHECKPOINT_STATE}.pending_log_row is not a row")
+    for name, state in callbacks.items():
+        if "best_k_models" not in state and "best_model_path" not in state:
+            continue
+        folder = state.get("dirpath")
+        top_k = state.get("best_k_models") or {}
+        paths = [state.get(k) for k in _CHECKPOINT_PATH_KEYS]
+        paths += list(top_k) if isinstance(top_k, dict) else [top_k]
+        for path in paths:
+            if path in (None, ""):
+                continue
+            inside = (
+                isinstance(path, str) and isinstance(folder, str) and ".." not in Path(path).parts
+            )
+            if not inside or Path(path).parent != Path(folder):
+                raise _refuse(last, f"callbacks[{name!r}] names {path!r}, not a file in its folder")
 
 
 def known_checkpoints(checkpoint: dict) -> list[Path]:

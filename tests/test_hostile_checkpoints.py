@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import importlib.util
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -189,3 +190,125 @@ def test_interpolations_and_module_names_in_a_checkpoint_are_never_used(
     assert results["test"]["num_images"] == 5
     assert not [name for name in imported if name.startswith(module)]
     assert not (tmp_path / "chosen_by_the_file").exists()  # this machine's cache was used
+
+
+def _last_ckpt(run_dir: Path, change) -> Path:
+    """A ``last.ckpt`` as train writes it (identity, step, callback states), then changed."""
+    folder = run_dir / "checkpoints"
+    folder.mkdir(parents=True, exist_ok=True)
+    best = folder / "epoch000-rmse9.0000.ckpt"
+    best.write_bytes(b"x")
+    checkpoint = {
+        "state_dict": {},
+        "global_step": 3,
+        RUN_KEY: {"overrides": ["experiment=smoke"], "wandb_id": "x"},
+        "callbacks": {
+            "ModelCheckpoint{'monitor': 'val/rmse'}": {
+                "dirpath": str(folder),
+                "best_model_path": str(best),
+                "kth_best_model_path": str(best),
+                "best_k_models": {str(best): torch.tensor(9.0)},
+            },
+            "LastCheckpoint": {"saved_at_step": 3, "pending_log_row": {"step": 2, "x": 1.0}},
+        },
+    }
+    change(checkpoint)
+    torch.save(checkpoint, folder / "last.ckpt")
+    return folder / "last.ckpt"
+
+
+def _model_checkpoint_state(checkpoint: dict) -> dict:
+    return checkpoint["callbacks"]["ModelCheckpoint{'monitor': 'val/rmse'}"]
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda c: c.update({RUN_KEY: "x"}), "fusion_depth_run is not a mapping"),
+        (lambda c: c.update(global_step="abc"), "global_step='abc' is not a step count"),
+        (lambda c: c.update(callbacks=[1]), "callbacks is not a mapping"),
+        (
+            lambda c: c["callbacks"]["LastCheckpoint"].update(pending_log_row="x"),
+            "callbacks.LastCheckpoint.pending_log_row is not a row",
+        ),
+        (
+            lambda c: c["callbacks"]["LastCheckpoint"].update(pending_log_row={1: 2.0}),
+            "callbacks.LastCheckpoint.pending_log_row is not a row",
+        ),
+    ],
+)
+def test_a_malformed_training_state_is_refused_in_one_line(tmp_path, change, message) -> None:
+    from fusion_depth.resume import plan_start
+
+    run_dir = tmp_path / "run"
+    _last_ckpt(run_dir, change)
+    with pytest.raises(CheckpointError, match=rf"last\.ckpt: refused; {message}"):
+        plan_start(run_dir, run_dir / "checkpoints", "auto", True, ["experiment=smoke"])
+
+
+def test_a_training_state_cannot_name_files_outside_its_folder(tmp_path) -> None:
+    """Lightning deletes the checkpoints a ModelCheckpoint state names once better ones arrive,
+    and tests its best one: a crafted state must not point it at any other file."""
+    from fusion_depth.resume import plan_start
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    other_run = tmp_path / "other" / "checkpoints" / "epoch001-rmse1.0000.ckpt"
+    run_dir = tmp_path / "run"
+    walk_out = str(run_dir / "checkpoints" / ".." / ".." / "victim.txt")
+    for target in (walk_out, str(other_run)):
+
+        def point_at(checkpoint: dict, target: str = target) -> None:
+            state = _model_checkpoint_state(checkpoint)
+            state["best_k_models"] = {target: torch.tensor(1e9)}
+            state["best_model_path"] = state["kth_best_model_path"] = target
+
+        _last_ckpt(run_dir, point_at)
+        with pytest.raises(CheckpointError, match=r"names '.*', not a file in its folder"):
+            plan_start(run_dir, run_dir / "checkpoints", "auto", True, ["experiment=smoke"])
+    assert victim.read_text() == "precious"
+    # The state train writes is accepted, and its best checkpoint kept.
+    last = _last_ckpt(run_dir, lambda c: None)
+    start = plan_start(run_dir, run_dir / "checkpoints", "auto", True, ["experiment=smoke"])
+    assert start.checkpoint == last and start.pending_log_row == {"step": 2, "x": 1.0}
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda c: c.update(deep=_nested(5000)), "nested too deeply"),
+        (lambda c: c["dataset"].update(extra=torch.zeros(2)), r"dataset\.extra \(Tensor\)"),
+        (lambda c: c["dataset"].update({("a", "b"): 1}), r"dataset\[\('a', 'b'\)\]"),
+    ],
+)
+def test_config_that_is_not_plain_data_is_refused(checkpoints, tmp_path, change, message) -> None:
+    checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
+    change(checkpoint[CONFIG_KEY])
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(50_000)  # pickling a deep nest needs it; reading it back does not
+    try:
+        torch.save(checkpoint, tmp_path / "odd.ckpt")
+    finally:
+        sys.setrecursionlimit(limit)
+    with pytest.raises(CheckpointError, match=message):
+        load_model(tmp_path / "odd.ckpt")
+
+
+def _nested(depth: int) -> list:
+    value: list = []
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+def test_odd_dataset_names_and_run_records_are_refused(checkpoints, tmp_path) -> None:
+    checkpoint = torch.load(checkpoints["rgb"], weights_only=True)
+    checkpoint[CONFIG_KEY]["dataset"]["name"] = ["procedural"]
+    torch.save(checkpoint, tmp_path / "listed.ckpt")
+    with pytest.raises(CheckpointError, match=r"dataset.name=\['procedural'\] is not one of"):
+        dataset_config(load_model(tmp_path / "listed.ckpt"), None)
+    runs = tmp_path / "runs" / "a"
+    runs.mkdir(parents=True)
+    (runs / "metrics.json").write_text('{"best_checkpoint": 5}')
+    with pytest.raises(CheckpointError, match=r"best_checkpoint=5 is not a path"):
+        evaluate(compose_config([f"ckpt_path={runs.parent}"], tmp_path / "e", "evaluate"))

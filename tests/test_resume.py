@@ -446,3 +446,45 @@ def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
     again = run_module(command, cwd=tmp_path, env=env)
     assert again.returncode == 0, again.stderr[-3000:]
     assert json.loads((run_dir / "metrics.json").read_text())["global_step"] == 9
+
+
+def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> None:
+    from fusion_depth.resume import RunLock
+
+    sweep_dir = tmp_path / "sweep"
+    job_dir = sweep_dir / run_dirname("experiment=smoke")
+    with RunLock(job_dir):  # a live process (this one) is using the job's folder
+        done = run_module(
+            [
+                "fusion_depth.train",
+                "-m",
+                "experiment=smoke",
+                "logger=none",
+                f"hydra.sweep.dir={sweep_dir}",
+            ],
+            cwd=tmp_path,
+        )
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert (
+        f"job not run: {job_dir} is in use by process {os.getpid()} on host"
+        in done.stdout + done.stderr
+    )
+    assert "0 ok, 1 failed or incomplete" in done.stdout
+    assert not (job_dir / "failure.json").exists() and not (job_dir / "checkpoints").exists()
+
+
+def test_a_lock_file_that_is_a_link_or_a_folder_is_refused(tmp_path) -> None:
+    from fusion_depth.resume import RunLock, RunLockedError
+
+    target = tmp_path / "target.txt"
+    target.write_text("keep me")
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    (linked / ".run.lock").symlink_to(target)
+    with pytest.raises(RunLockedError, match=r"\.run\.lock: cannot be used as the run's lock"):
+        RunLock(linked).__enter__()
+    assert target.read_text() == "keep me"
+    folder = tmp_path / "folder"
+    (folder / ".run.lock").mkdir(parents=True)
+    with pytest.raises(RunLockedError, match=r"\.run\.lock: cannot be used as the run's lock"):
+        RunLock(folder).__enter__()
