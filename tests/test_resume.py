@@ -320,7 +320,8 @@ def test_a_new_start_removes_what_interrupted_attempts_left(tmp_path) -> None:
     checkpoint = torch.load(last, weights_only=True)
     checkpoint["callbacks"] = {
         "ModelCheckpoint{'monitor': 'val/rmse'}": {
-            "best_model_path": f"relative/elsewhere/{best.name}",  # another working directory
+            "dirpath": str(ckpts),
+            "best_model_path": str(best),
             "best_k_models": {str(best): torch.tensor(9.5)},
         }
     }
