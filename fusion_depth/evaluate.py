@@ -44,6 +44,7 @@ def _identity(loaded: LoadedModel, dataset: DictConfig) -> dict:
     identity = dict(loaded.run or {})
     config = loaded.config
     if not isinstance(identity.get("dataset"), str):  # none recorded (or not as train writes it)
+
         def recorded(group: str, key: str) -> object:
             block = config.get(group)
             return block.get(key) if isinstance(block, dict) else None

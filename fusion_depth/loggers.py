@@ -106,8 +106,9 @@ def wandb_logger(
 
 
 class ResumableCSVLogger(CSVLogger):
-    """Lightning's CSVLogger, flushed every step (a kill loses no row), whose ``metrics.csv``
-    continues the interrupted run's when a run resumes at optimizer step ``resume_step``.
+    """Lightning's CSVLogger (which Lightning saves after every logged row, so a kill loses
+    none), whose ``metrics.csv`` continues the interrupted run's when a run resumes at
+    optimizer step ``resume_step``.
 
     The rows of work done before that step are kept (their ``step`` column, Lightning's count of
     optimizer steps taken before the row was logged, is below ``resume_step``); later rows
@@ -124,7 +125,6 @@ class ResumableCSVLogger(CSVLogger):
         resume_row: dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
-        kwargs.setdefault("flush_logs_every_n_steps", 1)
         super().__init__(*args, **kwargs)
         self._resume_step = resume_step
         self._resume_row = resume_row

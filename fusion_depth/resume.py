@@ -282,15 +282,8 @@ def check_resume_state(checkpoint: Any, last: Path) -> None:
     ):
         raise _refuse(last, f"callbacks.{LAST_CHECKPOINT_STATE}.pending_log_row is not a row")
     for name, state in callbacks.items():
-        if "best_k_models" not in state and "best_model_path" not in state:
-            continue
         folder = state.get("dirpath")
-        top_k = state.get("best_k_models") or {}
-        paths = [state.get(k) for k in _CHECKPOINT_PATH_KEYS]
-        paths += list(top_k) if isinstance(top_k, dict) else [top_k]
-        for path in paths:
-            if path in (None, ""):
-                continue
+        for path in _named_checkpoints(state):
             inside = (
                 isinstance(path, str) and isinstance(folder, str) and ".." not in Path(path).parts
             )
@@ -298,17 +291,18 @@ def check_resume_state(checkpoint: Any, last: Path) -> None:
                 raise _refuse(last, f"callbacks[{name!r}] names {path!r}, not a file in its folder")
 
 
+def _named_checkpoints(state: dict) -> list[Any]:
+    """The checkpoint files a callback state names (a ModelCheckpoint's best, k-th best, last
+    and top-k models; none for other callbacks), as stored: unchecked values."""
+    top_k = state.get("best_k_models") or {}
+    paths = [state.get(key) for key in _CHECKPOINT_PATH_KEYS]
+    paths += list(top_k) if isinstance(top_k, dict) else [top_k]
+    return [p for p in paths if p not in (None, "")]
+
+
 def known_checkpoints(checkpoint: dict) -> list[Path]:
-    """The checkpoint files a saved training state refers to: every ModelCheckpoint's best and
-    top-k models (Lightning stores them under ``callbacks``)."""
-    known: list[Path] = []
-    for state in (checkpoint.get("callbacks") or {}).values():
-        if not isinstance(state, dict):
-            continue
-        for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
-            if isinstance(state.get(key), str) and state[key]:
-                known.append(Path(state[key]))
-        top_k = state.get("best_k_models")
-        if isinstance(top_k, dict):
-            known += [Path(p) for p in top_k if isinstance(p, str)]
-    return known
+    """The checkpoint files a saved training state refers to (checked by
+    :func:`check_resume_state` first): every ModelCheckpoint's best and top-k models."""
+    return [
+        Path(p) for state in checkpoint["callbacks"].values() for p in _named_checkpoints(state)
+    ]

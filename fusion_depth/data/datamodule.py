@@ -237,9 +237,9 @@ def check_batches(
     Raises:
         ConfigError: one line naming the split, its size and the batch size (or the limit).
     """
-    if trainer.get("max_steps") == 0 or trainer.get("max_epochs") == 0:
-        key = "max_steps" if trainer.get("max_steps") == 0 else "max_epochs"
-        raise ConfigError(f"trainer.{key}=0: leaves nothing to train; expected at least 1")
+    # trainer.max_epochs=0 is refused with the other config values (config.check_values).
+    if trainer.get("max_steps") == 0:
+        raise ConfigError("trainer.max_steps=0: leaves nothing to train; expected at least 1")
     stages = (
         ("train", "train", datamodule.batch_size, "data.batch_size"),
         ("val", "val", datamodule.eval_batch_size, "data.eval_batch_size"),
