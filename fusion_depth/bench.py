@@ -46,6 +46,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
+from fusion_depth.cli import check_override_keys, literal_paths
 from fusion_depth.config import CONF_DIR, check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule
@@ -79,8 +80,11 @@ quiet_known_noise()
 
 
 def compose_train_config(overrides: Sequence[str]) -> DictConfig:
-    """``conf/train.yaml`` with ``overrides``; errors name the offending override."""
+    """``conf/train.yaml`` with ``overrides`` (paths read as typed, see
+    :func:`fusion_depth.cli.literal_paths`); errors name the offending override."""
     GlobalHydra.instance().clear()
+    overrides = literal_paths(list(overrides))
+    check_override_keys("train", overrides)  # one line for an unknown key
     try:
         with initialize_config_dir(CONF_DIR, version_base="1.3"):
             cfg = compose("train", overrides=list(overrides))
@@ -546,7 +550,8 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def bench_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m fusion_depth.bench`` (flags and Hydra overrides)."""
     parser = argparse.ArgumentParser(
         prog="python -m fusion_depth.bench",
         description="Time inference, training and data loading of a configuration.",
@@ -571,6 +576,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--data-split", default="train", help="the split the data stage reads")
     parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = bench_parser()
     args = parser.parse_intermixed_args(argv)  # overrides may come after the flags
     for name in ("warmup", "runs", "train_steps", "data_workers", "data_batches", "threads"):
         value = getattr(args, name)

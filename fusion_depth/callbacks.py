@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import math
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +15,10 @@ from lightning.pytorch.callbacks import Checkpoint
 from lightning.pytorch.loggers import WandbLogger
 from PIL import Image
 
+from fusion_depth.progress import format_duration
 from fusion_depth.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
+
+log = logging.getLogger(__name__)
 
 
 class ValidationPanels(L.Callback):
@@ -156,3 +163,98 @@ class LastCheckpoint(Checkpoint):
         n = self.every_n_epochs
         if n and (trainer.current_epoch + 1) % n == 0:
             self._save(trainer, epoch_end=True)
+
+
+class ProgressLog(L.Callback):
+    """Progress as log lines where no progress bar is drawn (stdout not a terminal: SLURM
+    ``.out`` files, ``nohup``, CI), on the lead process only:
+
+    * after each epoch's validation: ``epoch 3/20: train loss 0.1234, val RMSE 8.123 m,
+      δ1 0.456, 41 s, ETA 11 min`` (the ETA from the mean epoch time so far);
+    * inside an epoch or a test stage, at most every ``every_s`` seconds:
+      ``epoch 3/20: batch 40/80, loss 0.1234, 1.9 batches/s`` or ``test: batch 12/63``.
+
+    With a progress bar (``trainer.enable_progress_bar=true``, or a terminal) it stays silent.
+
+    Args:
+        every_s: the shortest time between two lines inside an epoch or a test stage.
+        clock: seconds, monotonic (replaceable in tests).
+    """
+
+    def __init__(self, every_s: float = 120.0, clock: Callable[[], float] = time.monotonic):
+        if not every_s > 0:
+            raise ValueError(f"callbacks.progress_log.every_s={every_s}: expected seconds > 0")
+        self.every_s = float(every_s)
+        self.clock = clock
+        self._epoch_times: list[float] = []
+        self._epoch_start = self._last_line = 0.0
+        self._loss_sum, self._loss_count = 0.0, 0
+
+    @staticmethod
+    def _active(trainer: L.Trainer) -> bool:
+        return trainer.progress_bar_callback is None and trainer.is_global_zero
+
+    def _epochs(self, trainer: L.Trainer) -> str:
+        total = trainer.max_epochs
+        return f"{trainer.current_epoch + 1}/{total}" if total and total > 0 else str(
+            trainer.current_epoch + 1
+        )
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._epoch_start = self._last_line = self.clock()
+        self._loss_sum, self._loss_count = 0.0, 0
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
+    ) -> None:
+        loss = trainer.callback_metrics.get("train/loss")
+        if loss is not None and math.isfinite(float(loss)):
+            self._loss_sum += float(loss)
+            self._loss_count += 1
+        now = self.clock()
+        if not self._active(trainer) or now - self._last_line < self.every_s:
+            return
+        self._last_line = now
+        done = trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        total = trainer.num_training_batches
+        rate = done / max(now - self._epoch_start, 1e-9)
+        parts = [f"epoch {self._epochs(trainer)}: batch {done}/{total}"]
+        if self._loss_count:
+            parts.append(f"loss {self._loss_sum / self._loss_count:.4f}")
+        parts.append(f"{rate:.2g} batches/s")
+        log.info("%s", ", ".join(parts))
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        took = self.clock() - self._epoch_start
+        self._epoch_times.append(took)
+        if not self._active(trainer):
+            return
+        metrics = trainer.callback_metrics
+        parts = [f"epoch {self._epochs(trainer)}"]
+        if self._loss_count:
+            parts.append(f"train loss {self._loss_sum / self._loss_count:.4f}")
+        if "val/rmse" in metrics:
+            parts.append(f"val RMSE {float(metrics['val/rmse']):.3f} m")
+        if "val/delta1" in metrics:
+            parts.append(f"δ1 {float(metrics['val/delta1']):.3f}")
+        parts.append(format_duration(took))
+        left = (trainer.max_epochs or 0) - trainer.current_epoch - 1
+        if left > 0:
+            mean = sum(self._epoch_times) / len(self._epoch_times)
+            parts.append(f"ETA {format_duration(left * mean)}")
+        log.info("%s: %s", parts[0], ", ".join(parts[1:]))
+
+    def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._epoch_start = self._last_line = self.clock()
+
+    def on_test_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
+    ) -> None:
+        now = self.clock()
+        if not self._active(trainer) or now - self._last_line < self.every_s:
+            return
+        self._last_line = now
+        done = trainer.test_loop.batch_progress.current.processed
+        total = sum(trainer.num_test_batches)
+        left = (total - done) * (now - self._epoch_start) / max(done, 1)
+        log.info("test: batch %d/%d, ETA %s", done, total, format_duration(left))

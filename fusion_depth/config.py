@@ -46,8 +46,17 @@ class OutputDirError(OSError, CompactHydraException):
 # --- resolvers --------------------------------------------------------------------------------
 
 
-# The Hydra configs (``conf/`` beside the package), for entry points that compose them.
-CONF_DIR = str(Path(__file__).resolve().parents[1] / "conf")
+def _shipped(name: str) -> str:
+    """A folder that sits at the repository's top level and ships inside the package: the
+    installed copy (``fusion_depth/<name>``) or, in a checkout, the repository's own."""
+    package = Path(__file__).resolve().parent
+    installed = package / name
+    return str(installed if installed.is_dir() else package.parent / name)
+
+
+# The Hydra configs every entry point composes, and the ready-made sweep configs.
+CONF_DIR = _shipped("conf")
+SWEEPS_DIR = _shipped("sweeps")
 
 
 def cache_dir() -> str:
@@ -158,6 +167,20 @@ def check_dataset(ds: DictConfig, fusion: str) -> None:
         )
 
 
+def check_bottleneck(cfg: DictConfig) -> None:
+    """A training batch must hold more than one value per channel at the encoder's bottleneck
+    (1/32 of the input): batch norm in training mode cannot normalise a single value, so batch 1
+    at 32×32 would fail inside the first training step."""
+    batch = _get(cfg, "data.batch_size")
+    height, width = cfg.dataset.height, cfg.dataset.width
+    if _is_int(batch) and batch * (height // 32) * (width // 32) < 2:
+        raise ConfigError(
+            f"data.batch_size={batch} with dataset.height={height}, dataset.width={width}: the "
+            "encoder's bottleneck (1/32 of the input) is 1×1, and batch norm needs more than one "
+            "value per channel to train; use data.batch_size=2 or a height or width of 64"
+        )
+
+
 def check_values(cfg: DictConfig) -> None:
     """The values the network, the trainer and the data pipeline can take, each checked (when
     the key is present) before anything is built; errors are one line naming the key."""
@@ -199,6 +222,7 @@ def check_values(cfg: DictConfig) -> None:
         return _is_number(v) and v >= 0
 
     _require(cfg, "data.batch_size", positive_int, "an integer ≥ 1")
+    check_bottleneck(cfg)
     _require(
         cfg,
         "data.eval_batch_size",
@@ -231,6 +255,48 @@ def check_values(cfg: DictConfig) -> None:
         "null (Lightning's default: 1000 unless trainer.max_steps is set)",
     )
     _require(cfg, "trainer.precision", *_one_of(*PRECISIONS))
+    _require(cfg, "trainer.accumulate_grad_batches", positive_int, "an integer ≥ 1")
+    _require(
+        cfg,
+        "trainer.max_steps",
+        lambda v: _is_int(v) and v >= -1,
+        "an integer ≥ 1, or -1 (no step limit)",
+    )
+    _require(
+        cfg,
+        "trainer.gradient_clip_val",
+        lambda v: v is None or nonneg_number(v),
+        "a number ≥ 0, or null (no clipping)",
+    )
+    _require(
+        cfg,
+        "trainer.val_check_interval",
+        lambda v: v is None
+        or positive_int(v)
+        or (isinstance(v, float) and 0 < v <= 1)
+        or isinstance(v, str | dict),
+        "null (once per epoch), a fraction of the epoch in (0, 1], or a number of batches ≥ 1",
+    )
+
+    # The optimizer's and scheduler's arguments (torch.optim.Adam, StepLR; the keys any other
+    # choice shares are checked alike), before torch's own checks deep inside training.
+    def positive_number(v: Any) -> bool:
+        return _is_number(v) and v > 0
+
+    _require(cfg, "optimizer.lr", positive_number, "a learning rate > 0")
+    _require(
+        cfg,
+        "optimizer.betas",
+        lambda v: isinstance(v, list) and len(v) == 2 and all(
+            _is_number(b) and 0 <= b < 1 for b in v
+        ),
+        "[beta1, beta2], each in [0, 1)",
+    )
+    _require(cfg, "optimizer.eps", positive_number, "a number > 0")
+    _require(cfg, "optimizer.weight_decay", nonneg_number, "a number ≥ 0")
+    _require(cfg, "optimizer.momentum", nonneg_number, "a number ≥ 0")
+    _require(cfg, "scheduler.step_size", positive_int, "an integer ≥ 1 (epochs)")
+    _require(cfg, "scheduler.gamma", positive_number, "a factor > 0")
 
     _require(cfg, "model.net.fusion", *_one_of(*FUSION_MODES))
     _require(cfg, "model.net.backbone", *_one_of(*sorted(ENCODER_SPECS)))
@@ -297,7 +363,10 @@ PASSED_BY_CODE: dict[str, dict[str, str]] = {
         "reader": "fusion_depth.train builds it from dataset.reader",
         "seed": "fusion_depth.train passes the run's seed",
     },
-    "dataset.reader": {"split": "the datamodule builds each split"},
+    "dataset.reader": {
+        "split": "the datamodule builds each split",
+        "on_error": "fusion_depth.prepare skips broken frames, training stops at the first",
+    },
     "optimizer": {"params": "the module passes its parameters"},
     "scheduler": {"optimizer": "the module passes its optimizer"},
 }
@@ -312,7 +381,8 @@ def _join(path: str, key: Any) -> str:
     return f"{path}.{key}" if path else str(key)
 
 
-def _unknown_key(key: str, allowed: list[str], note: str = "") -> ConfigError:
+def unknown_key_error(key: str, allowed: list[str], note: str = "") -> ConfigError:
+    """``key: unknown key (did you mean …?); expected one of …``, one line."""
     close = difflib.get_close_matches(key.rsplit(".", 1)[-1], allowed, n=1)
     notes = [n for n in (note, f"did you mean {close[0]}?" if close else "") if n]
     hint = f" ({'; '.join(notes)})" if notes else ""
@@ -334,6 +404,20 @@ def _parameters(target: Any) -> dict[str, inspect.Parameter] | None:
         if param.kind in (param.POSITIONAL_OR_KEYWORD, param.KEYWORD_ONLY):
             params[name] = param
     return params
+
+
+def target_accepts(node: Any, key: str) -> bool:
+    """Whether ``node`` (a config node) has a ``_target_`` that takes the argument ``key``."""
+    from hydra.utils import get_object
+
+    target = node.get("_target_") if isinstance(node, DictConfig) else None
+    if not isinstance(target, str):
+        return False
+    try:
+        params = _parameters(get_object(target))
+    except Exception:  # noqa: BLE001 - an unimportable target accepts nothing we can tell
+        return False
+    return params is None or key in params
 
 
 def _import_target(target: str, key: str) -> Any:
@@ -360,7 +444,7 @@ def _check_node(node: Mapping, path: str, target: Any) -> None:
         if key in by_code:
             raise ConfigError(f"{_join(path, key)}: not a config key ({by_code[key]})")
         if key not in allowed:
-            raise _unknown_key(_join(path, key), allowed)
+            raise unknown_key_error(_join(path, key), allowed)
 
 
 def _walk(node: Any, path: str = "") -> Iterator[tuple[str, Mapping]]:
@@ -497,7 +581,7 @@ def check_known_keys(cfg: DictConfig) -> None:
             for k in (siblings.keys() if isinstance(siblings, DictConfig) else [])
             if isinstance(k, str) and _join(parent, k) not in added
         ]
-        raise _unknown_key(key, allowed, "nothing reads it")
+        raise unknown_key_error(key, allowed, "nothing reads it")
 
 
 def validate_config(cfg: DictConfig) -> dict:

@@ -12,11 +12,11 @@ import logging
 import sys
 from pathlib import Path
 
-import hydra
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from fusion_depth.callbacks import ProgressLog
 from fusion_depth.checkpoint import (
     CheckpointError,
     LoadedModel,
@@ -24,10 +24,11 @@ from fusion_depth.checkpoint import (
     load_model,
     make_reader,
 )
+from fusion_depth.cli import hydra_main
 from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
-from fusion_depth.data.datamodule import DepthDataModule
+from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.evaluation import EvalProtocol, evaluation_record, publish_results
 from fusion_depth.loggers import closing
 from fusion_depth.module import DepthModule
@@ -114,7 +115,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     trainer = instantiate(
         cfg.trainer,
         default_root_dir=str(output_dir),
-        callbacks=[],
+        callbacks=[ProgressLog()],
         logger=logger,
         precision=evaluation_precision(cfg.trainer.precision, loaded, cfg.trainer.accelerator),
         enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
@@ -133,6 +134,7 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
     }
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
     identity = _identity(loaded, dataset)  # before the work: a malformed record fails first
+    check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
     with closing(logger):
         if logger:
             logger.log_hyperparams(resolved)
@@ -188,7 +190,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
     return [evaluate_checkpoint(cfg, path, output_dir)]
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra_main("evaluate")
 def main(cfg: DictConfig) -> float:
     return evaluate(cfg)[-1]["test"]["rmse"]
 

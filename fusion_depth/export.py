@@ -41,13 +41,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from torch import nn
 
 from fusion_depth.checkpoint import LoadedModel, load_model
+from fusion_depth.cli import hydra_main
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.inference import predict_depth
 from fusion_depth.models import DepthNet
@@ -522,7 +522,7 @@ def export(cfg: DictConfig) -> Path:
     return path
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="export")
+@hydra_main("export")
 def main(cfg: DictConfig) -> None:
     export(cfg)
 

@@ -49,6 +49,7 @@ __all__ = [
     "DepthMetrics",
     "compute_depth_metrics",
     "crop_mask",
+    "scored_mask",
     "depth_error_sums",
     "metrics_from_sums",
     "per_image_depth_metrics",
@@ -236,6 +237,26 @@ def _check_averaging(averaging: str) -> str:
     return averaging
 
 
+def scored_mask(
+    target: Tensor,
+    min_depth: float,
+    max_depth: float,
+    crop: str = "none",
+    frame_box: Tensor | None = None,
+) -> Tensor:
+    """Bool ``(B, H·W)``: the pixels a metric scores, ground truth in ``(min_depth,
+    max_depth)`` metres inside the evaluation ``crop`` (see :func:`crop_mask`).
+
+    Shape:
+        target: ``(B, 1, H, W)`` or ``(B, H, W)``; frame_box: ``(B, 4)``.
+    """
+    b = target.shape[0]
+    valid = ((target > min_depth) & (target < max_depth)).reshape(b, -1)
+    return valid & crop_mask(tuple(target.shape[-2:]), crop, frame_box, b, target.device).reshape(
+        b, -1
+    )
+
+
 def compute_depth_metrics(
     pred: Tensor,
     target: Tensor,
@@ -252,11 +273,7 @@ def compute_depth_metrics(
     """
     _check_range(min_depth, max_depth)
     _check_averaging(averaging)
-    b = pred.shape[0]
-    valid = (target > min_depth) & (target < max_depth)
-    valid = valid.reshape(b, -1) & crop_mask(
-        tuple(target.shape[-2:]), crop, frame_box, b, target.device
-    ).reshape(b, -1)
+    valid = scored_mask(target, min_depth, max_depth, crop, frame_box)
     sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth)
     out = _aggregate(sums, counts, averaging)
     if out is None:

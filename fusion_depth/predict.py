@@ -19,32 +19,48 @@ splits), ``output_dir`` receives:
 * ``<stem>.viz.png``: image | sparse input | prediction | ground truth (when there is one) and a
   colour bar in metres, with ``visualize=true`` (the default).
 
-Depth is predicted at each image's own resolution. Every file is written under a temporary name
-and renamed, so nothing half-written is left. An input that cannot be read (or whose sparse map
-does not match the image) is reported as ``skipped <path>: <reason>`` and the others are still
-written; the run ends with a summary line and exits with status 1 if anything was skipped.
+Depth is predicted at each image's own resolution (a visualisation less than 32 rows tall is
+padded with black rows so its colour bar stays legible). Every file is written under a temporary
+name and renamed, so nothing half-written is left.
+
+Failures. In a folder or split run, whatever goes wrong with one input makes it a skip, reported
+as ``skipped <path>: <reason>`` (one line), and the other inputs are still predicted and written:
+an input that cannot be read, a sparse map that is missing or of another size, the network
+failing on that image (a batch that fails is retried one image at a time, so only the culprit is
+skipped), or writing its outputs failing (its files already written are removed again, so a
+skipped input has no outputs from this run). The run ends with the summary line ``predicted N of
+M inputs into <dir>; skipped K: <paths>`` and exits with status 1 if anything was skipped.
+Failures that are not about one input stop the run at once: an ``output_dir`` that is not a
+writable folder (checked before the first prediction), a disk that is full or a folder that
+became read-only (no space, quota, read-only file system, permission denied), the network
+failing on 3 inputs in a row (the model or the device is broken, not the images), and
+KeyboardInterrupt. A single file input raises instead of skipping.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import sys
+import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model, make_reader
+from fusion_depth.cli import hydra_main
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
+from fusion_depth.data.prepared import one_line
 from fusion_depth.inference import predict_depth
+from fusion_depth.progress import Progress
 from fusion_depth.runs import write_atomic
 from fusion_depth.speed import autocast, resolve_device, resolve_precision, speed_up
 from fusion_depth.visualize import depth_panel, with_colorbar
@@ -54,6 +70,16 @@ quiet_known_noise()
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 SPLIT_PREFIX = "split:"
+# The network failing on this many inputs in a row means the model or device is broken.
+MAX_FAILED_IN_A_ROW = 3
+# What the forward pass raises for one input (torch's out-of-memory errors are RuntimeErrors).
+FORWARD_ERRORS = (RuntimeError, ValueError)
+# What drawing or writing one input's outputs raises (OSErrors of these errnos aside).
+WRITE_ERRORS = (ValueError, RuntimeError, OSError)
+# Write errors about the output folder or disk, not one input: they stop the run.
+NOT_ONE_INPUT_ERRNOS = frozenset(
+    {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+)
 
 
 @dataclass
@@ -184,16 +210,51 @@ def _check_outputs_apart(output_dir: Path, *inputs: Path | None) -> None:
 # --------------------------------------------------------------------------- writing outputs
 
 
+def _check_output_dir(output_dir: Path) -> None:
+    """Creates ``output_dir`` and checks a file can be written in it, before any prediction: a
+    folder that takes no files is not one input's problem.
+
+    Raises:
+        NotADirectoryError: ``output_dir`` is a file.
+        OSError: it cannot be created or written to (the message names it and why).
+    """
+    if output_dir.exists() and not output_dir.is_dir():
+        raise NotADirectoryError(f"output_dir={output_dir}: a file, expected a folder")
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=output_dir)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise OSError(
+            f"output_dir={output_dir}: cannot write files there ({err.strerror or err})"
+        ) from err
+
+
 def _write_outputs(
     output_dir: Path, frame: Frame, depth: np.ndarray, net: Any, npy: bool, visualize: bool
 ) -> Path:
+    """Writes ``<stem>.png`` (and ``.npy``, ``.viz.png``); returns the depth PNG's path.
+
+    The visualisation is drawn before any file is written, and when a write fails the files
+    this call already wrote are removed, so the input ends with all its outputs or none.
+
+    Raises:
+        ValueError, RuntimeError: drawing the visualisation failed.
+        OSError: writing a file failed.
+    """
     depth_path = output_dir / f"{frame.name}.png"
-    write_depth_png(depth_path, depth)
+    writes: list[tuple[Path, Callable[[], None]]] = [
+        (depth_path, lambda: write_depth_png(depth_path, depth))
+    ]
     if npy:
         array = depth.astype(np.float32)
-        write_atomic(
-            output_dir / f"{frame.name}.npy", lambda tmp: np.save(tmp, array), suffix=".npy"
-        )
+        npy_path = output_dir / f"{frame.name}.npy"
+
+        def save(tmp: Path) -> None:
+            np.save(tmp, array)
+
+        writes.append((npy_path, lambda: write_atomic(npy_path, save, suffix=".npy")))
     if visualize:
         sparse = frame.sparse if frame.sparse is not None else torch.zeros_like(frame.image[:1])
         panel = depth_panel(
@@ -204,10 +265,18 @@ def _write_outputs(
             net.min_depth,
             net.max_depth,
         )
-        write_rgb_png(
-            output_dir / f"{frame.name}.viz.png",
-            with_colorbar(panel, net.min_depth, net.max_depth),
-        )
+        viz = with_colorbar(panel, net.min_depth, net.max_depth)
+        viz_path = output_dir / f"{frame.name}.viz.png"
+        writes.append((viz_path, lambda: write_rgb_png(viz_path, viz)))
+    written: list[Path] = []
+    try:
+        for path, write in writes:
+            write()
+            written.append(path)
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     return depth_path
 
 
@@ -225,39 +294,31 @@ def _predict_frames(net: Any, frames: list[Frame], flip_tta: bool) -> list[np.nd
     return [d[0].float().cpu().numpy() for d in depth]
 
 
-class _Progress:
-    """A rich progress bar on stderr (nothing when disabled)."""
+def _predict_isolated(
+    net: Any, frames: list[Frame], flip_tta: bool
+) -> list[np.ndarray | Exception]:
+    """Each frame's depth, or the error the network raised for it.
 
-    def __init__(self, total: int, description: str, enabled: bool) -> None:
-        self.enabled = enabled
-        if enabled:
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeRemainingColumn,
-            )
+    The frames go through as one batch; if the batch fails, each is predicted alone, so a
+    failure that belongs to one frame (e.g. out of memory on a huge image) is that frame's only.
+    """
+    try:
+        return list(_predict_frames(net, frames, flip_tta))
+    except FORWARD_ERRORS as err:
+        if len(frames) == 1:
+            return [err]
+    results: list[np.ndarray | Exception] = []
+    for frame in frames:
+        try:
+            results += _predict_frames(net, [frame], flip_tta)
+        except FORWARD_ERRORS as err:
+            results.append(err)
+    return results
 
-            self.bar = Progress(
-                TextColumn("{task.description}"),
-                BarColumn(),
-                MofNCompleteColumn(),
-                TimeRemainingColumn(),
-                console=Console(stderr=True),
-            )
-            self.task = self.bar.add_task(description, total=total)
 
-    def __enter__(self) -> Callable[[int], None]:
-        if not self.enabled:
-            return lambda n: None
-        self.bar.__enter__()
-        return lambda n: self.bar.advance(self.task, n)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.enabled:
-            self.bar.__exit__(*exc)
+def _describe(err: BaseException) -> str:
+    """``ErrorType: first line of the message``, for a reason the error's type explains."""
+    return f"{type(err).__name__}: {one_line(err)}"
 
 
 def _run(
@@ -273,41 +334,72 @@ def _run(
     progress: bool | None,
     description: str,
 ) -> PredictSummary:
+    """Predicts and writes ``items``; every per-input failure becomes a skip (module docstring).
+
+    Raises:
+        ValueError: ``batch_size`` is not an integer >= 1.
+        OSError: ``output_dir`` is not writable, or a write failed for want of space or
+            permission.
+        RuntimeError: the network failed on :data:`MAX_FAILED_IN_A_ROW` inputs in a row.
+    """
     if not isinstance(batch_size, int) or batch_size < 1:
         raise ValueError(f"batch_size={batch_size}: expected an integer ≥ 1")
     net = loaded.net.eval()
     summary = PredictSummary(output_dir=Path(output_dir), total=total)
+    _check_output_dir(summary.output_dir)
     batch: list[Frame] = []
-    enabled = sys.stderr.isatty() if progress is None else progress
+    failed_in_a_row = 0
 
-    with _Progress(total, description, enabled) as advance:
+    def skip(item: Skipped) -> None:
+        summary.skipped.append(item)
+        log.warning("skipped %s: %s", item.source, item.reason)
+
+    with Progress(total, description, unit="inputs", terminal=progress, logger=log) as bar:
 
         def flush() -> None:
-            if batch:
-                for frame, depth in zip(batch, _predict_frames(net, batch, flip_tta), strict=True):
-                    summary.written.append(
-                        _write_outputs(summary.output_dir, frame, depth, net, npy, visualize)
-                    )
-                advance(len(batch))
-                batch.clear()
+            nonlocal failed_in_a_row
+            results = _predict_isolated(net, batch, flip_tta)
+            for frame, result in zip(batch, results, strict=True):
+                if isinstance(result, Exception):
+                    failed_in_a_row += 1
+                    skip(Skipped(frame.source, f"prediction failed ({_describe(result)})"))
+                    if failed_in_a_row >= MAX_FAILED_IN_A_ROW:
+                        raise RuntimeError(
+                            f"the network failed on {failed_in_a_row} inputs in a row, the last "
+                            f"{frame.source} ({_describe(result)}); stopping, as this is not "
+                            "about one input: check the checkpoint, device and precision"
+                        ) from result
+                    continue
+                failed_in_a_row = 0
+                try:
+                    path = _write_outputs(summary.output_dir, frame, result, net, npy, visualize)
+                except WRITE_ERRORS as err:
+                    if isinstance(err, OSError) and err.errno in NOT_ONE_INPUT_ERRNOS:
+                        raise
+                    skip(Skipped(frame.source, f"writing its outputs failed ({_describe(err)})"))
+                    continue
+                summary.written.append(path)
+            bar.advance(len(batch))
+            batch.clear()
 
         for item in items:
             if isinstance(item, Skipped):
-                summary.skipped.append(item)
-                log.warning("skipped %s: %s", item.source, item.reason)
-                advance(1)
+                skip(item)
+                bar.advance(1)
                 continue
             if batch and (len(batch) >= batch_size or batch[0].image.shape != item.image.shape):
                 flush()
             batch.append(item)
-        flush()
+        if batch:
+            flush()
     (log.warning if summary.skipped else log.info)("%s", summary.line())
     return summary
 
 
 def _reason(err: BaseException, source: str) -> str:
-    """The error's message without a leading ``<source>: `` (the log line names it already)."""
-    text = str(err)
+    """The error's message (first line) without a leading ``<source>: `` (the log line names
+    it already)."""
+    text = one_line(err)
     return text[len(source) + 2 :] if text.startswith(f"{source}: ") else text
 
 
@@ -371,9 +463,12 @@ def predict_folder(
 ) -> PredictSummary:
     """Predict every image of ``folder`` (sorted by name; the first ``limit`` when given).
 
-    ``sparse``/``ground_truth`` are folders of ``<image stem>.png`` depth maps. Unreadable
-    inputs are logged as ``skipped <path>: <reason>`` and listed in the summary; images of the
-    same size are batched ``batch_size`` at a time. ``progress``: None = when stderr is a tty.
+    ``sparse``/``ground_truth`` are folders of ``<image stem>.png`` depth maps. An input that
+    fails (reading it, predicting it, writing its outputs) is logged as ``skipped <path>:
+    <reason>`` and listed in the summary, and the others are still written (module docstring,
+    "Failures", for what stops the run instead); images of the same size are batched
+    ``batch_size`` at a time. ``progress``: a bar on stderr (True), a log line a minute (False),
+    or None: the bar when stderr is a terminal, else the lines.
     """
     folder, output_dir = Path(folder).expanduser(), Path(output_dir).expanduser()
     sparse = None if sparse is None else Path(sparse).expanduser()
@@ -443,7 +538,8 @@ def predict_split(
     """Predict the frames of a dataset split; outputs are named ``<split>_<index:06d>``.
 
     ``dataset``: a dataset block (``dataset=<name>`` composed from ``conf/``); None = the one the
-    checkpoint was trained on. Visualisations show the split's ground truth.
+    checkpoint was trained on. Visualisations show the split's ground truth. Failures and
+    ``progress`` as for :func:`predict_folder`; a skipped frame is named ``<split> #<index>``.
     """
     if split not in SPLITS:
         raise ValueError(f"input={SPLIT_PREFIX}{split}: expected a split of {list(SPLITS)}")
@@ -462,7 +558,7 @@ def predict_split(
             try:
                 item = reader[index]
             except (ValueError, OSError) as err:
-                yield Skipped(source, str(err))
+                yield Skipped(source, one_line(err))
                 continue
             yield Frame(
                 name=f"{split}_{index:06d}",
@@ -526,7 +622,7 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
         return predict_file(loaded, path, output_dir, sparse, ground_truth, **options)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="predict")
+@hydra_main("predict")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point; exits with status 1 when any input was skipped."""
     result = predict(cfg)

@@ -15,7 +15,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import hydra
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -27,8 +26,8 @@ from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import AtomicCheckpointIO, plain_config
+from fusion_depth.cli import hydra_main
 from fusion_depth.config import (
-    CONF_DIR,
     check_output_dir,
     checkpoint_bytes,
     redact_overrides,
@@ -36,7 +35,7 @@ from fusion_depth.config import (
     validate_config,
 )
 from fusion_depth.console import quiet_known_noise
-from fusion_depth.data.datamodule import DepthDataModule, check_batches
+from fusion_depth.data.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.distributed import launch_local_ranks, local_world_size
 from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.loggers import closing
@@ -207,6 +206,7 @@ def fit_and_test(job: RankJob) -> dict | None:
         trainer = instantiate(cfg.trainer, callbacks=callbacks, **settings)
         # Zero work is a failure: refused here, not reported as a run that trained nothing.
         check_batches(datamodule, cfg.trainer, cfg.dataset.name, trainer.world_size)
+        check_scorable(datamodule, model.protocol, cfg.trainer, cfg.dataset.name)
 
         started = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=start.checkpoint, weights_only=True)
@@ -266,7 +266,7 @@ def test_rmse(results: dict | None) -> float | None:
     return results["test"]["rmse"] if results else None
 
 
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
+@hydra_main("train")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; in a sweep a failing job is recorded and the sweep goes on."""
     if HydraConfig.get().mode != RunMode.MULTIRUN:

@@ -160,6 +160,18 @@ def depth_colorbar(height: int, min_depth: float, max_depth: float) -> np.ndarra
     return bar
 
 
+# Rows a colour bar needs for its two end labels (7 px font) to fit without overlapping.
+MIN_COLORBAR_HEIGHT = 32
+
+
 def with_colorbar(panel: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
-    """``panel`` (uint8 (H, W, 3), e.g. ``depth_panel``'s) with ``depth_colorbar`` on its right."""
+    """``panel`` (uint8 (H, W, 3), e.g. ``depth_panel``'s) with ``depth_colorbar`` on its right.
+
+    A panel shorter than :data:`MIN_COLORBAR_HEIGHT` rows (a tiny image, down to 1 x 1) is first
+    padded with black rows at the bottom to that height, so the bar and its labels stay legible;
+    the result is then that many rows tall.
+    """
+    if panel.shape[0] < MIN_COLORBAR_HEIGHT:
+        rows = MIN_COLORBAR_HEIGHT - panel.shape[0]
+        panel = np.pad(panel, ((0, rows), (0, 0), (0, 0)))
     return np.concatenate([panel, depth_colorbar(panel.shape[0], min_depth, max_depth)], axis=1)

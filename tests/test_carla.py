@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from fusion_depth.data.carla import (
     relative_transform,
     transform_matrix,
 )
+from fusion_depth.data.prepared import SkippedFramesError
 from fusion_depth.prepare import prepare
 
 REPO = Path(__file__).resolve().parents[1]
@@ -377,6 +379,12 @@ def _break(root: Path, change: str) -> Path:
         (root / "train/meta/00000120.json").write_text('{"fov": 90}')
     elif change == "radar":
         (root / "test/radar/00000300.csv").write_text("x,y,z\n1,2,3\n")
+    elif change in ("meta-dir", "rgb-dir"):
+        path = root / (
+            "train/meta/00000120.json" if change == "meta-dir" else "val/rgb/00000210.png"
+        )
+        path.unlink()
+        path.mkdir()
     return root
 
 
@@ -391,6 +399,16 @@ def _break(root: Path, change: str) -> Path:
         ("empty", ValueError, "val/meta: no frames, the val split is empty"),
         ("meta", ValueError, "00000120.json: missing key 'condition'"),
         ("radar", ValueError, "00000300.csv: expected the header depth,azimuth,altitude,velocity"),
+        (
+            "meta-dir",
+            IsADirectoryError,
+            "train/meta/00000120.json: a directory, expected the meta file of frame 00000120",
+        ),
+        (
+            "rgb-dir",
+            IsADirectoryError,
+            "val/rgb/00000210.png: a directory, expected the rgb file of frame 00000210",
+        ),
     ],
 )
 def test_bad_input_fails_before_training_naming_the_path(
@@ -400,6 +418,42 @@ def test_bad_input_fails_before_training_naming_the_path(
     root = _break(_copy(recording, tmp_path / "copy"), change)
     with pytest.raises(error, match=match):
         CarlaDepth("train", root, tmp_path / "cache", height=H, width=W)
+
+
+def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
+    recording, tmp_path, make_config, caplog
+) -> None:
+    root = _break(_break(_copy(recording, tmp_path / "copy"), "meta-dir"), "corrupt")
+    (root / "val/radar/00000200.csv").write_text("depth,azimuth,altitude,velocity\n-3,0,0,0\n")
+    cfg = make_config(
+        "dataset=carla", f"dataset.root={root}", "dataset.height=64", "dataset.width=96"
+    )
+    with caplog.at_level(logging.WARNING), pytest.raises(SkippedFramesError) as info:
+        prepare(cfg)
+
+    assert [report.line() for report in info.value.reports] == [
+        "train: 3 of 4 frames prepared; skipped 1: train/00000120",
+        "val: 1 of 2 frames prepared; skipped 1: val/00000200",
+        "test: 1 of 2 frames prepared; skipped 1: test/00000310",
+    ]
+    for frame_id, problem in (
+        ("train/00000120", f"{root / 'train/meta/00000120.json'}: a directory"),
+        ("val/00000200", f"{root / 'val/radar/00000200.csv'}: line 2: depth -3.0 is negative"),
+        ("test/00000310", f"{root / 'test/depth/00000310.png'}: unreadable CARLA depth PNG"),
+    ):
+        assert f"skipped {frame_id}: {problem}" in caplog.text
+    caches = [
+        c
+        for c in (Path(cfg.paths.cache_dir) / "carla").iterdir()
+        if json.loads((c / "meta.json").read_text())["root"] == str(root.resolve())
+    ]
+    assert len(caches) == 1
+    assert len(list(caches[0].glob("*/0*.json"))) == 5  # every good frame is prepared
+    assert not list(caches[0].glob("*/index.json"))  # but no split is marked prepared
+
+    # Training's reader fails at the first broken frame, naming it.
+    with pytest.raises(IsADirectoryError, match="train/meta/00000120.json: a directory"):
+        CarlaDepth("train", root, cfg.paths.cache_dir, height=H, width=W)
 
 
 def test_missing_root_fails_at_config_time(make_config) -> None:

@@ -222,7 +222,7 @@ def test_a_kill_right_after_a_step_save_loses_no_log_row(tmp_path, uninterrupted
 def test_resume_is_exact_with_gradient_accumulation(tmp_path) -> None:
     """Two successive kills in the same accumulation window: no state is saved inside a window
     (its summed gradients are in no checkpoint), so the window is redone whole."""
-    accumulating = [*KILLABLE, "+trainer.accumulate_grad_batches=2"]
+    accumulating = [*KILLABLE, "trainer.accumulate_grad_batches=2"]
     reference_dir = tmp_path / "reference"
     reference = {
         "results": train(compose_config(accumulating, reference_dir)),

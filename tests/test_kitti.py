@@ -7,6 +7,7 @@ Frames are 40x100 (real ones ~375x1242): uint16 PNGs of metres x 256 with known 
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 
@@ -15,14 +16,19 @@ import pytest
 from conftest import run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
 from omegaconf.errors import MissingMandatoryValue
 from PIL import Image
 
 import fusion_depth.data.kitti as kitti
-from fusion_depth.config import validate_config
+from fusion_depth.config import ConfigError, validate_config
+from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
+from fusion_depth.data.prepared import SkippedFramesError
+from fusion_depth.evaluation import EvalProtocol
 from fusion_depth.metrics import crop_mask
 from fusion_depth.prepare import prepare
+from fusion_depth.train import train
 
 REPO = Path(__file__).resolve().parents[1]
 H, W = 40, 100
@@ -288,6 +294,14 @@ def _break(data: dict, how: str) -> tuple[dict, type, str]:
     if how == "8-bit ground truth":
         Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(gt)
         return {}, ValueError, rf"{gt}: expected a single-channel 16-bit depth PNG"
+    if how == "ground truth is a directory":
+        gt.unlink()
+        gt.mkdir()
+        return (
+            {},
+            FileNotFoundError,
+            rf"1 of 6 frames have no annotated depth PNG.*\n  {gt} \(a dir",
+        )
     if how == "wrong size":
         _write_u16(velodyne, np.zeros((H, W - 1)))
         return {}, ValueError, rf"{velodyne}: 40x99 depth map, expected the size of its image"
@@ -328,6 +342,7 @@ BAD_INPUTS = [
     "missing velodyne frame",
     "corrupt ground truth",
     "8-bit ground truth",
+    "ground truth is a directory",
     "wrong size",
     "no drives",
     "drive without frames",
@@ -428,6 +443,51 @@ def test_prepare_is_idempotent_and_resumes_after_an_interruption(
     assert set(after) == set(snapshot)
 
 
+def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
+    make_config, kitti_data, monkeypatch, caplog
+) -> None:
+    root, raw = kitti_data["root"], kitti_data["raw_root"]
+    velodyne = (
+        root / "data_depth_velodyne/train/2011_09_26_drive_0001_sync/proj_depth/velodyne_raw"
+        "/image_02/0000000005.png"
+    )
+    velodyne.unlink()
+    gt = (
+        root / "data_depth_annotated/val/2011_09_26_drive_0002_sync/proj_depth/groundtruth"
+        "/image_03/0000000006.png"
+    )
+    gt.unlink()
+    gt.mkdir()
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"]))
+    cfg = make_config(
+        "dataset=kitti",
+        f"dataset.root={root}",
+        f"dataset.raw_root={raw}",
+        "dataset.height=32",
+        "dataset.width=96",
+    )
+    with caplog.at_level(logging.WARNING), pytest.raises(SkippedFramesError) as info:
+        prepare(cfg)
+
+    bad_train = "train/2011_09_26_drive_0001_sync/image_02/0000000005"
+    bad_val = "val/2011_09_26_drive_0002_sync/image_03/0000000006"
+    # test is val's folder: one report for both.
+    assert [report.line() for report in info.value.reports] == [
+        f"train: 5 of 6 frames prepared; skipped 1: {bad_train}",
+        f"val: 3 of 4 frames prepared; skipped 1: {bad_val}",
+    ]
+    assert f"skipped {bad_train}: {velodyne}: missing depth PNG" in caplog.text
+    assert (
+        f"skipped {bad_val}: {gt}: a directory, expected the groundtruth PNG file of frame "
+        f"{bad_val}" in caplog.text
+    )
+    (cache,) = (kitti_data["cache"] / "kitti").iterdir()
+    assert len(list(cache.glob("*/0*.json"))) == 8 and not list(cache.glob("*/index.json"))
+    # Training's reader checks every frame's files first and names the first broken ones.
+    with pytest.raises(FileNotFoundError, match=rf"train split: 1 of 6 .*velodyne.*\n  {velodyne}"):
+        _dataset(kitti_data, "train")
+
+
 # --- configs end to end --------------------------------------------------------------------------
 
 
@@ -526,3 +586,39 @@ def test_the_kitti_sweep_runs_under_smoke_and_scores_inside_the_garg_crop(
         expected += int(((depth > 1.0) & (depth < 80.0) & inside).sum())
     assert saved["test"]["num_pixels"] == expected
     assert saved["test"]["num_images"] == len(test)
+
+
+def test_a_val_split_whose_lidar_lies_outside_the_crop_is_refused_before_training(
+    make_config, kitti_data, monkeypatch
+) -> None:
+    """The issue's case: at a small dataset.height the bottom-centre crop of each frame drops
+    the rows where the val frames' ground truth lies (here rows 0-7 of 40), so the first
+    validation would score nothing. Training refuses it up front, naming split, frames, size."""
+    for gt in (kitti_data["root"] / "data_depth_annotated" / "val").rglob("*.png"):
+        stored = np.zeros_like(np.array(Image.open(gt)))
+        stored[:8, ::3] = 10 * 256  # 10 m lidar returns in the top 8 rows only
+        _write_u16(gt, stored)
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"]))
+    overrides = [
+        "dataset=kitti",
+        f"dataset.root={kitti_data['root']}",
+        f"dataset.raw_root={kitti_data['raw_root']}",
+        "dataset.width=96",
+        "backbone.pretrained=false",
+        "experiment=smoke",
+        "logger=none",
+    ]
+    cfg = make_config(*overrides, "dataset.height=32")
+    with pytest.raises(ConfigError) as err:
+        train(cfg)
+    message = str(err.value)
+    assert message.startswith(
+        "dataset=kitti: the val split cannot be scored: none of the 2 frames its val stage reads"
+    )
+    assert "32×96 sample" in message and "Raise dataset.height" in message
+    assert not list(Path(cfg.paths.output_dir).rglob("*.ckpt"))
+    # At a height that keeps those rows (the 40-row frames are padded to 64) they are scored.
+    cfg = make_config(*overrides, "dataset.height=64")
+    datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), batch_size=2)
+    protocol = EvalProtocol.from_config(cfg.eval, cfg.dataset.min_depth, cfg.dataset.max_depth)
+    check_scorable(datamodule, protocol, cfg.trainer, "kitti")

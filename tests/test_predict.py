@@ -26,7 +26,13 @@ from fusion_depth.predict import (
     predict_folder,
     predict_split,
 )
-from fusion_depth.visualize import colorbar_ticks, colorize_depth, depth_colorbar
+from fusion_depth.visualize import (
+    MIN_COLORBAR_HEIGHT,
+    colorbar_ticks,
+    colorize_depth,
+    depth_colorbar,
+    with_colorbar,
+)
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
 H, W = 64, 96
@@ -129,6 +135,135 @@ def test_a_bad_input_is_skipped_by_name_and_the_rest_written(
     assert "sparse depth is 32×96" in caplog.text
     assert "predicted 1 of 4 inputs" in caplog.text and str(images / "d.jpg") in summary.line()
     assert sorted(p.name for p in out.iterdir()) == ["a.png", "a.viz.png"]
+
+
+def test_a_1x1_image_between_good_ones_gets_its_outputs_and_so_do_they(
+    fusion_model, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (1, 1), "c": (H, W)})
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO, logger="fusion_depth.predict"):
+        summary = predict_folder(fusion_model, images, out, sparse, npy=True, progress=False)
+
+    assert summary.ok and [p.name for p in summary.written] == ["a.png", "b.png", "c.png"]
+    assert "predicted 3 of 3 inputs" in caplog.text and "skipped" not in caplog.text
+    for stem in "ac":
+        _assert_round_trip(out / f"{stem}.png", np.load(out / f"{stem}.npy"))
+        assert read_rgb(out / f"{stem}.viz.png").shape == (H, 3 * W + _colorbar_width(H), 3)
+    tiny = np.load(out / "b.npy")
+    assert tiny.shape == (1, 1) and MIN_DEPTH - 1e-4 <= tiny[0, 0] <= MAX_DEPTH + 1e-4
+    _assert_round_trip(out / "b.png", tiny)
+    # Three 1-pixel tiles padded with black rows up to the colour bar's minimum height.
+    viz = read_rgb(out / "b.viz.png")
+    bar = _colorbar_width(MIN_COLORBAR_HEIGHT)
+    assert viz.shape == (MIN_COLORBAR_HEIGHT, 3 + bar, 3)
+    np.testing.assert_array_equal(viz[0, 0], read_rgb(images / "b.png")[0, 0])
+    np.testing.assert_array_equal(
+        viz[0, 2],
+        colorize_depth(tiny, fusion_model.net.min_depth, fusion_model.net.max_depth)[0, 0],
+    )
+    assert not viz[1:, :3].any() and viz[:, 3:].any()
+
+
+def test_with_colorbar_pads_a_short_panel_and_keeps_a_tall_one() -> None:
+    panel = np.full((1, 5, 3), 200, np.uint8)
+    out = with_colorbar(panel, MIN_DEPTH, MAX_DEPTH)
+    bar = depth_colorbar(MIN_COLORBAR_HEIGHT, MIN_DEPTH, MAX_DEPTH)
+    assert out.shape == (MIN_COLORBAR_HEIGHT, 5 + bar.shape[1], 3)
+    assert (out[0, :5] == 200).all() and not out[1:, :5].any()
+    np.testing.assert_array_equal(out[:, 5:], bar)
+    tall = np.zeros((H, 7, 3), np.uint8)
+    assert with_colorbar(tall, MIN_DEPTH, MAX_DEPTH).shape == (H, 7 + _colorbar_width(H), 3)
+
+
+def test_a_failure_writing_one_input_is_a_skip_and_leaves_no_outputs_of_it(
+    fusion_model, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W), "c": (H, W)})
+    out = tmp_path / "out"
+    (out / "b.viz.png").mkdir(parents=True)  # a folder where b's visualisation must go
+    with caplog.at_level(logging.INFO, logger="fusion_depth.predict"):
+        summary = predict_folder(fusion_model, images, out, sparse, npy=True, progress=False)
+
+    assert [p.name for p in summary.written] == ["a.png", "c.png"]
+    assert [s.source for s in summary.skipped] == [str(images / "b.png")]
+    assert summary.skipped[0].reason.startswith("writing its outputs failed (IsADirectoryError")
+    assert f"skipped {images / 'b.png'}: writing its outputs failed" in caplog.text
+    assert "predicted 2 of 3 inputs" in caplog.text and not summary.ok
+    # b's depth PNG and .npy were written before the visualisation failed: removed again.
+    assert sorted(p.name for p in out.iterdir()) == [
+        "a.npy",
+        "a.png",
+        "a.viz.png",
+        "b.viz.png",
+        "c.npy",
+        "c.png",
+        "c.viz.png",
+    ]
+    assert (out / "b.viz.png").is_dir()
+
+
+def _failing_on_white(monkeypatch: pytest.MonkeyPatch, always: bool = False) -> list[int]:
+    """The network raises (as on running out of memory) for any batch holding an all-white
+    image, or for every batch; returns the batch sizes it was called with."""
+    import fusion_depth.predict as module
+
+    real, calls = module.predict_depth, []
+
+    def predict_depth(net, images, sparse=None, **kwargs):
+        calls.append(len(images))
+        if always or (images.flatten(1) == 1).all(dim=1).any():
+            raise RuntimeError("CUDA out of memory. Tried to allocate 9.00 GiB\nmore details")
+        return real(net, images, sparse, **kwargs)
+
+    monkeypatch.setattr(module, "predict_depth", predict_depth)
+    return calls
+
+
+def test_a_network_failure_on_one_image_skips_only_that_image(
+    fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W), "c": (H, W)})
+    write_rgb_png(images / "b.png", np.full((H, W, 3), 255, np.uint8))
+    calls = _failing_on_white(monkeypatch)
+    out = tmp_path / "out"
+    summary = predict_folder(fusion_model, images, out, sparse, batch_size=2, progress=False)
+
+    # The batch (a, b) failed, then a and b went alone; c was its own batch.
+    assert calls == [2, 1, 1, 1]
+    assert [p.name for p in summary.written] == ["a.png", "c.png"]
+    assert [(s.source, s.reason) for s in summary.skipped] == [
+        (
+            str(images / "b.png"),
+            "prediction failed (RuntimeError: CUDA out of memory. Tried to allocate 9.00 GiB)",
+        )
+    ]
+    alone = predict_file(fusion_model, images / "a.png", tmp_path / "alone", sparse / "a.png")
+    np.testing.assert_allclose(
+        read_depth_png(out / "a.png"), read_depth_png(tmp_path / "alone" / "a.png")
+    )
+    assert alone.shape == (H, W)
+
+
+def test_a_network_failing_on_every_input_stops_the_run(
+    fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {s: (H, W) for s in "abcde"})
+    calls = _failing_on_white(monkeypatch, always=True)
+    with pytest.raises(RuntimeError, match=r"failed on 3 inputs in a row, the last .*c\.png"):
+        predict_folder(fusion_model, images, tmp_path / "out", sparse, progress=False)
+    assert calls == [1, 1, 1]  # d and e were never tried
+
+
+def test_an_output_dir_that_is_a_file_fails_before_any_prediction(
+    fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W)})
+    calls = _failing_on_white(monkeypatch)
+    (tmp_path / "taken").write_text("not a folder")
+    with pytest.raises(NotADirectoryError, match=r"output_dir=.*taken: a file, expected a folder"):
+        predict_folder(fusion_model, images, tmp_path / "taken", sparse, progress=False)
+    assert calls == []
 
 
 def test_single_file(fusion_model, tmp_path: Path) -> None:
@@ -236,7 +371,8 @@ def test_config_with_another_dataset_for_a_split(checkpoints, tmp_path: Path) ->
 
 
 def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Path) -> None:
-    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W)})
+    # b cannot be read; the 1x1 image c after it is predicted like a.
+    images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W), "c": (1, 1)})
     (images / "b.png").write_bytes(b"garbage")
     out = tmp_path / "out"
     result = run_module(
@@ -255,7 +391,10 @@ def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Pa
     text = result.stdout + result.stderr
     assert result.returncode == 1, text
     assert f"skipped {images / 'b.png'}: " in text
-    assert f"predicted 1 of 2 inputs into {out}; skipped 1: {images / 'b.png'}" in text
-    assert (out / "a.png").is_file() and (out / "a.viz.png").is_file()
+    assert f"predicted 2 of 3 inputs into {out}; skipped 1: {images / 'b.png'}" in text
+    assert text.count("skipped ") == 2  # b's line and the summary's
+    for stem in "ac":
+        assert (out / f"{stem}.png").is_file() and (out / f"{stem}.viz.png").is_file()
+    assert read_depth_png(out / "c.png").shape == (1, 1)
     assert not (out / "b.png").exists()
     assert (tmp_path / "run" / "predict.log").is_file()

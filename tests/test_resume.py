@@ -367,7 +367,7 @@ def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
             r"the train split of dataset=procedural \(8 frames, data.batch_size=2, 4 batches\)",
         ),
         (["trainer.limit_val_batches=0.1"], r"trainer.limit_val_batches=0.1: leaves no batch"),
-        (["+trainer.max_steps=0"], r"trainer.max_steps=0: leaves nothing to train"),
+        (["trainer.max_steps=0"], r"trainer.max_steps=0: leaves nothing to train"),
     ],
 )
 def test_a_run_that_would_train_or_score_nothing_is_refused(tmp_path, overrides, message) -> None:

@@ -4,22 +4,24 @@ input named, prepare idempotent, and one training run."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_module, run_sweep
+from conftest import REPO, run_module, run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
 
 from fusion_depth.config import validate_config
+from fusion_depth.data import topview
+from fusion_depth.data.prepared import SkippedFramesError
 from fusion_depth.data.topview import TopViewDepth, read_depth_file
 from fusion_depth.prepare import prepare
 
-REPO = Path(__file__).resolve().parents[1]
 CACHE_STEP = 1 / 256  # the prepared cache stores depth in 1/256 m
 H, W = 64, 96
 SPLIT_FRAMES = {"train": ["a00", "a01", "a02", "a03"], "val": ["b00", "b01"], "test": ["c00"]}
@@ -162,6 +164,13 @@ def _break(root: Path, change: str) -> Path:
         (root / "val/rgb/b00.png").write_bytes(b"not an image")
     elif change == "twice":
         np.save(root / "train/depth/a00.npy", np.ones((H, W), np.float32))
+    elif change in ("image-dir", "depth-dir"):
+        path = root / ("train/rgb/a02.png" if change == "image-dir" else "train/depth/a02.png")
+        path.unlink()
+        path.mkdir()
+    elif change == "dangling":
+        (root / "train/rgb/a02.png").unlink()
+        (root / "train/rgb/a02.png").symlink_to(root / "nowhere.png")
     return root
 
 
@@ -176,6 +185,17 @@ def _break(root: Path, change: str) -> Path:
         ("size", ValueError, "b01.npy: depth map is 97x64, expected the image's 96x64"),
         ("corrupt", ValueError, "b00.png: unreadable image"),
         ("twice", ValueError, "a00.npy and a00.png|a00.png and a00.npy"),
+        (
+            "image-dir",
+            IsADirectoryError,
+            "train/rgb/a02.png: a directory, expected the camera image file of frame train/a02",
+        ),
+        (
+            "depth-dir",
+            IsADirectoryError,
+            "train/depth/a02.png: a directory, expected the depth map file of .*train/rgb/a02.png",
+        ),
+        ("dangling", FileNotFoundError, "train/rgb/a02.png: not a readable file"),
     ],
 )
 def test_bad_input_fails_before_training_naming_the_path(
@@ -184,6 +204,99 @@ def test_bad_input_fails_before_training_naming_the_path(
     root = _break(_copy(folder, tmp_path / "copy"), change)
     with pytest.raises(error, match=match):
         TopViewDepth("train", root, tmp_path / "cache", height=H, width=W)
+
+
+def _break_two_frames(folder: Path, copy: Path) -> Path:
+    """A copy whose train frame a02 has a directory for its image and whose val image b00 is
+    not an image."""
+    root = _break(_copy(folder, copy), "image-dir")
+    (root / "val/rgb/b00.png").write_bytes(b"not an image")
+    return root
+
+
+def _cache_of(cfg, root: Path) -> Path:
+    """The prepared cache folder of ``root`` (the session cache holds other tests' too)."""
+    for cache in (Path(cfg.paths.cache_dir) / "topview").iterdir():
+        if json.loads((cache / "meta.json").read_text())["root"] == str(root.resolve()):
+            return cache
+    raise AssertionError(f"no cache of {root}")
+
+
+def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
+    folder, tmp_path, make_config, caplog, monkeypatch
+) -> None:
+    root = _break_two_frames(folder, tmp_path / "copy")
+    cfg = _make(make_config, root)
+    with caplog.at_level(logging.INFO), pytest.raises(SkippedFramesError) as info:
+        prepare(cfg)
+
+    assert [report.line() for report in info.value.reports] == [
+        "train: 3 of 4 frames prepared; skipped 1: train/a02",
+        "val: 1 of 2 frames prepared; skipped 1: val/b00",
+        "test: 1 of 1 frames prepared",
+    ]
+    image_dir = root / "train/rgb/a02.png"
+    reasons = {s.frame_id: s.reason for r in info.value.reports for s in r.skipped}
+    assert reasons["train/a02"].startswith(
+        f"{image_dir}: a directory, expected the camera image file"
+    )
+    assert reasons["val/b00"].startswith(f"{root / 'val/rgb/b00.png'}: unreadable image")
+    assert f"skipped train/a02: {image_dir}: a directory" in caplog.text
+    assert f"skipped val/b00: {root / 'val/rgb/b00.png'}: unreadable image" in caplog.text
+    # Every good frame is in the cache; only the complete split is marked prepared.
+    cache = _cache_of(cfg, root)
+    records = {s: sorted(p.name for p in (cache / s).glob("0*.json")) for s in SPLIT_FRAMES}
+    assert records == {
+        "train": ["000000.json", "000001.json", "000003.json"],
+        "val": ["000001.json"],
+        "test": ["000000.json"],
+    }
+    assert [(cache / s / "index.json").is_file() for s in SPLIT_FRAMES] == [False, False, True]
+
+    # Preparing again reads only the two broken frames, and skips them again.
+    calls = []
+    real_load = topview.load_frame
+    monkeypatch.setattr(
+        topview, "load_frame", lambda frame, *a: calls.append(frame.id) or real_load(frame, *a)
+    )
+    with pytest.raises(SkippedFramesError):
+        prepare(cfg)
+    assert calls == ["train/a02", "val/b00"]
+
+    # Training's reader still fails at the first broken frame, naming it: the directory before
+    # anything is prepared, and once it is a file again, the corrupt image.
+    with pytest.raises(IsADirectoryError, match="train/rgb/a02.png: a directory"):
+        TopViewDepth("val", root, cfg.paths.cache_dir, height=H, width=W)
+    image_dir.rmdir()
+    image_dir.write_bytes((folder / "train/rgb/a02.png").read_bytes())
+    with pytest.raises(ValueError, match="val/rgb/b00.png: unreadable image"):
+        TopViewDepth("test", root, cfg.paths.cache_dir, height=H, width=W)
+
+
+def test_prepare_command_names_skipped_frames_and_exits_1(folder, tmp_path) -> None:
+    root = _break_two_frames(folder, tmp_path / "copy")
+    result = run_module(
+        [
+            "fusion_depth.prepare",
+            "dataset=topview",
+            f"dataset.root={root}",
+            "dataset.height=64",
+            "dataset.width=96",
+            f"hydra.run.dir={tmp_path / 'run'}",
+        ],
+        cwd=REPO,
+        timeout=300,
+    )
+    text = result.stdout + result.stderr
+    assert result.returncode == 1, text
+    assert f"skipped train/a02: {root / 'train/rgb/a02.png'}: a directory" in text
+    assert f"skipped val/b00: {root / 'val/rgb/b00.png'}: unreadable image" in text
+    for line in (
+        "train: 3 of 4 frames prepared; skipped 1: train/a02",
+        "val: 1 of 2 frames prepared; skipped 1: val/b00",
+        "test: 1 of 1 frames prepared",
+    ):
+        assert line in result.stdout.splitlines(), text
 
 
 def test_sweep_config_reproduces_the_papers_topview_table(tmp_path) -> None:

@@ -34,11 +34,17 @@ zero-padded, e.g. ``00012345``)::
   camera's frame as a ``carla.Transform`` (metres and degrees), i.e. the transform whose matrix
   maps radar-frame points to camera-frame points. Other keys are ignored.
 
-Frames are the ``meta/*.json`` files; a frame whose image, depth or radar file is missing is an
-error naming it (FileNotFoundError), and one whose file is corrupt, truncated, in the wrong
-format or bit depth, or of another size than the camera image is a
-:class:`~fusion_depth.data.depth_io.DataFileError` naming it. Files starting with ``.``
-(temporary files) are ignored.
+Frames are the names in ``meta/`` (``<frame>.json``); a frame whose image, depth or radar file is
+missing is an error naming it (FileNotFoundError), and one whose file is corrupt, truncated, in
+the wrong format or bit depth, or of another size than the camera image is a
+:class:`~fusion_depth.data.depth_io.DataFileError` naming it. A directory (or a dangling link)
+where a frame's file should be, its ``.json`` included, is an IsADirectoryError
+(FileNotFoundError) naming the path, never a frame dropped quietly. Missing files, directories
+and metadata are checked while listing the recording, so for training (``on_error="raise"``) the
+first one fails before anything is prepared; ``python -m fusion_depth.prepare``
+(``on_error="skip"``) counts such a frame as skipped, like one with a corrupt file, and prepares
+the others (:mod:`fusion_depth.data.prepared`). Files starting with ``.`` (temporary files) are
+ignored.
 
 Geometry
 --------
@@ -112,7 +118,18 @@ from fusion_depth.data._folders import (
     resize_rgb,
 )
 from fusion_depth.data.depth_io import DataFileError, open_image, png_bit_depth, read_rgb
-from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
+from fusion_depth.data.prepared import (
+    FRAME_ERRORS,
+    OnError,
+    PreparedFrame,
+    PreparedSplit,
+    SplitJob,
+    cache_dir,
+    check_on_error,
+    entries_not_files,
+    not_a_file,
+    prepare_splits,
+)
 
 FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
 CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
@@ -419,56 +436,93 @@ def read_frame_meta(path: str | os.PathLike) -> FrameMeta:
 
 @dataclass(frozen=True)
 class CarlaFrame:
-    """One recorded frame: its files and metadata."""
+    """One recorded frame: its files and metadata; ``problem`` is what the scan found wrong with
+    them (then ``meta`` may be None)."""
 
     id: str  # "<split>/<frame>"
     rgb: Path
     depth: Path
     radar: Path
-    meta: FrameMeta
+    meta: FrameMeta | None
+    problem: Exception | None = None
+
+
+def _file_problem(
+    split_dir: Path,
+    stem: str,
+    listed: dict[str, dict[str, os.DirEntry]],
+    not_files: dict[str, dict[str, Path]],
+) -> OSError | None:
+    """What is wrong with frame ``stem``'s files (a directory or dangling link where one should
+    be, or a missing one), the metadata first; None when every one is a file."""
+    for sensor in ("meta", *(s for s in SENSOR_DIRS if s != "meta")):
+        suffix = SENSOR_DIRS[sensor]
+        if stem in not_files[sensor]:
+            return not_a_file(not_files[sensor][stem], f"the {sensor} file of frame {stem}")
+        if stem not in listed[sensor]:
+            return FileNotFoundError(
+                f"{split_dir / sensor / (stem + suffix)}: missing {sensor} file of frame {stem} "
+                f"(its {listed['meta'][stem].path} exists)"
+            )
+    return None
 
 
 def scan_recording(
-    root: Path, conditions: Sequence[str] = CONDITIONS
+    root: Path, conditions: Sequence[str] = CONDITIONS, on_error: OnError = "raise"
 ) -> tuple[dict[str, list[CarlaFrame]], str]:
     """Every split's frames (checked for missing files and bad metadata, filtered by condition)
-    and a fingerprint of their files. Cheap: lists folders and reads the small JSON files."""
+    and a fingerprint of their files. Cheap: lists folders and reads the small JSON files.
+
+    A frame's broken file (module docstring) raises here with ``on_error="raise"``; with
+    ``"skip"`` the frame is kept with its ``problem`` (before the condition filter, which needs
+    its metadata), which :func:`load_frame` raises, so ``prepare_split`` skips it by id. A
+    missing folder or a split without frames always raises.
+    """
+    check_on_error(on_error)
     frames: dict[str, list[CarlaFrame]] = {}
     entries: list[os.DirEntry] = []
     for split in SPLITS:
         split_dir = require_dir(root / split, f"the {split} split of {LAYOUT}")
-        listed = {}
+        listed: dict[str, dict[str, os.DirEntry]] = {}
+        not_files: dict[str, dict[str, Path]] = {}
         for sensor, suffix in SENSOR_DIRS.items():
             folder = require_dir(split_dir / sensor, f"{split_dir}/{sensor}/<frame>{suffix} files")
             listed[sensor] = list_files(folder, (suffix,))
-        if not listed["meta"]:
+            not_files[sensor] = entries_not_files(folder, (suffix,))
+        if not listed["meta"] and not not_files["meta"]:
             raise ValueError(
                 f"{split_dir / 'meta'}: no frames, the {split} split is empty; expected one "
                 "<frame>.json per recorded frame (written last by scripts/record_carla.py)"
             )
         kept, skipped = [], Counter()
-        for stem in sorted(listed["meta"]):
-            meta_entry = listed["meta"][stem]
-            for sensor, suffix in SENSOR_DIRS.items():
-                if stem not in listed[sensor]:
-                    raise FileNotFoundError(
-                        f"{split_dir / sensor / (stem + suffix)}: missing {sensor} file of frame "
-                        f"{stem} (its {meta_entry.path} exists)"
+        for stem in sorted(set(listed["meta"]) | set(not_files["meta"])):
+            present = {s: listed[s][stem] for s in SENSOR_DIRS if stem in listed[s]}
+            # As listed (a suffix may be upper case); where nothing is listed, the expected name.
+            paths = {
+                s: Path(present[s].path) if s in present else split_dir / s / f"{stem}{suffix}"
+                for s, suffix in SENSOR_DIRS.items()
+            }
+            try:
+                problem = _file_problem(split_dir, stem, listed, not_files)
+                if problem is not None:
+                    raise problem
+                meta = read_frame_meta(paths["meta"])
+            except FRAME_ERRORS as err:
+                if on_error == "raise":
+                    raise
+                entries += present.values()
+                kept.append(
+                    CarlaFrame(
+                        f"{split}/{stem}", paths["rgb"], paths["depth"], paths["radar"], None, err
                     )
-            meta = read_frame_meta(meta_entry.path)
+                )
+                continue
             if meta.condition not in conditions:
                 skipped[meta.condition] += 1
                 continue
-            files = {sensor: listed[sensor][stem] for sensor in SENSOR_DIRS}
-            entries += files.values()
+            entries += present.values()
             kept.append(
-                CarlaFrame(
-                    f"{split}/{stem}",
-                    Path(files["rgb"].path),
-                    Path(files["depth"].path),
-                    Path(files["radar"].path),
-                    meta,
-                )
+                CarlaFrame(f"{split}/{stem}", paths["rgb"], paths["depth"], paths["radar"], meta)
             )
         if skipped:
             log.info(
@@ -488,7 +542,14 @@ def scan_recording(
 
 
 def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> PreparedFrame:
-    """Decodes, projects and resizes one recorded frame."""
+    """Decodes, projects and resizes one recorded frame.
+
+    Raises the frame's ``problem`` when the scan found one, else what the readers raise for a
+    bad file (DataFileError, FileNotFoundError), naming it.
+    """
+    if frame.problem is not None:
+        raise frame.problem
+    assert frame.meta is not None  # the scan reads it for every frame without a problem
     image = read_rgb(frame.rgb)
     depth = read_carla_depth(frame.depth)
     if depth.shape != image.shape[:2]:
@@ -516,7 +577,13 @@ def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> 
 
 class CarlaDepth(PreparedSplit):
     """One split of a CARLA recording (format: the module docstring), served from the prepared
-    cache. Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict."""
+    cache. Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict.
+
+    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file;
+    ``"skip"`` prepares every other frame of every split, then raises
+    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
+    ``python -m fusion_depth.prepare`` uses).
+    """
 
     def __init__(
         self,
@@ -527,8 +594,10 @@ class CarlaDepth(PreparedSplit):
         width: int = 640,
         conditions: Sequence[str] = CONDITIONS,
         max_range: float = 250.0,
+        on_error: OnError = "raise",
     ) -> None:
         check_split(split)
+        check_on_error(on_error)
         height, width = check_size(height, width)
         conditions = [str(c) for c in conditions]
         unknown = [c for c in conditions if c not in CONDITIONS]
@@ -539,7 +608,7 @@ class CarlaDepth(PreparedSplit):
             )
         max_range = check_max_range(max_range)
         root = require_root(root, LAYOUT)
-        frames, files = scan_recording(root, conditions)
+        frames, files = scan_recording(root, conditions, on_error)
         params = {
             "format_version": FORMAT_VERSION,
             "root": str(root),
@@ -550,13 +619,19 @@ class CarlaDepth(PreparedSplit):
             "files": files,
         }
         cache = cache_dir(cache_root, "carla", params, read_only={"root": root})
+        jobs = []
         for name in SPLITS:
             by_id = {frame.id: frame for frame in frames[name]}
-            prepare_split(
-                cache,
-                name,
-                list(by_id),
-                lambda frame_id, by_id=by_id: load_frame(by_id[frame_id], height, width, max_range),
-                params,
+            jobs.append(
+                SplitJob(
+                    cache,
+                    name,
+                    list(by_id),
+                    lambda frame_id, by_id=by_id: load_frame(
+                        by_id[frame_id], height, width, max_range
+                    ),
+                    params,
+                )
             )
+        prepare_splits(jobs, on_error=on_error)
         super().__init__(cache / split)

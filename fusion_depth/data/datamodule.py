@@ -268,3 +268,60 @@ def check_batches(
                 f"of dataset={dataset} ({frames} frames, {batch_key}={batch_size}, "
                 f"{batches} batch{'es' if batches != 1 else ''})"
             )
+
+
+def check_scorable(
+    datamodule: DepthDataModule,
+    protocol: Any,
+    trainer: Mapping[str, Any],
+    dataset: str,
+    stages: tuple[str, ...] = ("val", "test"),
+) -> None:
+    """Refuse, before any training, a validation or test split of which no frame that the stage
+    sees has a pixel the metrics can score: ground truth in ``(protocol.min_depth, largest
+    cap)`` inside ``protocol.crop`` (:func:`fusion_depth.metrics.scored_mask`). Such a split
+    would otherwise end the first validation with "DepthMetrics has not scored any image", e.g.
+    a KITTI frame whose lidar rows lie outside the bottom-centre crop of a small
+    ``dataset.height``. Frames are read in the stage's order until one can be scored, so a good
+    split costs one frame.
+
+    Args:
+        protocol: an :class:`~fusion_depth.evaluation.EvalProtocol` (``min_depth``,
+            ``max_depth`` caps, ``crop``).
+        trainer: the trainer config (its ``limit_{stage}_batches``).
+        dataset: the dataset's name, for the message.
+        stages: ``val`` and/or ``test`` (the test stage reads ``datamodule.test_split``).
+
+    Raises:
+        ConfigError: naming the split, the frames checked, the sample size and the crop, and
+            what to change.
+    """
+    from fusion_depth.metrics import scored_mask
+
+    cap = max(protocol.max_depth)
+    for stage in stages:
+        split = "val" if stage == "val" else datamodule.test_split
+        data = datamodule.dataset(split)
+        batch = datamodule.eval_batch_size
+        seen = _batches_left(trainer.get(f"limit_{stage}_batches"), math.ceil(len(data) / batch))
+        count = min(len(data), seen * batch)
+        shape = None
+        for index in range(count):
+            sample = data[index]
+            depth = torch.as_tensor(sample["depth"])[None]
+            shape = tuple(depth.shape[-2:])
+            box = sample.get("frame_box")
+            box = None if box is None else torch.as_tensor(box).reshape(1, 4)
+            if scored_mask(depth, protocol.min_depth, cap, protocol.crop, box).any():
+                break
+        else:
+            size = f"{shape[0]}×{shape[1]}" if shape else "?"
+            crop = f" inside eval.crop={protocol.crop}" if protocol.crop != "none" else ""
+            raise ConfigError(
+                f"dataset={dataset}: the {split} split cannot be scored: none of the {count} "
+                f"frames its {stage} stage reads (indices 0-{count - 1}) has a ground-truth "
+                f"depth in ({protocol.min_depth:g}, {cap:g}) m{crop} within its {size} sample "
+                "(dataset.height × dataset.width; readers that cut a larger frame keep its "
+                "bottom centre). Raise dataset.height/dataset.width, widen eval.min_depth/"
+                "eval.max_depth or eval.crop, or check that split's ground truth"
+            )

@@ -45,7 +45,11 @@ frame exactly as the KITTI scripts do. Every frame is condition ``day``.
 All of it happens once, in the prepared cache ``<cache_root>/kitti/<hash>/`` (see
 :mod:`fusion_depth.data.prepared`; ``python -m fusion_depth.prepare dataset=kitti ...``). Every
 split is prepared on first use, before any training, so a missing or corrupt file anywhere
-fails at once, naming the file. The dataset folders are only ever read.
+fails at once, naming the file: every frame's files are checked before the first is prepared,
+and a missing one or a directory where a frame's PNG should be is a FileNotFoundError listing a
+few. ``python -m fusion_depth.prepare`` (``on_error="skip"``) instead counts each such frame as
+skipped (a directory then raising IsADirectoryError), names it, and prepares the others. The
+dataset folders are only ever read.
 """
 
 from __future__ import annotations
@@ -67,11 +71,15 @@ from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.prepared import (
+    OnError,
     PreparedFrame,
     PreparedSplit,
+    SplitJob,
     cache_dir,
+    check_on_error,
     is_prepared,
-    prepare_split,
+    not_a_file,
+    prepare_splits,
 )
 
 SUBSETS: tuple[str, ...] = ("train", "val")  # what KITTI publishes ground truth for
@@ -237,14 +245,18 @@ def locate_listed(
 
 
 def check_files(frames: Sequence[KittiFrame], root: Path, raw_root: Path, split: str) -> None:
-    """Every frame's sparse input and RGB image exist, before anything is prepared."""
+    """Every frame's ground truth, sparse input and RGB image is a file, before anything is
+    prepared; the error lists a few that are not (missing, or a directory)."""
     for what, locate in (
+        ("annotated depth PNG", lambda f: f.groundtruth(root)),
         ("velodyne_raw depth PNG", lambda f: f.velodyne(root)),
         ("raw RGB image", lambda f: f.image(raw_root)),
     ):
         missing = [locate(f) for f in frames if not locate(f).is_file()]
         if missing:
-            shown = "\n  ".join(str(p) for p in missing[:_SHOWN])
+            shown = "\n  ".join(
+                f"{p} (a directory)" if p.is_dir() else str(p) for p in missing[:_SHOWN]
+            )
             raise FileNotFoundError(
                 f"{split} split: {len(missing)} of {len(frames)} frames have no {what}, e.g.\n"
                 f"  {shown}"
@@ -302,6 +314,9 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
         "groundtruth": frame.groundtruth(s.root),
         "velodyne_raw": frame.velodyne(s.root),
     }
+    for name, path in paths.items():
+        if os.path.lexists(path) and not path.is_file():  # missing ones: the readers say so
+            raise not_a_file(path, f"the {name} PNG file of frame {frame.id}")
     image = read_rgb(paths["image"])
     depth = read_depth_png(paths["groundtruth"])
     sparse = read_depth_png(paths["velodyne_raw"])
@@ -340,6 +355,11 @@ class KittiDepth(PreparedSplit):
 
     Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; ``depth`` is
     the filled ground truth in the train split when ``fill`` is set, the measured one otherwise.
+
+    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file (and
+    checks every frame's files first); ``"skip"`` prepares every other frame of every split,
+    then raises :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones
+    (what ``python -m fusion_depth.prepare`` uses).
     """
 
     def __init__(
@@ -356,9 +376,11 @@ class KittiDepth(PreparedSplit):
         exclude_test_drives: bool = True,
         train_stride: int = 1,
         seed: int = 0,
+        on_error: OnError = "raise",
     ) -> None:
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
+        check_on_error(on_error)
         settings = _settings(root, raw_root, height, width, sparse_points, fill, seed)
         check_layout(settings.root, settings.raw_root)
         if int(train_stride) != train_stride or train_stride < 1:
@@ -392,17 +414,22 @@ class KittiDepth(PreparedSplit):
             folders["test"] = "val"  # the same frames: prepared once
         needed = list(dict.fromkeys(folders[name] for name in SPLITS))  # train, val[, test]
         if not all(is_prepared(self.cache, name) for name in needed):
-            for name in needed:
-                check_files(frames[name], settings.root, settings.raw_root, name)
-            for name in needed:
-                training = name == "train"
-                prepare_split(
+            if on_error == "raise":  # fail before anything is written; "skip" names each frame
+                for name in needed:
+                    check_files(frames[name], settings.root, settings.raw_root, name)
+            jobs = [
+                SplitJob(
                     self.cache,
                     name,
                     [f.id for f in frames[name]],
-                    lambda i, t=training: load_frame(KittiFrame.from_id(i), settings, t),
+                    lambda i, train=(name == "train"): load_frame(
+                        KittiFrame.from_id(i), settings, train
+                    ),
                     params,
                 )
+                for name in needed
+            ]
+            prepare_splits(jobs, on_error=on_error)
         super().__init__(
             self.cache / folders[split], use_filled=split == "train" and settings.fill != "none"
         )

@@ -95,11 +95,14 @@ from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.prepared import (
+    OnError,
     PreparedFrame,
     PreparedSplit,
+    SplitJob,
     cache_dir,
+    check_on_error,
     is_prepared,
-    prepare_split,
+    prepare_splits,
 )
 
 FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
@@ -588,6 +591,12 @@ class NuScenesDepth(PreparedSplit):
 
     Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; the train
     split serves the filled lidar map as ``depth`` when ``fill`` is not ``none``.
+
+    ``on_error``: ``"raise"`` (default) fails at the first frame whose files cannot be read,
+    naming the file; ``"skip"`` prepares every other frame of every split, then raises
+    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
+    ``python -m fusion_depth.prepare`` uses). Missing files fail before anything is prepared
+    either way.
     """
 
     def __init__(
@@ -610,8 +619,10 @@ class NuScenesDepth(PreparedSplit):
         min_distance: float = 1.0,
         stride: int = 1,
         test_split: str = "val",
+        on_error: OnError = "raise",
     ) -> None:
         devkit = require_devkit()  # first: without it nothing else can work
+        check_on_error(on_error)
         conditions = [str(c) for c in conditions]
         radar_channels = [str(c) for c in radar_channels]
         _check_options(
@@ -683,7 +694,7 @@ class NuScenesDepth(PreparedSplit):
                 min_distance=float(min_distance),
                 fill="none",
             )
-            _prepare(devkit, root, sources, folders, todo, conditions, stride, settings)
+            _prepare(devkit, root, sources, folders, todo, conditions, stride, settings, on_error)
         cache, folder = folders[split]
         super().__init__(cache / folder, use_filled=split == "train" and fill != "none")
 
@@ -697,9 +708,11 @@ def _prepare(
     conditions: Sequence[str],
     stride: int,
     settings: FrameSettings,
+    on_error: OnError = "raise",
 ) -> None:
     """Lists the frames of every split still to prepare and checks all their files before the
-    first frame is written; the devkit's tables are loaded once per version, dropped after."""
+    first frame is written; the devkit's tables are loaded once per version, dropped after.
+    ``on_error``: see :class:`NuScenesDepth`."""
     scene_splits = devkit.create_splits_scenes()
     databases: dict[str, Any] = {}
     plans = []
@@ -714,12 +727,16 @@ def _prepare(
         split_settings = replace(settings, fill=fill)
         check_files(nusc, tokens, split_settings)
         plans.append((name, params, nusc, tokens, split_settings))
+    jobs = []
     for name, params, nusc, tokens, split_settings in plans:
         cache, folder = folders[name]
-        prepare_split(
-            cache,
-            folder,
-            tokens,
-            lambda token, nusc=nusc, s=split_settings: load_frame(devkit, nusc, token, s),
-            params,
+        jobs.append(
+            SplitJob(
+                cache,
+                folder,
+                tokens,
+                lambda token, nusc=nusc, s=split_settings: load_frame(devkit, nusc, token, s),
+                params,
+            )
         )
+    prepare_splits(jobs, on_error=on_error)

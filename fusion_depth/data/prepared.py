@@ -18,6 +18,20 @@ settings hash to another folder, leaving this one alone. The user's dataset fold
 read. A damaged cache file (an index that does not parse, a truncated PNG, maps of different
 sizes) raises :class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache
 folder prepares it again.
+
+Broken frames. A frame whose files cannot be read (``make_frame`` raises a ``ValueError``, e.g.
+:class:`~fusion_depth.data.depth_io.DataFileError`, or an ``OSError``, e.g. FileNotFoundError)
+is handled by ``on_error``:
+
+* ``"raise"`` (what training and evaluation use): the error propagates at the first such frame,
+  naming its file; nothing after it is prepared.
+* ``"skip"`` (what ``python -m fusion_depth.prepare`` uses): the frame is logged as
+  ``skipped <frame id>: <reason>`` and every other frame of every split is still prepared; the
+  split gets no ``index.json``, so training still refuses it (preparing it again, and failing on
+  the same frame), and at the end :class:`SkippedFramesError` lists every skipped frame. A later
+  run prepares only the frames still missing.
+
+Errors writing the cache (a full disk, no permission) are not about one frame and always raise.
 """
 
 from __future__ import annotations
@@ -29,11 +43,10 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
-from rich.progress import track
 from torch.utils.data import Dataset
 
 from fusion_depth.data.depth_io import (
@@ -43,11 +56,16 @@ from fusion_depth.data.depth_io import (
     write_depth_png,
     write_rgb_png,
 )
+from fusion_depth.progress import track
 from fusion_depth.runs import write_json_atomic
 
 PREPARED_VERSION = 1  # bump when the cache layout changes, so old caches are not reused
 INDEX_FILE = "index.json"
 META_FILE = "meta.json"
+ON_ERROR = ("raise", "skip")  # what prepare_split does with a frame it cannot read
+OnError = Literal["raise", "skip"]
+# What make_frame raises for a frame's bad or missing files (DataFileError is a ValueError).
+FRAME_ERRORS = (ValueError, OSError)
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +82,99 @@ class PreparedFrame:
     # (top, left, height, width) of the original frame in the arrays when a reader cropped or
     # padded it: evaluation crops (eval.crop) are fractions of the original frame.
     frame_box: tuple[int, int, int, int] | None = None
+
+
+@dataclass(frozen=True)
+class SkippedFrame:
+    """A frame ``prepare_split(..., on_error="skip")`` could not prepare, and why (one line)."""
+
+    frame_id: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class SplitReport:
+    """How one split folder fared in an ``on_error="skip"`` prepare: ``total`` frames, of which
+    ``skipped`` could not be prepared (the rest are in the cache)."""
+
+    split: str
+    total: int
+    skipped: tuple[SkippedFrame, ...] = ()
+
+    @property
+    def prepared(self) -> int:
+        return self.total - len(self.skipped)
+
+    def line(self) -> str:
+        """``train: 3 of 4 frames prepared; skipped 1: train/a02``."""
+        text = f"{self.split}: {self.prepared} of {self.total} frames prepared"
+        if self.skipped:
+            text += f"; skipped {len(self.skipped)}: " + ", ".join(s.frame_id for s in self.skipped)
+        return text
+
+
+class SkippedFramesError(ValueError):
+    """Some frames could not be prepared (``on_error="skip"``); every other frame was.
+
+    Raised once every split was tried. ``reports`` holds one :class:`SplitReport` per split
+    folder tried, complete ones included; the splits with skipped frames have no ``index.json``.
+    """
+
+    def __init__(self, reports: Sequence[SplitReport]) -> None:
+        self.reports = list(reports)
+        skipped = [frame for report in self.reports for frame in report.skipped]
+        shown = "; ".join(f"{frame.frame_id} ({frame.reason})" for frame in skipped[:3])
+        more = f"; and {len(skipped) - 3} more" if len(skipped) > 3 else ""
+        super().__init__(
+            f"{len(skipped)} frame(s) could not be prepared: {shown}{more}. Their splits are not "
+            "marked prepared; fix or remove those files and prepare again (frames already "
+            "prepared are kept)"
+        )
+
+    def __reduce__(self):
+        return type(self), (self.reports,)
+
+
+@dataclass(frozen=True)
+class SplitJob:
+    """The arguments of one :func:`prepare_split` call, for :func:`prepare_splits`."""
+
+    cache: Path
+    split: str
+    frame_ids: Sequence[str]
+    make_frame: Callable[[str], PreparedFrame]
+    params: dict[str, Any]
+
+
+def check_on_error(on_error: str) -> OnError:
+    """``on_error`` itself, or a ValueError naming the choices."""
+    if on_error not in ON_ERROR:
+        raise ValueError(f"on_error={on_error!r}: expected one of {list(ON_ERROR)}")
+    return cast(OnError, on_error)
+
+
+def not_a_file(path: Path, expected: str) -> OSError:
+    """The error for something at ``path`` that stands where a frame's file should be but is not
+    a file: IsADirectoryError for a directory, FileNotFoundError for anything else (a dangling
+    link). The message names ``path`` and what was ``expected``."""
+    if path.is_dir():
+        return IsADirectoryError(f"{path}: a directory, expected {expected}")
+    return FileNotFoundError(f"{path}: not a readable file (a broken link?), expected {expected}")
+
+
+def entries_not_files(folder: Path, suffixes: Sequence[str]) -> dict[str, Path]:
+    """``stem -> path`` of the entries of ``folder`` named like frame files (``<stem><suffix>``,
+    suffix in ``suffixes`` in any case, not hidden) that are not files: directories, dangling
+    links. ``_folders.list_files`` leaves them out, yet each stands where a frame's file should
+    be, so a reader reports it instead of dropping the frame."""
+    found: dict[str, Path] = {}
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            stem, suffix = os.path.splitext(entry.name)
+            if not entry.name.startswith(".") and suffix.lower() in suffixes:
+                if not entry.is_file():
+                    found[stem] = Path(entry.path)
+    return found
 
 
 def cache_dir(
@@ -100,12 +211,22 @@ def prepare_split(
     frame_ids: Sequence[str],
     make_frame: Callable[[str], PreparedFrame],
     params: dict[str, Any],
+    *,
+    on_error: OnError = "raise",
 ) -> Path:
     """Writes every frame of ``split`` that is not there yet; returns the split folder.
 
     ``frame_ids`` must come in the same order every time (they name the files by position);
     ``params`` are recorded in ``meta.json`` for a person to see what the cache holds.
+
+    Raises:
+        ValueError: ``frame_ids`` is empty, or ``on_error`` is not one of :data:`ON_ERROR`.
+        ValueError, OSError: with ``on_error="raise"``, the first frame whose ``make_frame``
+            fails (see the module docstring).
+        SkippedFramesError: with ``on_error="skip"``, after the whole split, when frames were
+            skipped; the split then has no ``index.json``.
     """
+    check_on_error(on_error)
     split_dir = cache / split
     if (split_dir / INDEX_FILE).is_file():
         log.info("using the prepared %s split in %s", split, split_dir)
@@ -115,9 +236,11 @@ def prepare_split(
     write_json_atomic(cache / META_FILE, {"prepared_version": PREPARED_VERSION, **params})
     split_dir.mkdir(parents=True, exist_ok=True)
     records = []
+    skipped: list[SkippedFrame] = []
     done = 0
+    description = f"preparing {cache.parent.name} {split}"
     for i, frame_id in enumerate(
-        track(frame_ids, description=f"preparing {cache.parent.name} {split}", transient=True)
+        track(frame_ids, description, unit="frames", transient=True, logger=log)
     ):
         stem = f"{i:06d}"
         record_path = split_dir / f"{stem}.json"
@@ -126,8 +249,15 @@ def prepare_split(
             records.append(record)
             done += 1
             continue
-        frame = make_frame(frame_id)
-        _check_frame(frame, frame_id)
+        try:
+            frame = make_frame(frame_id)
+            _check_frame(frame, frame_id)
+        except FRAME_ERRORS as err:
+            if on_error == "raise":
+                raise
+            skipped.append(SkippedFrame(frame_id, one_line(err)))
+            log.warning("skipped %s: %s", frame_id, skipped[-1].reason)
+            continue
         write_rgb_png(split_dir / f"{stem}.image.png", frame.image)
         write_depth_png(split_dir / f"{stem}.sparse.png", frame.sparse)
         write_depth_png(split_dir / f"{stem}.depth.png", frame.depth)
@@ -143,6 +273,8 @@ def prepare_split(
             record["frame_box"] = [int(v) for v in frame.frame_box]
         write_json_atomic(record_path, record)
         records.append(record)
+    if skipped:  # no index: the split stays unprepared until every frame is there
+        raise SkippedFramesError([SplitReport(split, len(frame_ids), tuple(skipped))])
     write_json_atomic(split_dir / INDEX_FILE, {"split": split, "frames": records})
     log.info(
         "prepared %d %s frames into %s (%d already there from an earlier run)",
@@ -152,6 +284,35 @@ def prepare_split(
         done,
     )
     return split_dir
+
+
+def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> None:
+    """:func:`prepare_split` for each job, in order.
+
+    With ``on_error="raise"`` the first broken frame raises. With ``"skip"``, a split with
+    skipped frames does not stop the next ones: every split is tried, then one
+    :class:`SkippedFramesError` reports all of them (complete splits included).
+    """
+    reports: list[SplitReport] = []
+    for job in jobs:
+        try:
+            prepare_split(
+                job.cache, job.split, job.frame_ids, job.make_frame, job.params, on_error=on_error
+            )
+        except SkippedFramesError as err:
+            reports += err.reports
+        else:
+            reports.append(SplitReport(job.split, len(job.frame_ids)))
+    if any(report.skipped for report in reports):
+        raise SkippedFramesError(reports)
+
+
+def one_line(err: BaseException, limit: int = 300) -> str:
+    """The first line of ``err``'s message (its type's name when empty), at most ``limit``
+    characters: what a ``skipped <what>: <reason>`` line shows."""
+    lines = str(err).strip().splitlines()
+    text = lines[0] if lines else type(err).__name__
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _read_record(path: Path) -> dict | None:

@@ -22,10 +22,19 @@ Folder format
 Zero, negative or non-finite depths (and NPY values too large for a float32) are invalid, and so
 is anything at or beyond ``max_range`` (default 250 m: the cache stores 1/256 m in uint16). Every
 frame gets the condition ``condition`` (default ``day``: the renders are daylight scenes). Files
-starting with ``.`` are ignored; an image without a depth map, or a depth map in two formats, is
-an error naming the files. A corrupt or truncated file, a depth PNG that is not 16-bit
-single-channel, an NPY that is not a numeric (H, W) array, or a depth map of another size than
-its image is a :class:`~fusion_depth.data.depth_io.DataFileError` naming the file.
+starting with ``.`` are ignored; a depth map in two formats is an error naming the files.
+A corrupt or truncated file, a depth PNG that is not 16-bit single-channel, an NPY that is not a
+numeric (H, W) array, or a depth map of another size than its image is a
+:class:`~fusion_depth.data.depth_io.DataFileError` naming the file.
+
+Broken frames. Every name in ``rgb/`` is a frame, whatever stands there, so nothing is dropped
+quietly. An image without a depth map is a FileNotFoundError; a directory (or a dangling link)
+where a frame's image or depth map should be is an IsADirectoryError (FileNotFoundError); each
+names the path and what was expected. These are found while listing the folder, so for training
+(``on_error="raise"``) the first one fails before anything is prepared; ``python -m
+fusion_depth.prepare`` (``on_error="skip"``) counts such a frame as skipped, like one whose file
+is corrupt, and prepares the others (:mod:`fusion_depth.data.prepared`). Depth maps without an
+image are ignored with a warning.
 
 Preparing
 ---------
@@ -59,7 +68,17 @@ from fusion_depth.data._folders import (
     resize_rgb,
 )
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
-from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, cache_dir, prepare_split
+from fusion_depth.data.prepared import (
+    OnError,
+    PreparedFrame,
+    PreparedSplit,
+    SplitJob,
+    cache_dir,
+    check_on_error,
+    entries_not_files,
+    not_a_file,
+    prepare_splits,
+)
 
 FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
 CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
@@ -127,13 +146,25 @@ def _read_npy(path: Path) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TopViewFrame:
+    """One frame's files; ``problem`` is what the scan found wrong with them (None: nothing)."""
+
     id: str  # "<split>/<name>"
     rgb: Path
-    depth: Path
+    depth: Path | None
+    problem: OSError | None = None
 
 
-def scan_folder(root: Path) -> tuple[dict[str, list[TopViewFrame]], str]:
-    """Every split's frames (image and depth matched by name) and a fingerprint of the files."""
+def scan_folder(
+    root: Path, on_error: OnError = "raise"
+) -> tuple[dict[str, list[TopViewFrame]], str]:
+    """Every split's frames (image and depth matched by name) and a fingerprint of the files.
+
+    A frame's breakage (module docstring, "Broken frames") raises here with ``on_error="raise"``;
+    with ``"skip"`` the frame is kept with its ``problem``, which :func:`load_frame` raises, so
+    ``prepare_split`` skips it by id. A missing folder, a split without images, or two files for
+    one name concern the whole split and always raise.
+    """
+    check_on_error(on_error)
     frames: dict[str, list[TopViewFrame]] = {}
     entries: list[os.DirEntry] = []
     for split in SPLITS:
@@ -142,23 +173,35 @@ def scan_folder(root: Path) -> tuple[dict[str, list[TopViewFrame]], str]:
         depth_dir = require_dir(split_dir / "depth", f"the depth maps {split_dir}/depth/<name>.*")
         images = list_files(rgb_dir, RGB_SUFFIXES)
         depths = list_files(depth_dir, DEPTH_SUFFIXES)
-        if not images:
+        not_images = entries_not_files(rgb_dir, RGB_SUFFIXES)
+        not_depths = entries_not_files(depth_dir, DEPTH_SUFFIXES)
+        if not images and not not_images:
             raise ValueError(
                 f"{rgb_dir}: no images, the {split} split is empty; expected "
                 f"<name>{'|'.join(RGB_SUFFIXES)} files"
             )
         kept = []
-        for name in sorted(images):
-            if name not in depths:
-                raise FileNotFoundError(
-                    f"{depth_dir / name}.png: missing depth map of {images[name].path} (expected "
-                    f"{name} with one of {', '.join(DEPTH_SUFFIXES)} in {depth_dir})"
-                )
-            entries += [images[name], depths[name]]
-            kept.append(
-                TopViewFrame(f"{split}/{name}", Path(images[name].path), Path(depths[name].path))
-            )
-        orphans = sorted(set(depths) - set(images))
+        for name in sorted(set(images) | set(not_images)):
+            frame_id = f"{split}/{name}"
+            problem: OSError | None = None
+            if name in not_images:
+                image = not_images[name]
+                problem = not_a_file(image, f"the camera image file of frame {frame_id}")
+            else:
+                image = Path(images[name].path)
+                if name in not_depths:
+                    problem = not_a_file(not_depths[name], f"the depth map file of {image}")
+                elif name not in depths:
+                    problem = FileNotFoundError(
+                        f"{depth_dir / name}.png: missing depth map of {image} (expected "
+                        f"{name} with one of {', '.join(DEPTH_SUFFIXES)} in {depth_dir})"
+                    )
+            if problem is not None and on_error == "raise":
+                raise problem
+            entries += [e for e in (images.get(name), depths.get(name)) if e is not None]
+            depth = Path(depths[name].path) if name in depths and problem is None else None
+            kept.append(TopViewFrame(frame_id, image, depth, problem))
+        orphans = sorted(set(depths) - set(images) - set(not_images))
         if orphans:
             log.warning(
                 "topview %s: %d depth maps without an image are ignored (e.g. %s)",
@@ -178,7 +221,14 @@ def load_frame(
     max_range: float,
     condition: str,
 ) -> PreparedFrame:
-    """Reads and resizes one image and its depth map; the sparse input is empty."""
+    """Reads and resizes one image and its depth map; the sparse input is empty.
+
+    Raises the frame's ``problem`` when the scan found one, else what the readers raise for a
+    bad file (DataFileError, FileNotFoundError), naming it.
+    """
+    if frame.problem is not None:
+        raise frame.problem
+    assert frame.depth is not None  # the scan sets it for every frame without a problem
     image = read_rgb(frame.rgb)
     depth = read_depth_file(frame.depth, depth_unit)
     if depth.shape != image.shape[:2]:
@@ -198,7 +248,13 @@ def load_frame(
 
 class TopViewDepth(PreparedSplit):
     """One split of a Top-View folder (format: the module docstring), served from the prepared
-    cache. Samples are the platform's dict with an all-zero ``sparse``."""
+    cache. Samples are the platform's dict with an all-zero ``sparse``.
+
+    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file;
+    ``"skip"`` prepares every other frame of every split, then raises
+    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
+    ``python -m fusion_depth.prepare`` uses).
+    """
 
     def __init__(
         self,
@@ -210,8 +266,10 @@ class TopViewDepth(PreparedSplit):
         depth_unit: float = 0.01,
         condition: str = "day",
         max_range: float = 250.0,
+        on_error: OnError = "raise",
     ) -> None:
         check_split(split)
+        check_on_error(on_error)
         height, width = check_size(height, width)
         if not depth_unit > 0:
             raise ValueError(
@@ -224,7 +282,7 @@ class TopViewDepth(PreparedSplit):
             )
         max_range = check_max_range(max_range)
         root = require_root(root, LAYOUT)
-        frames, files = scan_folder(root)
+        frames, files = scan_folder(root, on_error)
         params = {
             "format_version": FORMAT_VERSION,
             "root": str(root),
@@ -236,15 +294,19 @@ class TopViewDepth(PreparedSplit):
             "files": files,
         }
         cache = cache_dir(cache_root, "topview", params, read_only={"root": root})
+        jobs = []
         for name in SPLITS:
             by_id = {frame.id: frame for frame in frames[name]}
-            prepare_split(
-                cache,
-                name,
-                list(by_id),
-                lambda frame_id, by_id=by_id: load_frame(
-                    by_id[frame_id], height, width, float(depth_unit), max_range, condition
-                ),
-                params,
+            jobs.append(
+                SplitJob(
+                    cache,
+                    name,
+                    list(by_id),
+                    lambda frame_id, by_id=by_id: load_frame(
+                        by_id[frame_id], height, width, float(depth_unit), max_range, condition
+                    ),
+                    params,
+                )
             )
+        prepare_splits(jobs, on_error=on_error)
         super().__init__(cache / split)
