@@ -88,6 +88,21 @@ def list_files(folder: Path, suffixes: Sequence[str]) -> dict[str, os.DirEntry]:
     return files
 
 
+def entries_not_files(folder: Path, suffixes: Sequence[str]) -> dict[str, Path]:
+    """``stem -> path`` of the entries of ``folder`` named like frame files (``<stem><suffix>``,
+    suffix in ``suffixes`` in any case, not hidden) that are not files: directories, dangling
+    links. :func:`list_files` leaves them out, yet each stands where a frame's file should
+    be, so a reader reports it instead of dropping the frame."""
+    found: dict[str, Path] = {}
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            stem, suffix = os.path.splitext(entry.name)
+            if not entry.name.startswith(".") and suffix.lower() in suffixes:
+                if not entry.is_file():
+                    found[stem] = Path(entry.path)
+    return found
+
+
 def fingerprint(entries: Iterable[os.DirEntry]) -> str:
     """A digest of names, sizes and modification times: a changed dataset gets a new cache."""
     digest = hashlib.sha256()

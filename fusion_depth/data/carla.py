@@ -110,6 +110,7 @@ from fusion_depth.data._folders import (
     check_max_range,
     check_size,
     check_split,
+    entries_not_files,
     fingerprint,
     list_files,
     require_dir,
@@ -126,7 +127,6 @@ from fusion_depth.data.prepared import (
     SplitJob,
     cache_dir,
     check_on_error,
-    entries_not_files,
     not_a_file,
     prepare_splits,
 )

@@ -162,21 +162,6 @@ def not_a_file(path: Path, expected: str) -> OSError:
     return FileNotFoundError(f"{path}: not a readable file (a broken link?), expected {expected}")
 
 
-def entries_not_files(folder: Path, suffixes: Sequence[str]) -> dict[str, Path]:
-    """``stem -> path`` of the entries of ``folder`` named like frame files (``<stem><suffix>``,
-    suffix in ``suffixes`` in any case, not hidden) that are not files: directories, dangling
-    links. ``_folders.list_files`` leaves them out, yet each stands where a frame's file should
-    be, so a reader reports it instead of dropping the frame."""
-    found: dict[str, Path] = {}
-    with os.scandir(folder) as entries:
-        for entry in entries:
-            stem, suffix = os.path.splitext(entry.name)
-            if not entry.name.startswith(".") and suffix.lower() in suffixes:
-                if not entry.is_file():
-                    found[stem] = Path(entry.path)
-    return found
-
-
 def cache_dir(
     root: str | os.PathLike,
     dataset: str,
