@@ -62,6 +62,8 @@ PATH_KEYS = frozenset(
         "submitit_folder",
     }
 )
+# Folders Hydra creates for a run or a sweep: one folder, never a sweep over several.
+RUN_DIR_KEYS = frozenset({"hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir"})
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
 
@@ -85,8 +87,11 @@ def literal_paths(overrides: list[str]) -> list[str]:
     """The overrides with every path value the override grammar cannot read as typed quoted,
     so that it arrives unchanged: ``ckpt_path=outputs/fusion=concat/x.ckpt`` →
     ``ckpt_path='outputs/fusion=concat/x.ckpt'``. A value is a path when its key's last part is
-    in :data:`PATH_KEYS` or it contains a ``/`` (or ``\\``). Overrides the grammar reads already
-    (also quoted ones, interpolations, sweeps ``a,b`` of paths without ``=``) are left alone."""
+    in :data:`PATH_KEYS` or it contains a ``/`` (or ``\\``). A value with a comma, which the
+    grammar reads as a sweep, is one path after a path key when that path exists (``input=a,b``
+    naming a folder ``a,b``), and always after :data:`RUN_DIR_KEYS`. Overrides the grammar reads
+    otherwise (also quoted ones, interpolations, sweeps over paths) are left alone; ``${...}``
+    in a value stays an interpolation, as in Hydra."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     parser = OverridesParser.create()
@@ -98,9 +103,16 @@ def literal_paths(overrides: list[str]) -> list[str]:
             out.append(override)
             continue
         try:
-            parser.parse_override(override)
-            out.append(override)
-            continue
+            parsed = parser.parse_override(override)
+            # A comma reads as a sweep: a path key's value is one path when that path exists,
+            # and a run folder is never swept.
+            literal = parsed.is_sweep_override() and (
+                key.lstrip("+") in RUN_DIR_KEYS
+                or (name in PATH_KEYS and Path(value).expanduser().exists())
+            )
+            if not literal:
+                out.append(override)
+                continue
         except Exception:  # noqa: BLE001 - any grammar error: try the quoted form
             pass
         quoted = f"{key}={_quoted(value)}"
@@ -267,6 +279,26 @@ def _short_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], A
     return run
 
 
+def _report(err: Exception) -> None:
+    """Print ``err`` as Hydra does without ``HYDRA_FULL_ERROR``, but an error about the user's
+    input (:func:`user_message`) as its message alone."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    message = user_message(err)
+    if message is None:
+        traceback.print_exception(err)
+    else:
+        sys.stderr.write(message + os.linesep)
+        if isinstance(err, CompactHydraException) and isinstance(
+            err.__cause__, OmegaConfBaseException
+        ):
+            sys.stderr.write(str(err.__cause__) + os.linesep)
+    sys.stderr.write(
+        os.linesep + "Set the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace."
+        + os.linesep
+    )
+
+
 # --- the decorator ----------------------------------------------------------------------------
 
 
@@ -302,13 +334,23 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
             if typed != overrides:
                 rewrite = dict(zip(overrides, typed, strict=True))
                 sys.argv = [sys.argv[0], *(rewrite.get(a, a) for a in sys.argv[1:])]
-            if not os.environ.get("HYDRA_FULL_ERROR"):
-                try:
-                    check_override_keys(chosen or config_name, typed, config_dir)
-                except ConfigError as err:
-                    sys.stderr.write(f"{err}\n")
-                    sys.exit(1)
-            return hydra_task()
+            if os.environ.get("HYDRA_FULL_ERROR"):  # the user asked for Hydra's tracebacks
+                return hydra_task()
+            try:
+                check_override_keys(chosen or config_name, typed, config_dir)
+            except ConfigError as err:
+                sys.stderr.write(f"{err}\n")
+                sys.exit(1)
+            # Errors then come back here instead of being printed by Hydra, so that those Hydra
+            # raises itself about the user's files (a run folder it cannot create) are short too.
+            os.environ["HYDRA_FULL_ERROR"] = "1"
+            try:
+                return hydra_task()
+            except Exception as err:  # noqa: BLE001 - reported as Hydra would, only shorter
+                _report(err)
+                sys.exit(1)
+            finally:
+                os.environ.pop("HYDRA_FULL_ERROR", None)
 
         return main
 

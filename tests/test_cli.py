@@ -49,6 +49,19 @@ def test_a_printed_path_arrives_as_typed(key: str, path: str) -> None:
     assert not override.is_sweep_override()
 
 
+def test_a_comma_is_a_path_where_that_path_exists_or_a_run_folder_is_meant(tmp_path) -> None:
+    folder = tmp_path / "a,b"
+    folder.mkdir()
+    parser = OverridesParser.create()
+    for override in (f"input={folder}", f"ckpt_path={folder}/", "hydra.run.dir=runs/a,b"):
+        (typed,) = literal_paths([override])
+        assert parser.parse_override(typed).value() == override.partition("=")[2]
+    # A path key whose comma-separated parts are not one existing path stays a sweep.
+    assert literal_paths([f"input={tmp_path}/x.png,{tmp_path}/y.png"]) == [
+        f"input={tmp_path}/x.png,{tmp_path}/y.png"
+    ]
+
+
 def test_what_the_grammar_reads_is_left_alone() -> None:
     kept = [
         "fusion=concat",
@@ -415,6 +428,17 @@ def test_a_corrupt_data_file_is_a_short_error_naming_it(tmp_path) -> None:
     assert "Traceback" not in short.stderr
     full = run_module(args, cwd=tmp_path, env={**os.environ, "HYDRA_FULL_ERROR": "1"})
     assert full.returncode == 1 and "Traceback" in full.stderr and str(bad) in full.stderr
+
+
+def test_a_run_folder_hydra_cannot_create_is_a_short_error_naming_it(tmp_path) -> None:
+    (tmp_path / "afile").write_text("not a folder")
+    done = run_module(
+        ["fusion_depth.train", "experiment=smoke", f"hydra.run.dir={tmp_path}/afile/run"],
+        tmp_path,
+    )
+    assert done.returncode == 1
+    assert f"{tmp_path}/afile/run: Not a directory" in done.stderr.splitlines()
+    assert "Traceback" not in done.stderr
 
 
 def test_unknown_key_on_the_command_line_is_one_line(tmp_path) -> None:
