@@ -26,7 +26,7 @@ from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import AtomicCheckpointIO, plain_config
-from fusion_depth.cli import hydra_main
+from fusion_depth.cli import hydra_main, user_message
 from fusion_depth.config import (
     check_output_dir,
     checkpoint_bytes,
@@ -279,8 +279,9 @@ def main(cfg: DictConfig) -> float | None:
     except Exception as err:  # noqa: BLE001 - one job's failure must not end the sweep
         overrides = redact_overrides(list(HydraConfig.get().overrides.task))
         path = record_failure(cfg.paths.output_dir, overrides, err)
-        if isinstance(err, CompactHydraException):  # a config error: its one line says it all
-            log.error("job failed: %s; recorded in %s", err, path)
+        message = user_message(err)  # bad config, data or files: its line says it all
+        if message is not None:
+            log.error("job failed: %s; recorded in %s", message, path)
         else:
             log.exception("job failed; recorded in %s", path)
         return None

@@ -468,3 +468,26 @@ def test_a_corrupt_file_read_in_a_loader_worker_is_a_short_error_naming_it(tmp_p
     lines = _error_lines(done.stderr)
     assert len(lines) <= 4 and str(bad) in lines[1], done.stderr
     assert "DataLoader worker" not in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_sweep_job_with_a_corrupt_file_fails_in_one_line_and_the_others_run(tmp_path) -> None:
+    good = _topview(tmp_path / "good")
+    bad = _topview(tmp_path / "bad")
+    broken = _truncate(bad / "train" / "rgb" / "b.png")
+    done = run_module(
+        [
+            "fusion_depth.train",
+            "-m",
+            "dataset=topview",
+            f"dataset.root={good},{bad}",
+            "experiment=smoke",
+            "logger=none",
+            f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        ],
+        tmp_path,
+    )
+    assert done.returncode == 1
+    output = done.stdout + done.stderr
+    assert f"job failed: {broken}: unreadable image" in output
+    assert "Traceback" not in output
+    assert "1 ok, 1 failed" in output
