@@ -10,13 +10,13 @@
   (``outputs/fusion=concat,loss=l1/``), and Hydra's override grammar reads ``=`` and ``,`` in an
   unquoted value as syntax. A path value that the grammar cannot read as typed (a path key such
   as ``ckpt_path``, ``input`` or ``hydra.run.dir``, or any value with a ``/``) is quoted for it,
-  so it arrives exactly as typed.
+  so it arrives exactly as typed (:func:`literal_paths`).
 * **Unknown keys named before composing.** ``trainer.max_epoch=3`` gets the one-line
   ``did you mean max_epochs?`` error (with or without ``+``), not Hydra's struct error.
 * **Short errors.** Errors the package raises about the user's data, config or files (a
   ``ValueError`` or ``OSError`` raised by package code, also from inside a DataLoader worker)
-  print as their message, in a few lines; ``HYDRA_FULL_ERROR=1`` shows the full traceback, as
-  for Hydra's own errors.
+  print as their message, in a few lines, and so do Hydra's own errors about the user's files (a
+  run folder it cannot create); ``HYDRA_FULL_ERROR=1`` shows the full traceback, as in Hydra.
 """
 
 from __future__ import annotations
@@ -233,13 +233,13 @@ def _raised_by_package(err: BaseException) -> bool:
 def _worker_error(text: str) -> str | None:
     """The original error line of an exception a DataLoader worker re-raised in the main
     process (``Caught X in DataLoader worker process 0. Original Traceback ... X: message``),
-    when it is a package error about the user's data (a ValueError/OSError type of ours)."""
+    when package code raised it (its frame is among the last lines)."""
     if not text.startswith("Caught ") or "Original Traceback" not in text:
         return None
     lines = [line for line in text.strip().splitlines() if line.strip()]
     last = lines[-1]
     raised_here = any("fusion_depth" in line and "File " in line for line in lines[-4:])
-    name, sep, message = last.partition(": ")
+    _, sep, message = last.partition(": ")
     return message if sep and raised_here else None
 
 
