@@ -297,6 +297,7 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "optimizer.momentum", nonneg_number, "a number ≥ 0")
     _require(cfg, "scheduler.step_size", positive_int, "an integer ≥ 1 (epochs)")
     _require(cfg, "scheduler.gamma", positive_number, "a factor > 0")
+    _require(cfg, "callbacks.progress_log.every_s", positive_number, "seconds > 0")
 
     _require(cfg, "model.net.fusion", *_one_of(*FUSION_MODES))
     _require(cfg, "model.net.backbone", *_one_of(*sorted(ENCODER_SPECS)))

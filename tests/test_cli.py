@@ -252,6 +252,7 @@ def test_every_readme_command_parses_and_composes(
         ("scheduler.gamma=-2", "scheduler.gamma=-2: expected a factor > 0"),
         ("trainer.accumulate_grad_batches=0", "trainer.accumulate_grad_batches=0: expected"),
         ("trainer.val_check_interval=1.5", "trainer.val_check_interval=1.5: expected"),
+        ("callbacks.progress_log.every_s=abc", "callbacks.progress_log.every_s=abc: expected"),
     ],
 )
 def test_optimizer_scheduler_and_trainer_values_are_checked(make_config, override, message):
