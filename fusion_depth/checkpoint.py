@@ -27,8 +27,7 @@ from hydra.errors import CompactHydraException
 from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from fusion_depth.config import cache_dir
-from fusion_depth.data import READERS, WRITES_INTO, reader_class
+from fusion_depth.data import READERS, WRITES_INTO, cache_dir, reader_class
 from fusion_depth.models import DepthNet
 from fusion_depth.runs import write_atomic
 

@@ -34,13 +34,8 @@ from hydra.errors import CompactHydraException, ConfigCompositionException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
-from fusion_depth.config import (
-    CONF_DIR,
-    SWEEPS_DIR,
-    ConfigError,
-    target_accepts,
-    unknown_key_error,
-)
+from fusion_depth.config import CONF_DIR, SWEEPS_DIR, target_accepts, unknown_key_error
+from fusion_depth.errors import CommandError, ConfigError
 
 # Keys whose value is a file or folder (the last part of the key): their values are taken
 # literally when Hydra's grammar cannot read them unquoted.
@@ -65,11 +60,6 @@ PATH_KEYS = frozenset(
 # Folders Hydra creates for a run or a sweep: one folder, never a sweep over several.
 RUN_DIR_KEYS = frozenset({"hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir"})
 _PACKAGE_DIR = Path(__file__).resolve().parent
-
-
-class CommandError(RuntimeError, CompactHydraException):
-    """A user-facing error (bad data, config value or file) shown as its message alone; the
-    original exception is its ``__cause__`` (shown with ``HYDRA_FULL_ERROR=1``)."""
 
 
 # --- paths as typed ---------------------------------------------------------------------------

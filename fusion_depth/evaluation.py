@@ -20,6 +20,7 @@ from fusion_depth.inference import UPSAMPLING
 from fusion_depth.metrics import METRIC_KEYS, DepthMetrics
 from fusion_depth.runs import METRICS_FILE, PER_IMAGE_FILE, write_json_atomic, write_text_atomic
 from fusion_depth.speed import cpu_model
+from fusion_depth.tables import format_table
 
 # (metric key, column header) of the printed tables, in the paper's order plus MAE.
 TABLE_COLUMNS = (
@@ -167,7 +168,6 @@ def _rows(groups: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
 
 def results_tables(record: Mapping[str, Any]) -> str:
     """Markdown tables of an evaluation record: per condition, per distance bin, per cap."""
-    from fusion_depth.report import format_table
 
     header = [name for _, name in TABLE_COLUMNS] + ["Images", "Pixels"]
     caps = record["protocol"]["max_depth"]

@@ -13,7 +13,7 @@ from typing import Any
 
 from lightning.pytorch.loggers import CSVLogger, WandbLogger
 
-from fusion_depth.config import redact_overrides, redact_secrets
+from fusion_depth.redaction import redact_overrides, redact_secrets
 
 
 def wandb_logged_in() -> bool:

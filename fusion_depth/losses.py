@@ -23,6 +23,7 @@ from kornia.morphology import erosion
 from torch import Tensor, nn
 
 __all__ = [
+    "NONFINITE_ACTIONS",
     "PIXEL_LOSSES",
     "DepthLoss",
     "berhu_loss",
@@ -33,6 +34,8 @@ __all__ = [
 
 PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu")
 """Allowed values of ``pixel_loss(kind=...)`` and ``DepthLoss(pixel=...)``."""
+NONFINITE_ACTIONS: tuple[str, ...] = ("stop", "skip")
+"""What training does with a batch whose loss is NaN or infinite (``model.on_nonfinite_loss``)."""
 
 
 def _check_inputs(pred: Tensor, target: Tensor, mask: Tensor | None) -> Tensor:

@@ -16,7 +16,7 @@ from torch import nn
 from fusion_depth.checkpoint import CONFIG_KEY, RUN_KEY
 from fusion_depth.evaluation import EvalProtocol, latency_summary
 from fusion_depth.inference import predict_depth, resize_depth
-from fusion_depth.losses import DepthLoss
+from fusion_depth.losses import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
 from fusion_depth.speed import speed_up
@@ -24,7 +24,6 @@ from fusion_depth.visualize import depth_panel
 
 log = logging.getLogger(__name__)
 
-NONFINITE_ACTIONS = ("stop", "skip")
 TRAINING_STATE_KEY = "fusion_depth_training_state"  # what a resumed run needs beyond Lightning's
 
 

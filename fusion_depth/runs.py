@@ -13,6 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from fusion_depth.version import __version__
+
 METRICS_FILE = "metrics.json"
 FAILURE_FILE = "failure.json"
 RESOLVED_CONFIG_FILE = "config_resolved.yaml"
@@ -55,9 +57,7 @@ def provenance() -> dict[str, Any]:
     import lightning
     import torch
 
-    import fusion_depth
-
-    source = Path(fusion_depth.__file__).resolve().parent
+    source = Path(__file__).resolve().parent
     commit = dirty = None
     try:
         git = ["git", "-C", str(source)]
@@ -75,7 +75,7 @@ def provenance() -> dict[str, Any]:
     except (OSError, subprocess.SubprocessError):
         pass  # not a git checkout (an installed wheel) or no git: the versions still say enough
     return {
-        "fusion_depth": fusion_depth.__version__,
+        "fusion_depth": __version__,
         "torch": torch.__version__,
         "lightning": lightning.__version__,
         "git_commit": commit or None,

@@ -27,18 +27,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import AtomicCheckpointIO, plain_config
 from fusion_depth.cli import hydra_main, user_message
-from fusion_depth.config import (
-    check_output_dir,
-    checkpoint_bytes,
-    redact_overrides,
-    redact_secrets,
-    validate_config,
-)
+from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.distributed import launch_local_ranks, local_world_size
 from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.loggers import closing
+from fusion_depth.redaction import redact_overrides, redact_secrets
 from fusion_depth.resume import (
     RunLock,
     RunLockedError,

@@ -21,8 +21,9 @@ from PIL import Image
 
 from fusion_depth.callbacks import ProgressLog
 from fusion_depth.cli import PATH_KEYS, check_override_keys, literal_paths, register_sweeps
-from fusion_depth.config import CONF_DIR, SWEEPS_DIR, ConfigError, check_values, validate_config
+from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_values, validate_config
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
+from fusion_depth.errors import ConfigError
 from fusion_depth.evaluation import EvalProtocol
 from fusion_depth.models import DepthNet
 from fusion_depth.train import train

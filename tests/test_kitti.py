@@ -21,10 +21,11 @@ from omegaconf.errors import MissingMandatoryValue
 from PIL import Image
 
 import fusion_depth.data.kitti as kitti
-from fusion_depth.config import ConfigError, validate_config
+from fusion_depth.config import validate_config
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
 from fusion_depth.data.prepared import SkippedFramesError
+from fusion_depth.errors import ConfigError
 from fusion_depth.evaluation import EvalProtocol
 from fusion_depth.metrics import crop_mask
 from fusion_depth.prepare import prepare

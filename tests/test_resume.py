@@ -371,7 +371,7 @@ def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
     ],
 )
 def test_a_run_that_would_train_or_score_nothing_is_refused(tmp_path, overrides, message) -> None:
-    from fusion_depth.config import ConfigError
+    from fusion_depth.errors import ConfigError
 
     run_dir = tmp_path / "run"
     with pytest.raises(ConfigError, match=message):
@@ -380,8 +380,8 @@ def test_a_run_that_would_train_or_score_nothing_is_refused(tmp_path, overrides,
 
 
 def test_a_split_without_frames_is_refused() -> None:
-    from fusion_depth.config import ConfigError
     from fusion_depth.data.datamodule import DepthDataModule, check_batches
+    from fusion_depth.errors import ConfigError
 
     frames = {"train": 4, "val": 0, "test": 3}
     datamodule = DepthDataModule(reader=lambda split: [{}] * frames[split], num_workers=0)

@@ -19,16 +19,13 @@ from omegaconf import OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 from torch import nn
 
-from fusion_depth.config import (
-    ConfigError,
-    OutputDirError,
+from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
+from fusion_depth.errors import ConfigError, OutputDirError
+from fusion_depth.redaction import (
     RedactSecrets,
-    check_output_dir,
-    checkpoint_bytes,
     redact_hydra_files,
     redact_overrides,
     redact_secrets,
-    validate_config,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -441,7 +438,7 @@ def test_a_training_run_writes_no_secret_anywhere(tmp_path) -> None:
     for stream in (result.stdout, result.stderr):
         assert env_key not in stream and argv_key not in stream
     # Hydra writes .hydra/hydra.yaml before any of our code runs; this one needs the
-    # fusion_depth.config.RedactSecrets callback in conf/hydra/default.yaml (or train calling
+    # fusion_depth.redaction.RedactSecrets callback in conf/hydra/default.yaml (or train calling
     # redact_hydra_files) to pass.
     assert holding_a_secret(hydra_files) == []
     assert "WANDB_API_KEY: '***'" in (run_dir / ".hydra" / "hydra.yaml").read_text()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib
+import os
+from pathlib import Path
 from typing import Any
 
 # The split names every dataset reader accepts (their order also keys the procedural seed streams).
@@ -19,6 +21,11 @@ READERS: dict[str, tuple[str, str]] = {
     "topview": ("fusion_depth.data.topview", "TopViewDepth"),
     "nuscenes": ("fusion_depth.data.nuscenes", "NuScenesDepth"),
 }
+
+
+def cache_dir() -> str:
+    """Where generated/prepared datasets live: $FUSION_DEPTH_CACHE or ~/.cache/fusion_depth."""
+    return str(Path(os.environ.get("FUSION_DEPTH_CACHE", "~/.cache/fusion_depth")).expanduser())
 
 
 def reader_class(name: str) -> Any:

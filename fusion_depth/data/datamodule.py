@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from fusion_depth.config import ConfigError
 from fusion_depth.data import SPLITS
+from fusion_depth.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
