@@ -198,7 +198,7 @@ def test_every_readme_command_parses_and_composes(
 
     module, args = _argv(command)
     if module == "report":
-        from fusion_depth.report import _parser
+        from fusion_depth.report.cli import _parser
 
         _parser().parse_args(args)
         return

@@ -1,0 +1,57 @@
+"""``python -m fusion_depth.report``: the tables, paired comparisons and plots of a sweep (see
+:mod:`fusion_depth.report.cli` for the options).
+
+One module per concern: :mod:`.groups` (grouping runs, tables), :mod:`.compare` (paired
+comparisons), :mod:`.plots` (bar charts), :mod:`.cli` (the command line and W&B upload).
+"""
+
+from fusion_depth.report.cli import log_wandb, main, table_cells
+from fusion_depth.report.compare import (
+    COMPARE_KEYS,
+    Comparison,
+    PerImage,
+    build_comparison_table,
+    compare_groups,
+    load_per_image,
+    paired_differences,
+    per_image_path,
+)
+from fusion_depth.report.groups import (
+    ALL,
+    BY_SECTIONS,
+    COLUMNS,
+    LOSS,
+    MODALITY,
+    build_by_table,
+    build_table,
+    by_column_stats,
+    group_runs,
+)
+from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
+
+__all__ = [
+    "ALL",
+    "BY_SECTIONS",
+    "COLUMNS",
+    "LOSS",
+    "MODALITY",
+    "build_by_table",
+    "build_table",
+    "by_column_stats",
+    "group_runs",
+    "COMPARE_KEYS",
+    "Comparison",
+    "PerImage",
+    "build_comparison_table",
+    "compare_groups",
+    "load_per_image",
+    "paired_differences",
+    "per_image_path",
+    "PLOT_METRICS",
+    "plot_by",
+    "plot_comparisons",
+    "plot_groups",
+    "log_wandb",
+    "main",
+    "table_cells",
+]

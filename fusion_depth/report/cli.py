@@ -1,0 +1,207 @@
+"""The paper-style table of a sweep: ``python -m fusion_depth.report multirun/<sweep>``.
+
+Reads every ``metrics.json`` below a directory, averages runs that differ only in their seed
+(mean ± sample std), marks the best value of each column, and prints Markdown, LaTeX or CSV.
+
+Options:
+  --format {markdown,latex,csv}  how to print the table (default markdown).
+  --by {condition,distance,cap}  one metric (``--metric``) per condition, distance bin or depth
+                                 cap: columns ``all`` then each of them, mean ± std over seeds.
+  --metric KEY                   the metric of --by, --compare and a --by plot (default rmse;
+                                 any key of the metrics: abs_rel, delta1, mae, ...).
+  --compare KEY=VALUE            e.g. ``fusion=rgb``: every group that differs from a VALUE group
+                                 only in KEY (fusion, loss or backbone) is compared with it image
+                                 by image: mean of the per-image differences (other − baseline,
+                                 so negative is better for errors) with a paired bootstrap CI,
+                                 pairing runs by seed. ``Significant`` says whether the CI
+                                 excludes 0 (such cells are bold). With ``--by condition``, also
+                                 per condition. Needs each run's ``per_image.csv``.
+  --resamples N                  bootstrap resamples of --compare (default 10000).
+  --level L                      confidence level of --compare's intervals (default 0.95).
+  --plot OUT.png                 also save a bar chart (any Matplotlib format: .png, .pdf, .svg):
+                                 one subplot per metric (RMSE, ARD, δ1, or --metric) with a bar
+                                 per fusion mode over each loss; with --by, --metric per column;
+                                 with --compare, the differences with their CIs. Error bars are
+                                 the std over seeds (none for a single seed).
+  --wandb                        also log the table as a W&B Table (project fusion-depth, job
+                                 type report, named after the directory, written below it);
+                                 offline unless you are logged in (``wandb sync`` uploads it).
+
+How to read --compare: the interval covers the variation from sampling test images and, when
+the two groups share ≥ 2 seeds, from retraining with another seed; with one shared seed (or
+none: each side is then averaged over its seeds) it covers the test images only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from fusion_depth.report.compare import COMPARE_KEYS, build_comparison_table, compare_groups
+from fusion_depth.report.groups import BY_SECTIONS, build_by_table, build_table, group_runs
+from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
+from fusion_depth.runs import load_runs
+
+# --- W&B: --wandb ------------------------------------------------------------------------------
+
+
+def table_cells(csv_text: str) -> tuple[list[str], list[list[Any]]]:
+    """Header and rows of a CSV table, numbers as floats, so W&B can sort and chart them."""
+
+    def cell(text: str) -> Any:
+        if text == "":
+            return None
+        try:
+            return float(text)
+        except ValueError:
+            return text
+
+    header, *rows = list(csv.reader(io.StringIO(csv_text)))
+    return header, [[cell(c) for c in row] for row in rows]
+
+
+def log_wandb(
+    directory: str | os.PathLike, header: Sequence[str], rows: Sequence[Sequence]
+) -> Path:
+    """Log the table as a W&B Table in a ``report`` run named after the directory.
+
+    Offline (synced later with ``wandb sync``) unless the user is logged in, like training runs.
+    Returns the directory W&B wrote the run to.
+    """
+    import wandb
+
+    from fusion_depth.loggers import wandb_logged_in
+
+    directory = Path(directory)
+    try:
+        run = wandb.init(
+            project="fusion-depth",
+            job_type="report",
+            name=directory.resolve().name,
+            dir=str(directory),
+            mode=None if wandb_logged_in() else "offline",
+        )
+        try:
+            run.log({"report": wandb.Table(columns=list(header), data=[list(r) for r in rows])})
+            run_dir = Path(run.dir).parent
+        finally:
+            run.finish()
+    except wandb.errors.Error as err:
+        raise ValueError(f"--wandb: could not log the table ({err})") from err
+    return run_dir
+
+
+def _compare_option(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or key not in COMPARE_KEYS or not value:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected KEY=VALUE with KEY one of {', '.join(COMPARE_KEYS)}, "
+            "e.g. fusion=rgb"
+        )
+    return key, value
+
+
+def _resamples_option(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a positive integer, e.g. 10000")
+    return value
+
+
+def _level_option(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a level in (0, 1), e.g. 0.95")
+    return value
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m fusion_depth.report",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("directory", help="a sweep (or any) directory holding metrics.json files")
+    parser.add_argument("--format", choices=("markdown", "latex", "csv"), default="markdown")
+    parser.add_argument(
+        "--by",
+        choices=tuple(BY_SECTIONS),
+        help="columns: all, then each condition / distance bin / depth cap (one --metric)",
+    )
+    parser.add_argument(
+        "--metric",
+        help="metric of --by, --compare and plots (default rmse; plots: rmse, abs_rel, delta1)",
+    )
+    parser.add_argument(
+        "--compare",
+        type=_compare_option,
+        metavar="KEY=VALUE",
+        help="paired per-image comparison against the KEY=VALUE groups (KEY: fusion, loss, "
+        "backbone), with bootstrap CIs",
+    )
+    parser.add_argument(
+        "--resamples",
+        type=_resamples_option,
+        default=10000,
+        help="bootstrap resamples of --compare (default 10000)",
+    )
+    parser.add_argument(
+        "--level",
+        type=_level_option,
+        default=0.95,
+        help="confidence level of --compare (default 0.95)",
+    )
+    parser.add_argument("--plot", metavar="OUT.png", help="also save the grid as a bar chart")
+    parser.add_argument("--wandb", action="store_true", help="also log the table to W&B")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    metric = args.metric or "rmse"
+    try:
+        runs = load_runs(args.directory)
+        if not runs:
+            raise ValueError(f"{args.directory}: no metrics.json found below it")
+        groups = group_runs(runs)
+        comparisons = None
+        if args.compare:
+            key, value = args.compare
+            comparisons = compare_groups(
+                groups, key, value, metric, args.by, args.resamples, args.level
+            )
+
+        def render(fmt: str) -> str:
+            if comparisons is not None:
+                return build_comparison_table(comparisons, fmt)
+            if args.by:
+                return build_by_table(groups, args.by, metric, fmt)
+            return build_table(groups, fmt)
+
+        print(render(args.format))
+        if args.plot:
+            if comparisons is not None:
+                plot_comparisons(comparisons, args.plot)
+            elif args.by:
+                plot_by(groups, args.plot, args.by, metric)
+            else:
+                plot_groups(groups, args.plot, [args.metric] if args.metric else PLOT_METRICS)
+        if args.wandb:
+            log_wandb(args.directory, *table_cells(render("csv")))
+    except (FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+

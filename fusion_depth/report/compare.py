@@ -1,0 +1,338 @@
+"""Paired per-image comparisons between groups of runs (``report --compare KEY=VALUE``): the
+mean per-image difference with a hierarchical paired bootstrap interval, pairing runs by seed."""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import reduce
+from pathlib import Path
+
+import numpy as np
+
+from fusion_depth.report.groups import (
+    ALL,
+    LOSS,
+    MODALITY,
+    identity_cells,
+    identity_columns,
+    metric_label,
+    tex_escape,
+)
+from fusion_depth.runs import PER_IMAGE_FILE
+from fusion_depth.stats import BootstrapResult, paired_bootstrap
+from fusion_depth.tables import format_table
+
+# --- Paired comparisons: --compare KEY=VALUE -------------------------------------------------
+
+COMPARE_KEYS = ("fusion", "loss", "backbone")
+# Protocol fields that change how per-image results are aggregated, not the results themselves.
+_AGGREGATION_ONLY = {"distance_bins", "bin_width", "averaging"}
+
+
+@dataclass(frozen=True)
+class PerImage:
+    """One metric of one run for each scored test image, sorted by the image's index."""
+
+    path: Path
+    index: np.ndarray  # int64, sorted, unique
+    condition: np.ndarray  # str, aligned with index
+    values: np.ndarray  # float64, aligned with index
+
+
+def per_image_path(run: dict) -> Path:
+    """Where a run's ``per_image.csv`` is (``per_image_file`` is relative to metrics.json)."""
+    return Path(run["path"]).parent / run.get("per_image_file", PER_IMAGE_FILE)
+
+
+def load_per_image(run: dict, metric: str) -> PerImage:
+    """Read ``metric`` of every image from the run's per-image file, checking it on the way."""
+    path = per_image_path(run)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{run['path']}: its per-image results {path} are missing; --compare needs "
+            f"{PER_IMAGE_FILE}, which runs of older versions did not write: re-score them with "
+            f"python -m fusion_depth.evaluate ckpt_path=<sweep folder> and compare the output"
+        )
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        missing = {"index", "condition", metric} - set(reader.fieldnames or ())
+        if missing:
+            raise ValueError(
+                f"{path}: no column(s) {', '.join(sorted(missing))}; expected a header with "
+                f"index, condition and the metric (have: {', '.join(reader.fieldnames or ())})"
+            )
+        try:
+            rows = [(int(r["index"]), r["condition"], float(r[metric])) for r in reader]
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{path}: line {reader.line_num}: {err}") from err
+    if len(rows) == 0:
+        raise ValueError(f"{path}: no images")
+    rows.sort()
+    index = np.array([r[0] for r in rows], dtype=np.int64)
+    values = np.array([r[2] for r in rows], dtype=np.float64)
+    if (np.diff(index) == 0).any():
+        dup = int(index[1:][np.diff(index) == 0][0])
+        raise ValueError(f"{path}: image index {dup} appears more than once")
+    if not np.isfinite(values).all():
+        bad = int(index[~np.isfinite(values)][0])
+        raise ValueError(f"{path}: {metric} of image {bad} is not finite")
+    return PerImage(path, index, np.array([r[1] for r in rows], dtype=object), values)
+
+
+def _check_same_images(ref: dict, ref_pi: PerImage, run: dict, pi: PerImage) -> None:
+    """Refuse to pair runs scored on different images: their differences would mean nothing."""
+
+    def refuse(reason: str) -> ValueError:
+        return ValueError(
+            f"{ref['path']} and {run['path']}: not scored on the same test images ({reason}); "
+            "--compare pairs images by index, so both runs must use the same dataset, split "
+            "and protocol"
+        )
+
+    for what, a, b in (
+        ("dataset", ref["run"].get("dataset"), run["run"].get("dataset")),
+        ("split", ref.get("split"), run.get("split")),
+    ):
+        if a != b:
+            raise refuse(f"{what} {a!r} vs {b!r}")
+    if "protocol" in ref and "protocol" in run:
+        keys = (set(ref["protocol"]) | set(run["protocol"])) - _AGGREGATION_ONLY
+        for key in sorted(keys):
+            a, b = ref["protocol"].get(key), run["protocol"].get(key)
+            if a != b:
+                raise refuse(f"protocol {key} {a!r} vs {b!r}")
+    _, i, j = np.intersect1d(ref_pi.index, pi.index, assume_unique=True, return_indices=True)
+    differ = ref_pi.condition[i] != pi.condition[j]
+    if differ.any():
+        k = int(np.argmax(differ))
+        raise refuse(
+            f"image {int(ref_pi.index[i[k]])} is {ref_pi.condition[i[k]]!r} in one and "
+            f"{pi.condition[j[k]]!r} in the other"
+        )
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A group against its baseline, image by image: results per column (``all``, conditions)."""
+
+    group: dict
+    baseline: dict
+    key: str
+    metric: str
+    seeds: tuple  # the paired seeds; empty when each side was averaged over its seeds
+    num_images: int
+    level: float
+    results: dict[str, BootstrapResult | None] = field(default_factory=dict)
+
+    @property
+    def pairing(self) -> str:
+        """How the runs were paired, for the table: by seed, or seed means against each other."""
+        if self.seeds:
+            return f"{len(self.seeds)} paired"
+        return f"means {self.baseline['n']} vs {self.group['n']}"
+
+
+def _by_seed(group: dict) -> dict:
+    """seed → run of a group; two runs with one seed cannot be paired unambiguously."""
+    runs: dict = {}
+    for run in group["runs"]:
+        seed = run["run"].get("seed")
+        if seed in runs:
+            raise ValueError(
+                f"{runs[seed]['path']} and {run['path']}: two runs of one group with seed "
+                f"{seed}; --compare pairs runs by seed"
+            )
+        runs[seed] = run
+    return runs
+
+
+def _seed_order(seed: object) -> tuple:
+    return (seed is None, str(type(seed)), seed if seed is not None else 0)
+
+
+def paired_differences(
+    baseline: dict,
+    group: dict,
+    metric: str,
+    load: Callable[[dict, str], PerImage] = load_per_image,
+) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Per-image ``metric`` differences (group − baseline) over the images all runs share.
+
+    Returns ``(differences (S, N), condition of each image (N,), paired seeds)``. Runs are paired
+    by seed when the groups share seeds (S = number of shared seeds); otherwise each side is
+    averaged over its seeds first (S = 1, paired seeds empty).
+    """
+    base, other = _by_seed(baseline), _by_seed(group)
+    seeds = tuple(sorted(set(base) & set(other), key=_seed_order))
+    if seeds:
+        base_runs, other_runs = [base[s] for s in seeds], [other[s] for s in seeds]
+    else:
+        base_runs, other_runs = list(base.values()), list(other.values())
+    ref = base_runs[0]
+    ref_pi = load(ref, metric)
+    loaded = {}
+    for run in (*base_runs, *other_runs):
+        loaded[run["path"]] = pi = load(run, metric)
+        _check_same_images(ref, ref_pi, run, pi)
+    common = reduce(np.intersect1d, (pi.index for pi in loaded.values()))
+    if len(common) < 2:
+        raise ValueError(
+            f"{ref['path']} and {other_runs[0]['path']}: share {len(common)} scored test "
+            "image(s); --compare needs at least 2"
+        )
+
+    def at_common(run: dict) -> np.ndarray:
+        pi = loaded[run["path"]]
+        return pi.values[np.searchsorted(pi.index, common)]
+
+    b = np.stack([at_common(r) for r in base_runs])
+    o = np.stack([at_common(r) for r in other_runs])
+    diff = o - b if seeds else o.mean(axis=0, keepdims=True) - b.mean(axis=0, keepdims=True)
+    conditions = ref_pi.condition[np.searchsorted(ref_pi.index, common)]
+    return diff, conditions, seeds
+
+
+def _condition_columns(runs: Sequence[dict], conditions: np.ndarray) -> list[str]:
+    """``all``, then the conditions in the order the metrics files list them, then the rest."""
+    order: dict[str, None] = {}
+    for run in runs:
+        order.update(dict.fromkeys(run.get("test_by_condition", {})))
+    order.update(dict.fromkeys(conditions.tolist()))
+    present = set(conditions.tolist())
+    return [ALL, *(c for c in order if c in present)]
+
+
+def compare_groups(
+    groups: Sequence[dict],
+    key: str,
+    value: str,
+    metric: str = "rmse",
+    by: str | None = None,
+    resamples: int = 10000,
+    level: float = 0.95,
+) -> list[Comparison]:
+    """Every group differing from a ``key=value`` group only in ``key``, against that group.
+
+    Each comparison holds the mean per-image difference (other − baseline) and its bootstrap
+    interval (:func:`fusion_depth.stats.paired_bootstrap`), over all shared images and, with
+    ``by="condition"``, over each condition's images.
+    """
+    if key not in COMPARE_KEYS:
+        raise ValueError(f"--compare {key}={value}: expected KEY one of {', '.join(COMPARE_KEYS)}")
+    if by not in (None, "condition"):
+        raise ValueError(
+            f"--by {by} with --compare: {PER_IMAGE_FILE} has no {by} per image; use --by condition"
+        )
+    baselines = [g for g in groups if g[key] == value]
+    if not baselines:
+        have = ", ".join(sorted({str(g[key]) for g in groups}))
+        raise ValueError(f"--compare {key}={value}: no runs with {key}={value} (have: {have})")
+    identity = [k for k in ("dataset", "sensor", *COMPARE_KEYS, "setting") if k != key]
+
+    def same_but_key(a: dict, b: dict) -> bool:
+        return all(a[k] == b[k] for k in identity)
+
+    cache: dict[tuple[str, str], PerImage] = {}
+
+    def load(run: dict, m: str) -> PerImage:
+        if (run["path"], m) not in cache:
+            cache[run["path"], m] = load_per_image(run, m)
+        return cache[run["path"], m]
+
+    comparisons = []
+    for g in groups:
+        if g[key] == value:
+            continue
+        baseline = next((b for b in baselines if same_but_key(b, g)), None)
+        if baseline is None:
+            continue
+        diff, conditions, seeds = paired_differences(baseline, g, metric, load)
+        columns = [ALL]
+        if by == "condition":
+            columns = _condition_columns([*baseline["runs"], *g["runs"]], conditions)
+        results: dict[str, BootstrapResult | None] = {}
+        for column in columns:
+            d = diff if column == ALL else diff[:, conditions == column]
+            results[column] = (
+                paired_bootstrap(d, resamples=resamples, level=level) if d.shape[1] >= 2 else None
+            )
+        comparisons.append(
+            Comparison(g, baseline, key, metric, seeds, diff.shape[1], level, results)
+        )
+    if not comparisons:
+        raise ValueError(
+            f"--compare {key}={value}: no other group differs from it only in {key} "
+            f"(groups: {', '.join(_group_name(g) for g in groups)})"
+        )
+    return comparisons
+
+
+def _group_name(group: dict) -> str:
+    parts = [group["dataset"], group["backbone"], group["loss"], group["fusion"], group["setting"]]
+    return "/".join(p for p in parts if p)
+
+
+def key_label(key: str, value: str) -> str:
+    return {"fusion": MODALITY, "loss": LOSS}.get(key, {}).get(value, value)
+
+
+def build_comparison_table(comparisons: Sequence[Comparison], fmt: str = "markdown") -> str:
+    """Mean per-image difference and CI per compared group; significant cells are marked.
+
+    A cell is significant (bold, and listed in the ``Significant`` column) when its interval
+    excludes 0. The sign is other − baseline: negative is better for errors, positive for δ.
+    """
+    if not comparisons:
+        raise ValueError("no comparisons to tabulate")
+    groups = [c.group for c in comparisons]
+    columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
+    metric, level = comparisons[0].metric, comparisons[0].level
+    extra = identity_columns(groups)
+    header = [name for name, _ in extra] + ["Modality", "Loss", "Baseline", "Seeds", "Images"]
+    first = len(header)
+    latex = fmt == "latex"
+    if fmt == "csv":
+        header += [
+            f"{metric}_{col}_{part}"
+            for col in columns
+            for part in ("diff", "low", "high", "significant")
+        ]
+        header.append("level")
+    else:
+        label = ("$\\Delta$" if latex else "Δ") + metric_label(metric, latex)
+        pct = f"{100 * level:g}\\%" if latex else f"{100 * level:g}%"
+        header += [f"{label} ({tex_escape(c) if latex else c}, {pct} CI)" for c in columns]
+        header.append("Significant")
+    rows, bold = [], set()
+    for i, c in enumerate(comparisons):
+        row = identity_cells(c.group, extra)
+        row += [key_label(c.key, c.baseline[c.key]), c.pairing, str(c.num_images)]
+        significant = []
+        for j, column in enumerate(columns):
+            r = c.results.get(column)
+            if r is not None and r.excludes_zero:
+                significant.append(column)
+                bold.add((i, first + j))
+            if fmt == "csv":
+                row += (
+                    ["", "", "", ""]
+                    if r is None
+                    else [
+                        f"{r.mean:.6g}",
+                        f"{r.low:.6g}",
+                        f"{r.high:.6g}",
+                        "yes" if r.excludes_zero else "no",
+                    ]
+                )
+            else:
+                row.append("–" if r is None else f"{r.mean:+.3f} [{r.low:+.3f}, {r.high:+.3f}]")
+        if fmt == "csv":
+            row.append(f"{level:g}")
+        elif columns == [ALL]:
+            row.append("yes" if significant else "no")
+        else:
+            row.append(", ".join(significant) or "none")
+        rows.append(row)
+    return format_table(header, rows, fmt, bold if fmt != "csv" else frozenset())

@@ -1,0 +1,283 @@
+"""Runs grouped by their setting (seeds averaged, mean ± sample std) and the tables of a
+sweep: the paper-style table, and one metric per condition, distance bin or depth cap."""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Sequence
+
+from fusion_depth.tables import format_table
+
+# (metric key, column header, LaTeX header, better) in the paper's order.
+COLUMNS = (
+    ("rmse", "RMSE", "RMSE", min),
+    ("abs_rel", "ARD", "ARD", min),
+    ("sq_rel", "SRD", "SRD", min),
+    ("delta1", "δ1", r"$\delta_1$", max),
+    ("delta2", "δ2", r"$\delta_2$", max),
+    ("delta3", "δ3", r"$\delta_3$", max),
+)
+MODALITY = {"rgb": "RGB", "concat": "RGB-Fusion", "add": "RGB-Add"}
+LOSS = {"l1": "L1", "l2": "L2", "berhu": "BerHu"}
+# Overrides that already have a column or are averaged over.
+_IDENTITY_KEYS = {"dataset", "backbone", "fusion", "loss", "seed"}
+
+
+def _setting(run: dict) -> str:
+    """Overrides other than the identity columns and the seed, e.g. ``optimizer.lr=0.001``."""
+    keys = [
+        o
+        for o in run["run"].get("overrides", [])
+        if o.split("=", 1)[0].lstrip("+~") not in _IDENTITY_KEYS
+    ]
+    return " ".join(sorted(keys))
+
+
+def group_runs(runs: Sequence[dict]) -> list[dict]:
+    """Groups of runs that differ only in seed, in the paper's order (loss, then modality)."""
+    groups: dict[tuple, list[dict]] = {}
+    for run in runs:
+        r = run["run"]
+        key = (
+            r["dataset"],
+            r.get("sensor") or "",
+            r["backbone"],
+            r["loss"],
+            r["fusion"],
+            _setting(run),
+        )
+        groups.setdefault(key, []).append(run)
+
+    def order(key: tuple) -> tuple:
+        dataset, sensor, backbone, loss, fusion, setting = key
+        return (
+            dataset,
+            sensor,
+            backbone,
+            list(LOSS).index(loss) if loss in LOSS else 99,
+            loss,
+            list(MODALITY).index(fusion) if fusion in MODALITY else 99,
+            fusion,
+            setting,
+        )
+
+    result = []
+    for key in sorted(groups, key=order):
+        members = groups[key]
+        stats = {}
+        for metric, *_ in COLUMNS:
+            values = [m["test"][metric] for m in members]
+            stats[metric] = (
+                statistics.fmean(values),
+                statistics.stdev(values) if len(values) > 1 else None,
+            )
+        dataset, sensor, backbone, loss, fusion, setting = key
+        result.append(
+            {
+                "dataset": dataset,
+                "sensor": sensor,
+                "backbone": backbone,
+                "loss": loss,
+                "fusion": fusion,
+                "setting": setting,
+                "n": len(members),
+                "seeds": sorted(m["run"].get("seed") for m in members),
+                "stats": stats,
+                "runs": members,
+            }
+        )
+    return result
+
+
+def identity_columns(groups: Sequence[dict]) -> list[tuple[str, str]]:
+    """(header, key) of the identity fields that vary, so a uniform grid keeps a narrow table."""
+    return [
+        (name, key)
+        for name, key in (
+            ("Dataset", "dataset"),
+            ("Sensor", "sensor"),
+            ("Backbone", "backbone"),
+            ("Setting", "setting"),
+        )
+        if len({g[key] for g in groups}) > 1
+    ]
+
+
+def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
+    """The cells naming a group: the varying identity fields, then Modality and Loss."""
+    return [group[key] for _, key in extra] + [
+        MODALITY.get(group["fusion"], group["fusion"]),
+        LOSS.get(group["loss"], group["loss"]),
+    ]
+
+
+def build_table(groups: Sequence[dict], fmt: str = "markdown") -> str:
+    """The paper's table (Modality, Loss, RMSE, ARD, SRD, δ1–δ3) for grouped runs."""
+    if not groups:
+        raise ValueError("no runs to tabulate")
+    extra = identity_columns(groups)
+    show_n = any(g["n"] > 1 for g in groups)
+    latex = fmt == "latex"
+    header = [name for name, _ in extra] + ["Modality", "Loss"]
+    if show_n:
+        header.append("Seeds")
+    first_metric = len(header)
+    header += [tex if latex else name for _, name, tex, _ in COLUMNS]
+    if fmt == "csv":
+        header = header[:first_metric] + [f"{k}_{s}" for k, *_ in COLUMNS for s in ("mean", "std")]
+    rows, bold = [], set()
+    for g in groups:
+        row = identity_cells(g, extra)
+        if show_n:
+            row.append(str(g["n"]))
+        for metric, *_ in COLUMNS:
+            mean, std = g["stats"][metric]
+            if fmt == "csv":
+                row += [f"{mean:.6g}", "" if std is None else f"{std:.6g}"]
+            else:
+                row.append(f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}")
+        rows.append(row)
+    if fmt != "csv":
+        for j, (metric, _, _, better) in enumerate(COLUMNS):
+            target = better(g["stats"][metric][0] for g in groups)
+            bold |= {
+                (i, first_metric + j)
+                for i, g in enumerate(groups)
+                if round(g["stats"][metric][0], 3) == round(target, 3)
+            }
+    return format_table(header, rows, fmt, bold)
+
+
+# --- Per-column tables: --by condition / distance / cap ---------------------------------------
+
+# --by choice → the metrics.json section holding one metrics dict per column.
+BY_SECTIONS = {
+    "condition": "test_by_condition",
+    "distance": "test_by_distance",
+    "cap": "test_by_cap",
+}
+ALL = "all"
+
+
+def higher_is_better(metric: str) -> bool:
+    """Only the δ thresholds go up; every error metric goes down."""
+    return metric.startswith("delta")
+
+
+def metric_label(metric: str, latex: bool = False) -> str:
+    """The paper's name of a metric (RMSE, ARD, δ1...), or its key when the paper has none."""
+    for key, name, tex, _ in COLUMNS:
+        if key == metric:
+            return tex if latex else name
+    return tex_escape(metric) if latex else metric
+
+
+def tex_escape(text: str) -> str:
+    return text.replace("_", r"\_")
+
+
+def _lower_bound(key: str) -> float | None:
+    """10.0 for a distance bin ``"10-20"``; None when the key does not start with a number."""
+    try:
+        return float(key.split("-", 1)[0])
+    except ValueError:
+        return None
+
+
+def _column_keys(runs: Sequence[dict], by: str) -> list[str]:
+    """``all``, then every key of the ``--by`` section in file order (distance bins by range)."""
+    section = BY_SECTIONS[by]
+    keys: dict[str, None] = {}
+    for run in runs:
+        if section not in run:
+            raise ValueError(
+                f"{run['path']}: no {section!r} (written by an older version); "
+                f"--by {by} needs the run evaluated again"
+            )
+        keys.update(dict.fromkeys(run[section]))
+    ordered = list(keys)
+    bounds = [_lower_bound(k) for k in ordered]
+    if by != "condition" and all(b is not None for b in bounds):
+        ordered = [k for _, k in sorted(zip(bounds, ordered, strict=True), key=lambda t: t[0])]
+    return [ALL, *ordered]
+
+
+def run_metric(run: dict, by: str | None, column: str, metric: str) -> float | None:
+    """One run's ``metric`` for a column (``all`` = the whole test set); None when absent."""
+    values = run["test"] if column == ALL else run[BY_SECTIONS[by]].get(column)
+    if values is None:
+        return None
+    if metric not in values:
+        known = ", ".join(k for k, v in values.items() if isinstance(v, int | float))
+        raise ValueError(f"{run['path']}: no metric {metric!r}; expected one of {known}")
+    return float(values[metric])
+
+
+def mean_std(values: Sequence[float]) -> tuple[float, float | None]:
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None
+
+
+def by_column_stats(
+    groups: Sequence[dict], by: str, metric: str = "rmse"
+) -> tuple[list[str], list[dict[str, tuple[float, float | None] | None]]]:
+    """Columns (``all`` + the ``--by`` keys) and, per group, column → (mean, std over seeds).
+
+    A column a group never saw (e.g. a condition missing from its test set) maps to None.
+    """
+    if by not in BY_SECTIONS:
+        raise ValueError(f"--by {by}: expected one of {', '.join(BY_SECTIONS)}")
+    columns = _column_keys([r for g in groups for r in g["runs"]], by)
+    stats = []
+    for g in groups:
+        cells: dict[str, tuple[float, float | None] | None] = {}
+        for column in columns:
+            values = [run_metric(r, by, column, metric) for r in g["runs"]]
+            present = [v for v in values if v is not None]
+            cells[column] = mean_std(present) if present else None
+        stats.append(cells)
+    return columns, stats
+
+
+def build_by_table(
+    groups: Sequence[dict], by: str, metric: str = "rmse", fmt: str = "markdown"
+) -> str:
+    """One metric per condition (distance bin, depth cap): where does a fusion mode help?"""
+    if not groups:
+        raise ValueError("no runs to tabulate")
+    columns, stats = by_column_stats(groups, by, metric)
+    extra = identity_columns(groups)
+    show_n = any(g["n"] > 1 for g in groups)
+    header = [name for name, _ in extra] + ["Modality", "Loss"] + (["Seeds"] if show_n else [])
+    first = len(header)
+    if fmt == "csv":
+        header += [f"{metric}_{c}_{s}" for c in columns for s in ("mean", "std")]
+    else:
+        latex = fmt == "latex"
+        label = metric_label(metric, latex)
+        header += [f"{label} ({tex_escape(c) if latex else c})" for c in columns]
+    rows = []
+    for g, cells in zip(groups, stats, strict=True):
+        row = identity_cells(g, extra) + ([str(g["n"])] if show_n else [])
+        for column in columns:
+            cell = cells[column]
+            if fmt == "csv":
+                row += ["", ""] if cell is None else [f"{cell[0]:.6g}", _fmt_std(cell[1])]
+            elif cell is None:
+                row.append("–")
+            else:
+                mean, std = cell
+                row.append(f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}")
+        rows.append(row)
+    bold = set()
+    if fmt != "csv":
+        better = max if higher_is_better(metric) else min
+        for j, column in enumerate(columns):
+            means = [(i, s[column][0]) for i, s in enumerate(stats) if s[column] is not None]
+            if means:
+                target = round(better(m for _, m in means), 3)
+                bold |= {(i, first + j) for i, m in means if round(m, 3) == target}
+    return format_table(header, rows, fmt, bold)
+
+
+def _fmt_std(std: float | None) -> str:
+    return "" if std is None else f"{std:.6g}"
