@@ -15,8 +15,9 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from fusion_depth.config import CONF_DIR
+
 REPO = Path(__file__).resolve().parents[1]
-CONF_DIR = str(REPO / "conf")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -10,11 +10,13 @@ from pathlib import Path
 
 import pytest
 import submitit
-from conftest import CONF_DIR, run_module
+from conftest import run_module
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.config import CONF_DIR
 
 
 def compose_with_hydra(overrides: list[str]) -> DictConfig:
