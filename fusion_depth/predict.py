@@ -43,7 +43,6 @@ import errno
 import logging
 import os
 import sys
-import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +54,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.checkpoint import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.cli import hydra_main
+from fusion_depth.config import check_output_dir
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
@@ -216,19 +216,11 @@ def _check_output_dir(output_dir: Path) -> None:
 
     Raises:
         NotADirectoryError: ``output_dir`` is a file.
-        OSError: it cannot be created or written to (the message names it and why).
+        OutputDirError: it cannot be created or written to (:func:`check_output_dir`).
     """
     if output_dir.exists() and not output_dir.is_dir():
         raise NotADirectoryError(f"output_dir={output_dir}: a file, expected a folder")
-    try:
-        output_dir.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=output_dir)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as err:
-        raise OSError(
-            f"output_dir={output_dir}: cannot write files there ({err.strerror or err})"
-        ) from err
+    check_output_dir(output_dir, needed_bytes=0)
 
 
 def _write_outputs(
