@@ -22,59 +22,29 @@ benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion,
 
 ``--baseline`` times the same network in eager fp32 with contiguous memory in the same process
 and prints the speed-up ratios: quote those, not absolute times from a shared machine.
-``--onnx`` also times the network exported to ONNX Runtime (needs the ``onnx`` extra).
+``--onnx`` also times the network exported to ONNX Runtime (needs the ``onnx`` extra). The
+measuring functions are :mod:`fusion_depth.benchmarks`.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import sys
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
-from hydra.utils import instantiate
-from lightning.fabric.utilities.apply_func import move_data_to_device
 from omegaconf import DictConfig
-from torch.utils.data import DataLoader
-from torch.utils.flop_counter import FlopCounterMode
 
+from fusion_depth.benchmarks import STAGES, run_bench
 from fusion_depth.cli import check_override_keys, literal_paths
-from fusion_depth.config import CONF_DIR, check_dataset
+from fusion_depth.config import CONF_DIR
 from fusion_depth.console import quiet_known_noise
-from fusion_depth.data.datamodule import DepthDataModule
-from fusion_depth.inference import predict_depth
-from fusion_depth.module import DepthModule
-from fusion_depth.runs import provenance, write_json_atomic
-from fusion_depth.speed import (
-    accelerator_device,
-    autocast,
-    machine_info,
-    resolve_precision,
-    should_compile,
-    speed_up,
-)
-
-STAGES = ("peak", "infer", "train", "data")
-# Top-level keys of every result, for scripts comparing runs (with --baseline also
-# baseline_infer_latency_s_median, baseline_train_samples_per_s and the speed-ups).
-SUMMARY_KEYS = (
-    "infer_latency_s_median",
-    "infer_latency_s_p95",
-    "train_samples_per_s",
-    "data_samples_per_s_per_worker",
-    "peak_memory_mb",
-    "achieved_gflops",
-    "peak_gflops",
-)
-_MATMUL_DTYPES = {"32-true": torch.float32, "bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
+from fusion_depth.runs import write_json_atomic
 
 quiet_known_noise()
 
@@ -93,383 +63,6 @@ def compose_train_config(overrides: Sequence[str]) -> DictConfig:
     finally:
         GlobalHydra.instance().clear()
     return cfg
-
-
-class PeakMemory:
-    """Peak memory of one stage: GPU max allocated, or the process's peak resident set (Linux
-    resets it through ``/proc/self/clear_refs``; elsewhere it is the process's lifetime peak)."""
-
-    def __init__(self, device: torch.device) -> None:
-        self.device = device
-
-    def reset(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(self.device)
-            return
-        try:
-            Path("/proc/self/clear_refs").write_text("5")
-        except OSError:
-            pass
-
-    def read_mb(self) -> float:
-        if self.device.type == "cuda":
-            return torch.cuda.max_memory_allocated(self.device) / 2**20
-        try:
-            for line in Path("/proc/self/status").read_text().splitlines():
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-        except OSError:
-            pass
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def time_calls(fn: Callable[[], Any], device: torch.device, warmup: int, runs: int) -> list[float]:
-    """Wall seconds of ``runs`` calls of ``fn`` after ``warmup`` untimed ones."""
-    for _ in range(warmup):
-        fn()
-    _synchronize(device)
-    times = []
-    for _ in range(runs):
-        start = time.perf_counter()
-        fn()
-        _synchronize(device)
-        times.append(time.perf_counter() - start)
-    return times
-
-
-def count_flops(fn: Callable[[], Any]) -> int:
-    """FLOPs of one call of ``fn`` (multiply-adds count two), from the operators it runs."""
-    counter = FlopCounterMode(display=False)
-    with counter:
-        fn()
-    return int(counter.get_total_flops())
-
-
-def matmul_peak_gflops(
-    precision: str, device: torch.device, size: int | None = None, runs: int = 5
-) -> float:
-    """The best GFLOP/s of a square matrix product in the precision's compute dtype: what a
-    convolution network can at most reach on this device."""
-    dtype = _MATMUL_DTYPES[precision]
-    size = size or (8192 if device.type == "cuda" else 2048)
-    generator = torch.Generator().manual_seed(0)
-    a = torch.randn(size, size, generator=generator).to(device, dtype)
-    b = torch.randn(size, size, generator=generator).to(device, dtype)
-    times = time_calls(lambda: torch.mm(a, b), device, warmup=2, runs=runs)
-    return 2 * size**3 / min(times) / 1e9
-
-
-def synthetic_batch(
-    cfg: DictConfig, batch_size: int, device: torch.device, seed: int = 0
-) -> dict[str, torch.Tensor]:
-    """A batch shaped like the dataset's: image in [0, 1], ~2 % sparse returns, dense depth."""
-    generator = torch.Generator().manual_seed(seed)
-    height, width = cfg.dataset.height, cfg.dataset.width
-    low, high = float(cfg.dataset.min_depth), float(cfg.dataset.max_depth)
-    shape = (batch_size, 1, height, width)
-    depth = low + (high - low) * torch.rand(shape, generator=generator)
-    returns = torch.rand(shape, generator=generator) < 0.02
-    return {
-        "image": torch.rand((batch_size, 3, height, width), generator=generator).to(device),
-        "sparse": torch.where(returns, depth, torch.zeros_like(depth)).to(device),
-        "depth": depth.to(device),
-    }
-
-
-def _percentile(times: Sequence[float], q: float) -> float:
-    return float(np.percentile(np.asarray(times), q))
-
-
-def bench_inference(
-    net: torch.nn.Module,
-    cfg: DictConfig,
-    device: torch.device,
-    precision: str,
-    warmup: int,
-    runs: int,
-    memory: PeakMemory,
-) -> dict[str, float]:
-    """Batch-1 latency of :func:`predict_depth` (depth in metres at the input size)."""
-    batch = synthetic_batch(cfg, 1, device)
-    net.eval()
-
-    def infer() -> torch.Tensor:
-        with torch.inference_mode(), autocast(precision, device):
-            return predict_depth(net, batch["image"], batch["sparse"])
-
-    memory.reset()
-    times = time_calls(infer, device, warmup, runs)
-    return {
-        "latency_s_median": _percentile(times, 50),
-        "latency_s_p95": _percentile(times, 95),
-        "runs": runs,
-        "peak_memory_mb": memory.read_mb(),
-    }
-
-
-def bench_training(
-    module: DepthModule,
-    cfg: DictConfig,
-    device: torch.device,
-    precision: str,
-    warmup: int,
-    steps: int,
-    memory: PeakMemory,
-) -> dict[str, float]:
-    """Samples/s over full optimizer steps with the run's loss and optimizer."""
-    batch_size = int(cfg.data.batch_size)
-    batch = synthetic_batch(cfg, batch_size, device)
-    module.train()
-    optimizer = module.configure_optimizers()["optimizer"]
-    scaler = torch.amp.GradScaler(device.type, enabled=precision == "16-mixed")
-
-    def step() -> None:
-        with autocast(precision, device):
-            loss = module.step_losses(batch)["loss"]
-        scaler.scale(loss).backward()
-        scaler.step(optimizer)
-        scaler.update()
-        optimizer.zero_grad(set_to_none=True)
-
-    memory.reset()
-    times = time_calls(step, device, warmup, steps)
-    return {
-        "samples_per_s": batch_size / float(np.median(times)),
-        "step_s_median": float(np.median(times)),
-        "batch_size": batch_size,
-        "steps": steps,
-        "peak_memory_mb": memory.read_mb(),
-    }
-
-
-def _timed_batches(
-    loader: DataLoader, batches: int, device: torch.device, work: Callable[[dict], Any]
-) -> float:
-    """Seconds for ``batches`` batches of ``loader`` moved to ``device`` and given to ``work``,
-    the first batch (worker start-up) not counted; the loader is cycled if it is shorter."""
-    seen, start = -1, 0.0
-    while seen < batches:
-        for batch in loader:
-            work(move_data_to_device(batch, device))
-            if seen < 0:
-                _synchronize(device)
-                start = time.perf_counter()
-            seen += 1
-            if seen == batches:
-                break
-    _synchronize(device)
-    return time.perf_counter() - start
-
-
-def bench_data(
-    cfg: DictConfig, device: torch.device, workers: int, batches: int, split: str
-) -> dict[str, float]:
-    """The input pipeline without a model. Workers read and decode samples and collate them;
-    the training augmentation then runs on the batch on ``device`` (as in training, where it
-    runs after the transfer). Timed: the loader alone (per worker: the total divided by
-    ``max(workers, 1)``), the augmentation alone, and both in one loop."""
-    datamodule = DepthDataModule(
-        reader=instantiate(cfg.dataset.reader),
-        num_workers=workers,
-        pin_memory=device.type == "cuda",
-    )
-    augmentation = instantiate(cfg.model.augmentation).to(device)
-    batch_size = int(cfg.data.batch_size)
-    loader = datamodule.loader(split, shuffle=True, batch_size=batch_size)
-    if len(loader) == 0:
-        raise ValueError(
-            f"data: split {split!r} has {len(datamodule.dataset(split))} samples, fewer than "
-            f"data.batch_size={batch_size}"
-        )
-    samples = batches * batch_size
-    loading = samples / _timed_batches(loader, batches, device, lambda batch: None)
-    pipeline = samples / _timed_batches(loader, batches, device, augmentation)
-    batch = move_data_to_device(next(iter(loader)), device)
-    times = time_calls(lambda: augmentation(batch), device, warmup=1, runs=batches)
-    return {
-        "samples_per_s_per_worker": loading / max(workers, 1),
-        "loader_samples_per_s": loading,
-        "augment_samples_per_s": batch_size / float(np.median(times)),
-        "pipeline_samples_per_s": pipeline,
-        "workers": workers,
-        "batches": batches,
-        "split": split,
-        "dataset": str(cfg.dataset.name),
-        "augment_device": str(device),
-    }
-
-
-def bench_onnx(
-    net: torch.nn.Module,
-    cfg: DictConfig,
-    device: torch.device,
-    warmup: int,
-    runs: int,
-    memory: PeakMemory,
-) -> dict[str, Any]:
-    """Batch-1 latency of the network exported to ONNX (fp32, as ``fusion_depth.export``
-    writes it) in ONNX Runtime, on the CUDA provider when timing a GPU."""
-    import tempfile
-
-    from fusion_depth.export import export_model, require_onnx
-
-    require_onnx()
-    import onnxruntime as ort
-
-    height, width = int(cfg.dataset.height), int(cfg.dataset.width)
-    with tempfile.TemporaryDirectory() as folder:
-        path = export_model(
-            copy.deepcopy(net).float().cpu(),
-            "onnx",
-            Path(folder) / "model.onnx",
-            height,
-            width,
-            verify=False,
-            sidecar=False,
-        )
-        providers = ["CPUExecutionProvider"]
-        if device.type == "cuda" and "CUDAExecutionProvider" in ort.get_available_providers():
-            providers.insert(0, "CUDAExecutionProvider")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = torch.get_num_threads()
-        session = ort.InferenceSession(str(path), options, providers=providers)
-    batch = synthetic_batch(cfg, 1, torch.device("cpu"))
-    names = {i.name for i in session.get_inputs()}
-    feed = {k: v.numpy() for k, v in batch.items() if k in names}
-    memory.reset()
-    times = time_calls(lambda: session.run(None, feed), torch.device("cpu"), warmup, runs)
-    return {
-        "latency_s_median": _percentile(times, 50),
-        "latency_s_p95": _percentile(times, 95),
-        "runs": runs,
-        "provider": session.get_providers()[0],
-        "peak_memory_mb": memory.read_mb(),
-    }
-
-
-def build_module(cfg: DictConfig, device: torch.device) -> DepthModule:
-    """The run's LightningModule (random weights: speed does not depend on them)."""
-    cfg = copy.deepcopy(cfg)
-    cfg.backbone.pretrained = False
-    cfg.backbone.weights = None
-    torch.manual_seed(int(cfg.seed))
-    return instantiate(cfg.model, _convert_="all").to(device)
-
-
-def run_bench(
-    cfg: DictConfig,
-    stages: Sequence[str] = STAGES,
-    baseline: bool = False,
-    onnx: bool = False,
-    warmup: int = 3,
-    runs: int = 20,
-    train_steps: int = 10,
-    data_workers: int = 1,
-    data_batches: int = 100,
-    data_split: str = "train",
-) -> dict[str, Any]:
-    """Every requested stage for the config; the result is what ``--json`` writes."""
-    unknown = sorted(set(stages) - set(STAGES))
-    if unknown:
-        raise ValueError(f"--only {','.join(unknown)}: expected some of {list(STAGES)}")
-    check_dataset(cfg.dataset, cfg.fusion.mode)
-    device = accelerator_device(cfg.trainer.accelerator)
-    precision = resolve_precision(cfg.trainer.precision, device)
-    compiled = should_compile(cfg.model.compile, device)
-    memory = PeakMemory(device)
-    settings = {
-        "backbone": str(cfg.backbone.name),
-        "fusion": str(cfg.fusion.mode),
-        "height": int(cfg.dataset.height),
-        "width": int(cfg.dataset.width),
-        "batch_size": int(cfg.data.batch_size),
-        "precision": precision,
-        "channels_last": bool(cfg.model.channels_last),
-        "compile": compiled,
-        "compile_mode": str(cfg.model.compile_mode) if compiled else None,
-        "cudnn_benchmark": bool(cfg.trainer.get("benchmark")),
-        "device": str(device),
-        "warmup": warmup,
-        "runs": runs,
-        "train_steps": train_steps,
-    }
-    result: dict[str, Any] = {
-        "settings": settings,
-        "machine": machine_info(device),
-        "versions": provenance(),
-    }
-    result.update(dict.fromkeys(SUMMARY_KEYS))  # None where a stage was not run
-    if "peak" in stages:
-        result["peak_gflops"] = matmul_peak_gflops(precision, device)
-        if baseline:
-            result["baseline_peak_gflops"] = matmul_peak_gflops("32-true", device)
-
-    if "infer" in stages or "train" in stages:
-        module = build_module(cfg, device)
-        # FLOPs of the eager network, before compilation hides its operators from the counter.
-        if "infer" in stages:
-            batch = synthetic_batch(cfg, 1, device)
-            with torch.no_grad():
-                module.net.eval()
-                infer_flops = count_flops(lambda: predict_depth(module.net, **_inputs(batch)))
-            result["infer_gflop_per_frame"] = infer_flops / 1e9
-        if "train" in stages:
-            train_batch = synthetic_batch(cfg, int(cfg.data.batch_size), device)
-            module.train()
-            train_flops = count_flops(lambda: module.step_losses(train_batch)["loss"].backward())
-            module.zero_grad(set_to_none=True)
-            result["train_gflop_per_step"] = train_flops / 1e9
-        reference = copy.deepcopy(module) if baseline else None
-        if onnx and "infer" in stages:
-            result["onnx_infer"] = bench_onnx(module.net, cfg, device, warmup, runs, memory)
-            result["onnx_infer_latency_s_median"] = result["onnx_infer"]["latency_s_median"]
-        speed_up(module.net, settings["channels_last"], compiled, device, cfg.model.compile_mode)
-        if "infer" in stages:
-            torch.backends.cudnn.benchmark = settings["cudnn_benchmark"]
-            infer = bench_inference(module.net, cfg, device, precision, warmup, runs, memory)
-            result["infer"] = infer
-            result["infer_latency_s_median"] = infer["latency_s_median"]
-            result["infer_latency_s_p95"] = infer["latency_s_p95"]
-            result["achieved_gflops"] = infer_flops / infer["latency_s_median"] / 1e9
-            if reference is not None:
-                torch.backends.cudnn.benchmark = False
-                base = bench_inference(reference.net, cfg, device, "32-true", warmup, runs, memory)
-                result["baseline_infer"] = base
-                result["baseline_infer_latency_s_median"] = base["latency_s_median"]
-                result["baseline_infer_latency_s_p95"] = base["latency_s_p95"]
-                result["infer_speedup"] = base["latency_s_median"] / infer["latency_s_median"]
-        if "train" in stages:
-            torch.backends.cudnn.benchmark = settings["cudnn_benchmark"]
-            train = bench_training(module, cfg, device, precision, warmup, train_steps, memory)
-            result["train"] = train
-            result["train_samples_per_s"] = train["samples_per_s"]
-            result["train_achieved_gflops"] = train_flops / train["step_s_median"] / 1e9
-            if reference is not None:
-                torch.backends.cudnn.benchmark = False
-                base = bench_training(
-                    reference, cfg, device, "32-true", warmup, train_steps, memory
-                )
-                result["baseline_train"] = base
-                result["baseline_train_samples_per_s"] = base["samples_per_s"]
-                result["train_speedup"] = train["samples_per_s"] / base["samples_per_s"]
-        peaks = [result.get(k, {}).get("peak_memory_mb") for k in ("infer", "train")]
-        result["peak_memory_mb"] = max((p for p in peaks if p is not None), default=None)
-    if "data" in stages:
-        data = bench_data(cfg, device, data_workers, data_batches, data_split)
-        result["data"] = data
-        result["data_samples_per_s_per_worker"] = data["samples_per_s_per_worker"]
-    return result
-
-
-def _inputs(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    return {"image": batch["image"], "sparse": batch["sparse"]}
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
@@ -580,6 +173,10 @@ def bench_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command on ``argv`` (default: ``sys.argv[1:]``); returns the exit status, 0.
+
+    Bad flags, overrides or stages exit with status 2 and one line naming them (argparse).
+    """
     parser = bench_parser()
     args = parser.parse_intermixed_args(argv)  # overrides may come after the flags
     for name in ("warmup", "runs", "train_steps", "data_workers", "data_batches", "threads"):

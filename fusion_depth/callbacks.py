@@ -196,8 +196,10 @@ class ProgressLog(L.Callback):
 
     def _epochs(self, trainer: L.Trainer) -> str:
         total = trainer.max_epochs
-        return f"{trainer.current_epoch + 1}/{total}" if total and total > 0 else str(
-            trainer.current_epoch + 1
+        return (
+            f"{trainer.current_epoch + 1}/{total}"
+            if total and total > 0
+            else str(trainer.current_epoch + 1)
         )
 
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

@@ -27,7 +27,7 @@ from hydra.errors import CompactHydraException
 from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from fusion_depth.data import READERS, WRITES_INTO, cache_dir, reader_class
+from fusion_depth.data import READERS, cache_dir, reader_class
 from fusion_depth.models import DepthNet
 from fusion_depth.runs import write_atomic
 
@@ -308,7 +308,7 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
     With ``path`` (the block came from that checkpoint), the reader class is looked up by
     ``dataset.name`` in :data:`fusion_depth.data.READERS` and the stored ``dataset.reader``
     arguments must be plain data naming that constructor's parameters. Where the reader writes
-    (generated or prepared data, :data:`fusion_depth.data.WRITES_INTO`) is this machine's cache
+    (generated or prepared data, the reader class's ``writes_into``) is this machine's cache
     folder, not the one the file names. Otherwise (a block composed from ``conf/``) Hydra
     instantiates it as configured.
 
@@ -338,7 +338,7 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
                 f"ckpt_path={path}: dataset.reader.{key} holds a {type(value).__name__}; "
                 "expected plain data (strings, numbers, lists)"
             )
-    key, folder = WRITES_INTO[name]
+    key, folder = cls.writes_into
     if key in args:
         args[key] = str(Path(cache_dir()) / folder)
     return functools.partial(cls, **args)

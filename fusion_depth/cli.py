@@ -284,7 +284,8 @@ def _report(err: Exception) -> None:
         ):
             sys.stderr.write(str(err.__cause__) + os.linesep)
     sys.stderr.write(
-        os.linesep + "Set the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace."
+        os.linesep
+        + "Set the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace."
         + os.linesep
     )
 

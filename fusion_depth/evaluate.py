@@ -7,7 +7,6 @@ are written in the same format as a training run's, so ``report`` reads both.
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 from pathlib import Path
@@ -29,40 +28,21 @@ from fusion_depth.config import check_dataset
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
-from fusion_depth.evaluation import EvalProtocol, evaluation_record, publish_results
 from fusion_depth.loggers import closing
 from fusion_depth.module import DepthModule
-from fusion_depth.runs import METRICS_FILE, RESOLVED_CONFIG_FILE, provenance, write_text_atomic
+from fusion_depth.protocol import EvalProtocol
+from fusion_depth.run_record import (
+    METRICS_FILE,
+    RunRecord,
+    publish_results,
+    read_run_record,
+    rescored_identity,
+)
+from fusion_depth.runs import RESOLVED_CONFIG_FILE, write_text_atomic
 from fusion_depth.speed import PRECISIONS, accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
 quiet_known_noise()
-
-
-def _identity(loaded: LoadedModel, dataset: DictConfig) -> dict:
-    """The training run's identity (recorded by train; rebuilt from the config for older
-    checkpoints), with the dataset it is scored on now."""
-    identity = dict(loaded.run or {})
-    config = loaded.config
-    if not isinstance(identity.get("dataset"), str):  # none recorded (or not as train writes it)
-
-        def recorded(group: str, key: str) -> object:
-            block = config.get(group)
-            return block.get(key) if isinstance(block, dict) else None
-
-        identity = {
-            "dataset": recorded("dataset", "name"),
-            "sensor": recorded("dataset", "sensor"),
-            "backbone": loaded.backbone,
-            "fusion": loaded.fusion,
-            "loss": recorded("loss", "pixel"),
-            "seed": config.get("seed"),
-            "overrides": [],
-        }
-    identity["trained_on"] = identity["dataset"]
-    identity["dataset"] = dataset.name
-    identity["sensor"] = dataset.get("sensor")
-    return identity
 
 
 def evaluation_precision(requested: str, loaded: LoadedModel, accelerator: str) -> str:
@@ -77,8 +57,11 @@ def evaluation_precision(requested: str, loaded: LoadedModel, accelerator: str) 
     return resolve_precision(requested, device)
 
 
-def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path) -> dict:
-    """Score one checkpoint; writes ``metrics.json`` and ``per_image.csv`` into ``output_dir``."""
+def evaluate_checkpoint(
+    cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path
+) -> RunRecord:
+    """Score one checkpoint; writes ``metrics.json`` and ``per_image.csv`` into ``output_dir``
+    and returns the record written."""
     if cfg.split not in SPLITS:
         raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
     loaded = load_model(
@@ -102,8 +85,8 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         channels_last=cfg.model.channels_last,
         compile=cfg.model.compile,
         compile_mode=cfg.model.compile_mode,
+        protocol=protocol,
     )
-    module.set_protocol(protocol)
     datamodule = DepthDataModule(
         reader=reader,
         batch_size=cfg.data.eval_batch_size,
@@ -133,37 +116,33 @@ def evaluate_checkpoint(cfg: DictConfig, ckpt_path: str | Path, output_dir: str 
         "checkpoint_config": loaded.config,
     }
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
-    identity = _identity(loaded, dataset)  # before the work: a malformed record fails first
+    # Before the work: a malformed record fails first.
+    identity = rescored_identity(loaded.run, loaded.config, dataset)
     check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
     with closing(logger):
         if logger:
             logger.log_hyperparams(resolved)
-        trainer.test(module, datamodule=datamodule, verbose=False)
-        record = evaluation_record(module.test_results, protocol, cfg.split, module.test_latency)
-        results = {
-            "status": "ok",
-            "run": identity,
-            **record,
-            "checkpoint": str(Path(ckpt_path).resolve()),
-            "seed": cfg.seed,
-            "versions": provenance(),
-        }
+        result = module.run_test(trainer, datamodule, verbose=False)
+        record = RunRecord.from_result(
+            identity,
+            result,
+            cfg.split,
+            checkpoint=str(Path(ckpt_path).resolve()),
+            seed=cfg.seed,
+        )
         title = (
-            f"{cfg.split} metrics of {ckpt_path} ({results['test']['num_images']} images, "
+            f"{cfg.split} metrics of {ckpt_path} ({result.overall['num_images']} images, "
             f"{dataset.name})"
         )
-        publish_results(output_dir, results, module.test_per_image, trainer.loggers, title)
-    return results
+        publish_results(output_dir, record, result, trainer.loggers, title)
+    return record
 
 
 def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
     """(run folder relative to ``folder``, best checkpoint) of every training run below it."""
     found = []
     for metrics in sorted(folder.rglob(METRICS_FILE)):
-        try:
-            best = json.loads(metrics.read_text()).get("best_checkpoint")
-        except (json.JSONDecodeError, AttributeError) as err:
-            raise ValueError(f"{metrics}: not a fusion-depth metrics file ({err})") from err
+        best = read_run_record(metrics).best_checkpoint
         if best is not None and not isinstance(best, str):
             raise CheckpointError(f"{metrics}: best_checkpoint={best!r} is not a path")
         if best and Path(best).is_file():
@@ -179,7 +158,13 @@ def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
-    """Score ``cfg.ckpt_path``: one checkpoint, or every run below a folder."""
+    """Score ``cfg.ckpt_path``: one checkpoint, or every run below a folder. Returns the
+    contents of each ``metrics.json`` written (:meth:`RunRecord.to_json`)."""
+    return [record.to_json() for record in evaluate_records(cfg)]
+
+
+def evaluate_records(cfg: DictConfig) -> list[RunRecord]:
+    """:func:`evaluate`, returning the records written."""
     path = Path(cfg.ckpt_path).expanduser()
     output_dir = Path(cfg.paths.output_dir)
     if path.is_dir():
@@ -192,7 +177,7 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
 @hydra_main("evaluate")
 def main(cfg: DictConfig) -> float:
-    return evaluate(cfg)[-1]["test"]["rmse"]
+    return evaluate_records(cfg)[-1].test["rmse"]
 
 
 if __name__ == "__main__":

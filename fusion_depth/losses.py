@@ -25,6 +25,7 @@ from torch import Tensor, nn
 __all__ = [
     "NONFINITE_ACTIONS",
     "PIXEL_LOSSES",
+    "PIXEL_LOSS_LABELS",
     "DepthLoss",
     "berhu_loss",
     "edge_loss",
@@ -34,6 +35,8 @@ __all__ = [
 
 PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu")
 """Allowed values of ``pixel_loss(kind=...)`` and ``DepthLoss(pixel=...)``."""
+PIXEL_LOSS_LABELS: dict[str, str] = {"l1": "L1", "l2": "L2", "berhu": "BerHu"}
+"""How tables and plots name each pixel loss."""
 NONFINITE_ACTIONS: tuple[str, ...] = ("stop", "skip")
 """What training does with a batch whose loss is NaN or infinite (``model.on_nonfinite_loss``)."""
 

@@ -46,6 +46,9 @@ __all__ = [
     "EVAL_CROPS",
     "HIGHER_IS_BETTER",
     "METRIC_KEYS",
+    "METRIC_LABELS",
+    "METRIC_LATEX",
+    "TABLE_METRICS",
     "DepthMetrics",
     "compute_depth_metrics",
     "crop_mask",
@@ -71,6 +74,19 @@ METRIC_KEYS: tuple[str, ...] = (
 
 HIGHER_IS_BETTER: dict[str, bool] = {k: k.startswith("delta") for k in METRIC_KEYS}
 """Per-metric optimisation direction (e.g. for checkpoint ``mode``): only the deltas go up."""
+
+# Display names: the paper's (Sec. 4.2: ARD, SRD, RMSE, δ) where it names a metric, otherwise
+# the key in capitals; and the same names for LaTeX tables.
+_PAPER_NAMES = {"abs_rel": "ARD", "sq_rel": "SRD", "delta1": "δ1", "delta2": "δ2", "delta3": "δ3"}
+METRIC_LABELS: dict[str, str] = {k: _PAPER_NAMES.get(k, k.upper()) for k in METRIC_KEYS}
+"""Column header of each metric in printed tables (``abs_rel`` → ``ARD``, ``delta1`` → ``δ1``)."""
+METRIC_LATEX: dict[str, str] = {
+    k: rf"$\delta_{k[-1]}$" if k.startswith("delta") else METRIC_LABELS[k] for k in METRIC_KEYS
+}
+"""Column header of each metric in LaTeX tables."""
+TABLE_METRICS: tuple[str, ...] = ("rmse", "abs_rel", "sq_rel", "mae", "delta1", "delta2", "delta3")
+"""The metrics printed tables show, in the paper's order (RMSE, ARD, SRD, δ1–δ3) with MAE after
+SRD; ``metrics.json`` and ``per_image.csv`` hold all of :data:`METRIC_KEYS`."""
 
 
 # Metrics that are square roots of a mean: their per-pixel sum holds the squared error.

@@ -14,11 +14,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from fusion_depth.checkpoint import CONFIG_KEY, RUN_KEY
-from fusion_depth.evaluation import EvalProtocol, latency_summary
 from fusion_depth.inference import predict_depth, resize_depth
 from fusion_depth.losses import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthNet
+from fusion_depth.protocol import EvalProtocol, EvaluationResult, latency_summary
+from fusion_depth.run_record import RunIdentity
 from fusion_depth.speed import speed_up
 from fusion_depth.visualize import depth_panel
 
@@ -56,9 +57,12 @@ def downsample_depth(
 class DepthModule(L.LightningModule):
     """Trains ``net`` on reciprocal depth; validates and tests in metres.
 
-    Scoring follows ``evaluation`` (the ``eval`` config group, see :class:`EvalProtocol`):
-    predictions are resized from the network's half resolution to the ground truth's, and the
-    test stage may add flip test-time augmentation. Validation scores the same way without it.
+    Scoring follows one protocol, fixed at construction (see :class:`EvalProtocol`): either
+    ``evaluation``, the ``eval`` config block (null depth limits take the network's range), or
+    ``protocol``, a ready one (``evaluate``'s, whose limits come from the dataset it scores);
+    not both. Predictions are resized from the network's half resolution to the ground truth's,
+    and the test stage may add flip test-time augmentation. Validation scores the same way
+    without it. :meth:`run_test` runs the test stage and returns what it measured.
     ``channels_last``, ``compile`` (true/false/auto) and ``compile_mode`` are applied once the
     device is known (:func:`fusion_depth.speed.speed_up`); the precision is the Trainer's.
     ``run_config`` (the resolved run config, plain data) is saved in every checkpoint so
@@ -81,8 +85,11 @@ class DepthModule(L.LightningModule):
         compile_mode: str = "default",
         on_nonfinite_loss: str = "stop",
         max_nonfinite_skips: int = 3,
+        protocol: EvalProtocol | None = None,
     ) -> None:
         super().__init__()
+        if protocol is not None and evaluation is not None:
+            raise ValueError("DepthModule: give the evaluation config or a protocol, not both")
         if on_nonfinite_loss not in NONFINITE_ACTIONS:
             raise ValueError(
                 f"model.on_nonfinite_loss={on_nonfinite_loss!r}: expected one of "
@@ -94,24 +101,26 @@ class DepthModule(L.LightningModule):
             raise ValueError(
                 f"model.max_nonfinite_skips={max_nonfinite_skips!r}: expected an integer ≥ 0"
             )
-        self.save_hyperparameters(ignore=["net", "loss", "optimizer", "scheduler", "augmentation"])
+        self.save_hyperparameters(
+            ignore=["net", "loss", "optimizer", "scheduler", "augmentation", "protocol"]
+        )
         self.net = net
         self.loss = loss
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.augmentation = augmentation
         self.conditions = list(conditions) or None
-        self.protocol = EvalProtocol.from_config(evaluation, net.min_depth, net.max_depth)
+        if protocol is None:
+            protocol = EvalProtocol.from_config(evaluation, net.min_depth, net.max_depth)
+        self.protocol = protocol
         self.val_metrics = self.protocol.metrics(self.conditions)
         self.test_metrics = self.protocol.metrics(self.conditions)
-        self.test_results: dict[str, Any] = {}
-        self.test_per_image: list[dict] = []
-        self.test_latency: dict[str, Any] = {}
+        self._test_result: EvaluationResult | None = None  # the last test stage's, see run_test
         self._latencies: list[float] = []
         self._test_input: tuple[int, tuple[int, ...]] = (0, (0, 0))  # batch size, image size
         self.val_panels: list[np.ndarray] = []
         self.run_config: dict | None = None
-        self.run_identity: dict | None = None
+        self.run_identity: RunIdentity | None = None
         self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
         self.trained_batches = 0  # batches whose loss was back-propagated, in this run
         # One record per validation epoch of the run ({"epoch", "step", metric: value}),
@@ -124,16 +133,27 @@ class DepthModule(L.LightningModule):
         hp = self.hparams
         speed_up(self.net, hp.channels_last, hp.compile, device, hp.compile_mode)
 
-    def set_protocol(self, protocol: EvalProtocol) -> None:
-        """Score the test stage by ``protocol`` from now on (``evaluate``'s options)."""
-        self.protocol = protocol
-        self.test_metrics = protocol.metrics(self.conditions)
+    def run_test(
+        self, trainer: L.Trainer, datamodule: L.LightningDataModule, **test_options: Any
+    ) -> EvaluationResult:
+        """Run ``trainer``'s test stage on ``datamodule`` and return what it measured (metric
+        tables, per-image records and latency, by :attr:`protocol`). ``test_options`` go to
+        ``trainer.test`` (``ckpt_path``, ``verbose``, ``weights_only``).
+
+        Raises:
+            RuntimeError: the test stage scored no batch (it never reached its end).
+        """
+        self._test_result = None
+        trainer.test(self, datamodule=datamodule, **test_options)
+        if self._test_result is None:
+            raise RuntimeError("the test stage ended without scoring a batch: no results")
+        return self._test_result
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         if self.run_config is not None:
             checkpoint[CONFIG_KEY] = self.run_config
         if self.run_identity is not None:
-            checkpoint[RUN_KEY] = self.run_identity
+            checkpoint[RUN_KEY] = self.run_identity.to_json()
         # The augmentation draws from torch's global generators: a resumed run continues their
         # streams, so it trains on the same augmented batches as an uninterrupted one.
         rng = {"cpu": torch.get_rng_state()}
@@ -275,6 +295,7 @@ class DepthModule(L.LightningModule):
 
     def on_test_epoch_start(self) -> None:
         self._latencies = []
+        self._test_result = None
 
     def test_step(self, batch: dict, batch_idx: int) -> None:
         image, depth = batch["image"], batch["depth"]
@@ -299,10 +320,9 @@ class DepthModule(L.LightningModule):
     def on_test_epoch_end(self) -> None:
         flat = self.test_metrics.compute()
         self.log_dict({f"test/{k}": v for k, v in flat.items()})
-        self.test_results = self.test_metrics.results()
-        self.test_per_image = self.test_metrics.per_image()
         batch_size, size = self._test_input
-        self.test_latency = latency_summary(self._latencies, self.device, batch_size, size)
+        latency = latency_summary(self._latencies, self.device, batch_size, size)
+        self._test_result = EvaluationResult.from_metrics(self.protocol, self.test_metrics, latency)
         self.test_metrics.reset()
 
     def configure_optimizers(self) -> dict:

@@ -9,7 +9,6 @@ again (``sweep.skip_done=true``).
 from __future__ import annotations
 
 import fcntl
-import json
 import logging
 import os
 import socket
@@ -23,7 +22,8 @@ from typing import Any
 from hydra.errors import CompactHydraException
 
 from fusion_depth.checkpoint import RUN_KEY, CheckpointError, load_weights_only
-from fusion_depth.runs import FAILURE_FILE, METRICS_FILE, PER_IMAGE_FILE, TRACEBACK_FILE
+from fusion_depth.run_record import METRICS_FILE, RunIdentity, read_finished
+from fusion_depth.runs import FAILURE_FILE, PER_IMAGE_FILE, TRACEBACK_FILE
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.runs.write_atomic's temporary names
 class RunStart:
     """What :func:`plan_start` decided."""
 
-    finished: dict | None = None  # the finished run's metrics.json: nothing to train
+    finished: dict | None = None  # the finished run's metrics.json (contents): nothing to train
     checkpoint: Path | None = None  # resume from this checkpoint
     wandb_id: str = ""  # the W&B run to log into (the interrupted run's, when resuming)
     global_step: int = 0  # the checkpoint's optimizer steps (0 when starting afresh)
@@ -147,18 +147,11 @@ def identity_overrides(overrides: Sequence[str], excluded: Collection[str]) -> l
 
 
 def finished_results(output_dir: Path) -> dict | None:
-    """The run's ``metrics.json`` if it holds a finished run's results (status ok, test metrics,
-    at least one optimizer step trained), else None."""
-    path = output_dir / METRICS_FILE
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-    if not isinstance(data, dict) or data.get("status") != "ok":
-        return None
-    steps = data.get("global_step")
-    trained = isinstance(steps, int) and not isinstance(steps, bool) and steps > 0
-    return data if trained and isinstance(data.get("test"), dict) else None
+    """The contents of the run's ``metrics.json`` if it holds a finished run's results
+    (:func:`fusion_depth.run_record.read_finished`: status ok, test metrics, at least one
+    optimizer step trained), else None."""
+    record = read_finished(output_dir)
+    return record.to_json() if record is not None else None
 
 
 def _check_same_run(
@@ -212,10 +205,11 @@ def plan_start(
     if resume not in RESUME_MODES:
         raise ValueError(f"resume={resume!r}: expected one of {list(RESUME_MODES)}")
     fresh = RunStart(wandb_id=uuid.uuid4().hex[:8])
-    if skip_done and (finished := finished_results(output_dir)) is not None:
+    if skip_done and (finished := read_finished(output_dir)) is not None:
         where = output_dir / METRICS_FILE
-        _check_same_run(where, finished.get("run", {}).get("overrides"), overrides, excluded)
-        return RunStart(finished=finished)
+        stored = finished.run.overrides if finished.run is not None else None
+        _check_same_run(where, stored, overrides, excluded)
+        return RunStart(finished=finished.to_json())
     for name in (FAILURE_FILE, TRACEBACK_FILE):
         (output_dir / name).unlink(missing_ok=True)
     if checkpoint_dir is None:
@@ -235,13 +229,13 @@ def plan_start(
     except CheckpointError as err:
         raise CheckpointError(f"{err}; resume=never starts this run over") from err
     check_resume_state(checkpoint, last)
-    identity = checkpoint.get(RUN_KEY) or {}
-    _check_same_run(last, identity.get("overrides"), overrides, excluded)
+    identity = RunIdentity.from_json(checkpoint.get(RUN_KEY) or {})
+    _check_same_run(last, identity.overrides, overrides, excluded)
     remove_leftovers(output_dir, checkpoint_dir, keep=[last, *known_checkpoints(checkpoint)])
     state = checkpoint["callbacks"].get(LAST_CHECKPOINT_STATE) or {}
     return RunStart(
         checkpoint=last,
-        wandb_id=identity.get("wandb_id") or fresh.wandb_id,
+        wandb_id=identity.wandb_id or fresh.wandb_id,
         global_step=int(checkpoint.get("global_step", 0)),
         pending_log_row=state.get("pending_log_row"),
     )

@@ -1,5 +1,6 @@
-"""The on-disk record of a run: ``metrics.json`` (+ ``per_image.csv``) on success,
-``failure.json`` on error, and where the code that produced it came from."""
+"""The files of a run folder: their names, atomic writes, ``failure.json`` on error, the
+folder names, and where the code that produced a run came from. ``metrics.json``, the record
+of a finished run, is :mod:`fusion_depth.run_record`'s."""
 
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ from typing import Any
 
 from fusion_depth.version import __version__
 
-METRICS_FILE = "metrics.json"
 FAILURE_FILE = "failure.json"
 RESOLVED_CONFIG_FILE = "config_resolved.yaml"
 PER_IMAGE_FILE = "per_image.csv"
@@ -145,21 +145,3 @@ def record_failure(
         },
     )
     return path
-
-
-def load_runs(root: str | os.PathLike) -> list[dict]:
-    """Every ``metrics.json`` below ``root`` (sorted by path), each with its ``path`` added."""
-    root = Path(root)
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such directory")
-    runs = []
-    for path in sorted(root.rglob(METRICS_FILE)):
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: not valid JSON ({err})") from err
-        if not isinstance(data, dict) or "run" not in data or "test" not in data:
-            raise ValueError(f"{path}: expected a fusion-depth metrics file with 'run' and 'test'")
-        data["path"] = str(path)
-        runs.append(data)
-    return runs

@@ -10,7 +10,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.resume import finished_results
+from fusion_depth.run_record import METRICS_FILE, read_finished
 from fusion_depth.runs import FAILURE_FILE, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -25,14 +25,14 @@ def summarize_sweep(sweep_dir: str | Path) -> list[dict]:
     ):
         job_dir = overrides_file.parent.parent
         overrides = list(OmegaConf.load(overrides_file))
-        finished = finished_results(job_dir)  # a run that trained no step is not done
+        finished = read_finished(job_dir)  # a run that trained no step is not done
         if finished is not None:
             jobs.append(
                 {
                     "dir": str(job_dir),
                     "overrides": overrides,
                     "status": "ok",
-                    "rmse": finished["test"].get("rmse"),
+                    "rmse": finished.test.get("rmse"),
                 }
             )
         elif (job_dir / FAILURE_FILE).is_file():
@@ -67,7 +67,7 @@ class SweepSummary(Callback):
             if job["status"] == "ok":
                 detail = f"test rmse {job['rmse']:.4f}" if job.get("rmse") is not None else ""
             else:
-                detail = job.get("error", "no metrics.json: interrupted?")
+                detail = job.get("error", f"no {METRICS_FILE}: interrupted?")
             lines.append(f"  {job['status']:<10} {what}  {detail}")
         bad = [j for j in jobs if j["status"] != "ok"]
         lines.append(f"{len(jobs) - len(bad)} ok, {len(bad)} failed or incomplete")

@@ -8,7 +8,6 @@ python -m fusion_depth.train -m loss=l1,l2,berhu fusion=rgb,concat,add   # a swe
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import sys
 import time
@@ -31,7 +30,6 @@ from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_con
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.distributed import launch_local_ranks, local_world_size
-from fusion_depth.evaluation import evaluation_record, publish_results
 from fusion_depth.loggers import closing
 from fusion_depth.redaction import redact_overrides, redact_secrets
 from fusion_depth.resume import (
@@ -42,13 +40,15 @@ from fusion_depth.resume import (
     is_lead_process,
     plan_start,
 )
-from fusion_depth.runs import (
+from fusion_depth.run_record import (
     METRICS_FILE,
-    RESOLVED_CONFIG_FILE,
-    provenance,
-    record_failure,
-    write_text_atomic,
+    RunIdentity,
+    RunRecord,
+    publish_results,
+    read_run_record,
+    run_identity,
 )
+from fusion_depth.runs import RESOLVED_CONFIG_FILE, record_failure, write_text_atomic
 from fusion_depth.speed import accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
@@ -73,26 +73,20 @@ def not_identity_keys() -> list[str]:
     return list(HydraConfig.get().job.config.override_dirname.exclude_keys)
 
 
-def run_identity(cfg: DictConfig) -> dict:
-    """What a run is: the choices ``report`` groups by, and the overrides that made it."""
-    overrides = run_overrides()
-    return {
-        "dataset": cfg.dataset.name,
-        "sensor": cfg.dataset.get("sensor"),
-        "backbone": cfg.backbone.name,
-        "fusion": cfg.fusion.mode,
-        "loss": cfg.loss.pixel,
-        "seed": cfg.seed,
-        "overrides": overrides,
-    }
-
-
 def train(cfg: DictConfig) -> dict | None:
-    """Fit, test the best checkpoint, write ``metrics.json``; returns its contents (None on
-    the ranks other than 0 of a data-parallel run that a cluster launcher started).
+    """Fit, test the best checkpoint, write ``metrics.json``; returns its contents
+    (:meth:`RunRecord.to_json <fusion_depth.run_record.RunRecord.to_json>`; None on the ranks
+    other than 0 of a data-parallel run that a cluster launcher started).
 
     A run whose ``metrics.json`` is complete is not trained again, and one with a
     ``last.ckpt`` continues from it (see :mod:`fusion_depth.resume`)."""
+    record = train_record(cfg)
+    return record.to_json() if record is not None else None
+
+
+def train_record(cfg: DictConfig) -> RunRecord | None:
+    """:func:`train`, returning the run's record (None on the ranks other than 0 of a
+    data-parallel run that a cluster launcher started)."""
     run_config = validate_config(cfg)
     precision = resolve_precision(
         cfg.trainer.precision, accelerator_device(cfg.trainer.accelerator)
@@ -104,7 +98,7 @@ def train(cfg: DictConfig) -> dict | None:
         return _train_locked(cfg, run_config, output_dir)
 
 
-def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> dict | None:
+def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> RunRecord | None:
     last_checkpoint = cfg.callbacks.get("last_checkpoint")
     start = plan_start(
         output_dir,
@@ -115,22 +109,24 @@ def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> dict |
         not_identity_keys(),
     )
     if start.finished is not None:
+        finished = RunRecord.from_json(start.finished, output_dir / METRICS_FILE)
         print(
-            f"Already finished: {output_dir / 'metrics.json'} (test rmse "
-            f"{start.finished['test']['rmse']:.4f}); sweep.skip_done=false or resume=never to "
+            f"Already finished: {finished.path} (test rmse "
+            f"{finished.test['rmse']:.4f}); sweep.skip_done=false or resume=never to "
             "train it again",
             flush=True,
         )
-        return start.finished
+        return finished
     if start.checkpoint is not None:
         log.info("resuming from %s", start.checkpoint)
     run_config = redact_secrets(run_config)  # what gets written anywhere from here on
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(run_config))
-    job = RankJob(cfg, run_config, {**run_identity(cfg), "wandb_id": start.wandb_id}, start)
+    identity = run_identity(cfg, run_overrides(), wandb_id=start.wandb_id)
+    job = RankJob(cfg, run_config, identity, start)
     world_size = local_world_size(cfg.trainer)
     if world_size > 1:
         launch_local_ranks(fit_and_test, job, world_size)
-        return json.loads((output_dir / METRICS_FILE).read_text())
+        return read_run_record(output_dir / METRICS_FILE)
     return fit_and_test(job)
 
 
@@ -160,12 +156,12 @@ class RankJob:
 
     cfg: DictConfig
     run_config: dict
-    identity: dict
+    identity: RunIdentity
     start: RunStart
 
 
-def fit_and_test(job: RankJob) -> dict | None:
-    """Fit, test the best checkpoint on rank 0 alone, write ``metrics.json``; its contents
+def fit_and_test(job: RankJob) -> RunRecord | None:
+    """Fit, test the best checkpoint on rank 0 alone, write ``metrics.json``; its record
     (None on the other ranks of a data-parallel run)."""
     cfg, run_config, start = job.cfg, job.run_config, job.start
     precision = run_config["trainer"]["precision"]
@@ -231,43 +227,41 @@ def fit_and_test(job: RankJob) -> dict | None:
                 strategy="auto",
                 **{**settings, "plugins": [AtomicCheckpointIO(), LightningEnvironment()]},
             )
-        trainer.test(
-            model, datamodule=datamodule, ckpt_path=best or None, verbose=False, weights_only=True
+        result = model.run_test(
+            trainer, datamodule, ckpt_path=best or None, verbose=False, weights_only=True
         )
-        record = evaluation_record(model.test_results, model.protocol, "test", model.test_latency)
-        results = {
-            "status": "ok",
-            "run": model.run_identity,
-            **record,
-            "best_checkpoint": best or None,
-            "best_val_rmse": float(best_score) if best and best_score is not None else None,
-            "epochs": epochs,
-            "resumed_from": str(start.checkpoint) if start.checkpoint else None,
-            "global_step": global_step,
-            "validation": validation,
-            "wall_time_s": round(time.perf_counter() - started, 2),
-            "versions": provenance(),
-        }
+        record = RunRecord.from_result(
+            job.identity,
+            result,
+            "test",
+            best_checkpoint=best or None,
+            best_val_rmse=float(best_score) if best and best_score is not None else None,
+            epochs=epochs,
+            resumed_from=str(start.checkpoint) if start.checkpoint else None,
+            global_step=global_step,
+            validation=validation,
+            wall_time_s=round(time.perf_counter() - started, 2),
+        )
         title = (
-            f"Test metrics ({results['test']['num_images']} images, best checkpoint "
+            f"Test metrics ({result.overall['num_images']} images, best checkpoint "
             f"{best or 'last weights'})"
         )
-        publish_results(output_dir, results, model.test_per_image, trainer.loggers, title)
-    return results
+        publish_results(output_dir, record, result, trainer.loggers, title)
+    return record
 
 
-def test_rmse(results: dict | None) -> float | None:
+def test_rmse(record: RunRecord | None) -> float | None:
     """The sweep objective (None on ranks that do not test)."""
-    return results["test"]["rmse"] if results else None
+    return record.test["rmse"] if record else None
 
 
 @hydra_main("train")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point; in a sweep a failing job is recorded and the sweep goes on."""
     if HydraConfig.get().mode != RunMode.MULTIRUN:
-        return test_rmse(train(cfg))
+        return test_rmse(train_record(cfg))
     try:
-        return test_rmse(train(cfg))
+        return test_rmse(train_record(cfg))
     except RunLockedError as err:  # the folder is another live process's: write nothing there
         log.error("job not run: %s", err)
         return None

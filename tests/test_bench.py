@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from fusion_depth import bench
+from fusion_depth import bench, benchmarks
 
 TINY = ["--runs", "2", "--train-steps", "1", "--warmup", "0", "--data-batches", "2"]
 REQUIRED = (
@@ -100,12 +100,12 @@ def test_bench_refuses_bad_input_naming_it(
 
 def test_count_flops_counts_multiply_adds_twice() -> None:
     layer = nn.Linear(8, 4, bias=False)
-    assert bench.count_flops(lambda: layer(torch.ones(3, 8))) == 2 * 3 * 8 * 4
+    assert benchmarks.count_flops(lambda: layer(torch.ones(3, 8))) == 2 * 3 * 8 * 4
 
 
 def test_time_calls_times_only_the_runs_after_warmup() -> None:
     calls = []
-    times = bench.time_calls(lambda: calls.append(1), torch.device("cpu"), warmup=2, runs=5)
+    times = benchmarks.time_calls(lambda: calls.append(1), torch.device("cpu"), warmup=2, runs=5)
     assert len(calls) == 7 and len(times) == 5 and all(t >= 0 for t in times)
 
 
@@ -113,7 +113,7 @@ def test_time_calls_times_only_the_runs_after_warmup() -> None:
     not Path("/proc/self/clear_refs").exists(), reason="per-stage peaks need Linux's clear_refs"
 )
 def test_peak_memory_sees_a_large_allocation() -> None:
-    memory = bench.PeakMemory(torch.device("cpu"))
+    memory = benchmarks.PeakMemory(torch.device("cpu"))
     memory.reset()
     before = memory.read_mb()
     block = torch.ones(64 * 2**20 // 4)  # 64 MB, touched

@@ -24,8 +24,8 @@ from fusion_depth.cli import PATH_KEYS, check_override_keys, literal_paths, regi
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_values, validate_config
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
-from fusion_depth.evaluation import EvalProtocol
 from fusion_depth.models import DepthNet
+from fusion_depth.protocol import EvalProtocol
 from fusion_depth.train import train
 
 # --- paths as printed are paths as accepted ---------------------------------------------------
@@ -159,7 +159,11 @@ def readme_commands() -> list[str]:
                 continue
             if language in ("", "bash"):
                 for joined in "\n".join(block).replace("\\\n", " ").splitlines():
-                    if re.match(r"\s*(python -m fusion_depth\.|fusion-depth-)", joined):
+                    # --config-dir my_conf: the README's own dataset, which needs its files;
+                    # tests/test_own_dataset.py writes them and runs those commands for real.
+                    if re.match(r"\s*(python -m fusion_depth\.|fusion-depth-)", joined) and (
+                        "--config-dir my_conf" not in joined
+                    ):
                         commands.append(joined.strip())
             block = None
         elif block is not None:
@@ -268,8 +272,9 @@ def test_a_one_pixel_bottleneck_at_batch_1_is_refused_and_the_next_size_trains(m
     # The smallest accepted sizes take a training step: 1×2 at batch 1, 1×1 at batch 2.
     for batch, (h, w) in ((1, (32, 64)), (2, (32, 32))):
         validate_config(
-            make_config(*tiny[:1], f"data.batch_size={batch}", f"dataset.height={h}",
-                        f"dataset.width={w}")  # fmt: skip
+            make_config(
+                *tiny[:1], f"data.batch_size={batch}", f"dataset.height={h}", f"dataset.width={w}"
+            )  # fmt: skip
         )
         net = DepthNet("densenet169", "concat").train()
         out = net(torch.rand(batch, 3, h, w), torch.rand(batch, 1, h, w))

@@ -20,12 +20,12 @@ import torch
 from conftest import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
-import fusion_depth.export as export_module
+import fusion_depth.exporting.torchscript as export_module
 from fusion_depth.checkpoint import load_model
-from fusion_depth.export import (
+from fusion_depth.export import export
+from fusion_depth.exporting import (
     DepthExportModel,
     ExportError,
-    export,
     export_model,
     sidecar_path,
 )

@@ -91,9 +91,7 @@ def test_the_package_has_no_import_cycle() -> None:
     graph = import_graph()
     assert "fusion_depth.train" in graph and "fusion_depth.config" in graph["fusion_depth.cli"]
     found = cycles(graph)
-    described = [
-        " / ".join(f"{m} → {sorted(graph[m] & set(c))}" for m in c) for c in found
-    ]
+    described = [" / ".join(f"{m} → {sorted(graph[m] & set(c))}" for m in c) for c in found]
     assert not found, "import cycles:\n" + "\n".join(described)
 
 

@@ -18,10 +18,10 @@ from hydra.core.global_hydra import GlobalHydra
 from fusion_depth.checkpoint import load_model
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
 from fusion_depth.inference import predict_depth
-from fusion_depth.predict import (
+from fusion_depth.predict import predict
+from fusion_depth.prediction import (
     PredictSummary,
     list_images,
-    predict,
     predict_file,
     predict_folder,
     predict_split,
@@ -206,7 +206,7 @@ def test_a_failure_writing_one_input_is_a_skip_and_leaves_no_outputs_of_it(
 def _failing_on_white(monkeypatch: pytest.MonkeyPatch, always: bool = False) -> list[int]:
     """The network raises (as on running out of memory) for any batch holding an all-white
     image, or for every batch; returns the batch sizes it was called with."""
-    import fusion_depth.predict as module
+    import fusion_depth.prediction as module
 
     real, calls = module.predict_depth, []
 

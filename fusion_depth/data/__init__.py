@@ -5,10 +5,40 @@ from __future__ import annotations
 import importlib
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 # The split names every dataset reader accepts (their order also keys the procedural seed streams).
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+
+# The capture conditions a frame can have; metrics are broken down by them (the paper, Sec. 4:
+# day, night, rain on nuScenes; the synthetic sets add fog and cloud). A dataset may use a subset.
+CONDITIONS: tuple[str, ...] = ("day", "night", "fog", "rain", "cloudy")
+
+
+class Sample(TypedDict):
+    """One frame as every dataset serves it, and as the datamodule batches it (a batch adds a
+    leading batch dimension ``B`` to each tensor and makes ``condition`` a list).
+
+    Shape:
+        - image: (3, H, W) float32 RGB in [0, 1].
+        - sparse: (1, H, W) float32 metres from the sparse sensor (radar or lidar), 0 = no
+          return; all zeros for a camera-only dataset.
+        - depth: (1, H, W) float32 ground-truth metres, 0 = invalid (not scored).
+        - condition: one of :data:`CONDITIONS`.
+        - frame_box: optional (4,) int64 ``(top, left, height, width)`` of the original frame in
+          the arrays, when the reader cropped or padded it (evaluation crops are fractions of the
+          original frame).
+    """
+
+    image: Tensor
+    sparse: Tensor
+    depth: Tensor
+    condition: str
+    frame_box: NotRequired[Tensor]
+
 
 # The package's own table of dataset readers, by the name a dataset config and a checkpoint
 # record (``dataset.name``): module and class. A checkpoint names its dataset; its reader is
@@ -38,14 +68,3 @@ def reader_class(name: str) -> Any:
         raise KeyError(f"dataset {name!r} is not one of {sorted(READERS)}")
     module, cls = READERS[name]
     return getattr(importlib.import_module(module), cls)
-
-
-# Where each reader writes what it generates or prepares: (argument, folder in the cache). A
-# reader built from a checkpoint writes into this machine's cache, wherever the file says.
-WRITES_INTO: dict[str, tuple[str, str]] = {
-    "procedural": ("root", "procedural"),
-    "kitti": ("cache_root", ""),
-    "carla": ("cache_root", ""),
-    "topview": ("cache_root", ""),
-    "nuscenes": ("cache_root", ""),
-}

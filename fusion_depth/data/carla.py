@@ -105,34 +105,27 @@ from typing import Any
 
 import numpy as np
 
-from fusion_depth.data import SPLITS
-from fusion_depth.data._folders import (
+from fusion_depth.data import CONDITIONS, SPLITS
+from fusion_depth.data.base import FrameList, PreparedDataset, check_conditions
+from fusion_depth.data.depth_io import DataFileError, open_image, png_bit_depth, read_rgb
+from fusion_depth.data.folders import (
     check_max_range,
-    check_size,
-    check_split,
     entries_not_files,
     fingerprint,
     list_files,
     require_dir,
-    require_root,
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.depth_io import DataFileError, open_image, png_bit_depth, read_rgb
 from fusion_depth.data.prepared import (
     FRAME_ERRORS,
     OnError,
     PreparedFrame,
-    PreparedSplit,
-    SplitJob,
-    cache_dir,
     check_on_error,
     not_a_file,
-    prepare_splits,
 )
 
 FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
-CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
 SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
 RADAR_COLUMNS = ("depth", "azimuth", "altitude", "velocity")
 DEPTH_FAR = 1000.0  # metres at CARLA's depth code 256**3 - 1
@@ -469,7 +462,7 @@ def _file_problem(
 
 def scan_recording(
     root: Path, conditions: Sequence[str] = CONDITIONS, on_error: OnError = "raise"
-) -> tuple[dict[str, list[CarlaFrame]], str]:
+) -> FrameList:
     """Every split's frames (checked for missing files and bad metadata, filtered by condition)
     and a fingerprint of their files. Cheap: lists folders and reads the small JSON files.
 
@@ -479,7 +472,7 @@ def scan_recording(
     missing folder or a split without frames always raises.
     """
     check_on_error(on_error)
-    frames: dict[str, list[CarlaFrame]] = {}
+    frames: dict[str, dict[str, CarlaFrame]] = {}
     entries: list[os.DirEntry] = []
     for split in SPLITS:
         split_dir = require_dir(root / split, f"the {split} split of {LAYOUT}")
@@ -537,8 +530,8 @@ def scan_recording(
                 f"{split_dir}: none of its {sum(skipped.values())} frames has a condition in "
                 f"dataset.conditions={list(conditions)} (found {dict(skipped)})"
             )
-        frames[split] = kept
-    return frames, fingerprint(entries)
+        frames[split] = {frame.id: frame for frame in kept}
+    return FrameList(frames, fingerprint(entries))
 
 
 def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> PreparedFrame:
@@ -575,15 +568,18 @@ def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> 
     )
 
 
-class CarlaDepth(PreparedSplit):
+class CarlaDepth(PreparedDataset):
     """One split of a CARLA recording (format: the module docstring), served from the prepared
-    cache. Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict.
+    cache as :class:`~fusion_depth.data.Sample` dicts.
 
-    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file;
-    ``"skip"`` prepares every other frame of every split, then raises
-    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
-    ``python -m fusion_depth.prepare`` uses).
+    ``conditions`` keeps the frames recorded in those conditions, and ``max_range`` is the metres
+    at and beyond which depth and radar returns are invalid; the other arguments are
+    :class:`~fusion_depth.data.base.PreparedDataset`'s.
     """
+
+    name = "carla"
+    layout = LAYOUT
+    format_version = FORMAT_VERSION
 
     def __init__(
         self,
@@ -596,42 +592,15 @@ class CarlaDepth(PreparedSplit):
         max_range: float = 250.0,
         on_error: OnError = "raise",
     ) -> None:
-        check_split(split)
-        check_on_error(on_error)
-        height, width = check_size(height, width)
-        conditions = [str(c) for c in conditions]
-        unknown = [c for c in conditions if c not in CONDITIONS]
-        if not conditions or unknown:
-            raise ValueError(
-                f"dataset.conditions={conditions}: expected a non-empty subset of "
-                f"{list(CONDITIONS)}"
-            )
-        max_range = check_max_range(max_range)
-        root = require_root(root, LAYOUT)
-        frames, files = scan_recording(root, conditions, on_error)
-        params = {
-            "format_version": FORMAT_VERSION,
-            "root": str(root),
-            "height": height,
-            "width": width,
-            "conditions": conditions,
-            "max_range": max_range,
-            "files": files,
-        }
-        cache = cache_dir(cache_root, "carla", params, read_only={"root": root})
-        jobs = []
-        for name in SPLITS:
-            by_id = {frame.id: frame for frame in frames[name]}
-            jobs.append(
-                SplitJob(
-                    cache,
-                    name,
-                    list(by_id),
-                    lambda frame_id, by_id=by_id: load_frame(
-                        by_id[frame_id], height, width, max_range
-                    ),
-                    params,
-                )
-            )
-        prepare_splits(jobs, on_error=on_error)
-        super().__init__(cache / split)
+        self.conditions_kept = check_conditions(conditions)
+        self.max_range = check_max_range(max_range)
+        super().__init__(split, root, cache_root, height, width, on_error)
+
+    def list_frames(self) -> FrameList:
+        return scan_recording(self.root, self.conditions_kept, self.on_error)
+
+    def settings(self) -> dict:
+        return {"conditions": self.conditions_kept, "max_range": self.max_range}
+
+    def load_frame(self, split: str, frame: CarlaFrame) -> PreparedFrame:
+        return load_frame(frame, self.height, self.width, self.max_range)

@@ -67,20 +67,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion_depth.data import SPLITS
+from fusion_depth.data.base import FrameList, PreparedDataset, check_size
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
-from fusion_depth.data.prepared import (
-    OnError,
-    PreparedFrame,
-    PreparedSplit,
-    SplitJob,
-    cache_dir,
-    check_on_error,
-    is_prepared,
-    not_a_file,
-    prepare_splits,
-)
+from fusion_depth.data.prepared import OnError, PreparedFrame, not_a_file
 
 SUBSETS: tuple[str, ...] = ("train", "val")  # what KITTI publishes ground truth for
 CAMERAS: dict[str, str] = {"l": "image_02", "r": "image_03"}
@@ -350,17 +340,19 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
 # --- the dataset ------------------------------------------------------------------------------
 
 
-class KittiDepth(PreparedSplit):
-    """One split of KITTI depth completion, prepared on first use (see the module docstring).
+class KittiDepth(PreparedDataset):
+    """One split of KITTI depth completion, prepared on first use (see the module docstring),
+    served as :class:`~fusion_depth.data.Sample` dicts; ``depth`` is the filled ground truth in
+    the train split when ``fill`` is set, the measured one otherwise.
 
-    Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; ``depth`` is
-    the filled ground truth in the train split when ``fill`` is set, the measured one otherwise.
-
-    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file (and
-    checks every frame's files first); ``"skip"`` prepares every other frame of every split,
-    then raises :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones
-    (what ``python -m fusion_depth.prepare`` uses).
+    With ``on_error="raise"`` every frame's files are checked before the first is prepared. The
+    arguments not described in the module docstring are
+    :class:`~fusion_depth.data.base.PreparedDataset`'s.
     """
+
+    name = "kitti"
+    layout = f"the KITTI depth completion folder holding {ANNOTATED}/ and {VELODYNE}/"
+    conditions_allowed = (CONDITION,)
 
     def __init__(
         self,
@@ -378,96 +370,81 @@ class KittiDepth(PreparedSplit):
         seed: int = 0,
         on_error: OnError = "raise",
     ) -> None:
-        if split not in SPLITS:
-            raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
-        check_on_error(on_error)
-        settings = _settings(root, raw_root, height, width, sparse_points, fill, seed)
-        check_layout(settings.root, settings.raw_root)
+        check_size(height, width)  # before the options, as the other datasets do
+        if sparse_points is not None and (int(sparse_points) != sparse_points or sparse_points < 1):
+            raise ValueError(
+                f"dataset.sparse_points={sparse_points}: expected null (every Velodyne return) "
+                "or a number of points >= 1"
+            )
+        if fill not in FILL_METHODS:
+            raise ValueError(f"dataset.fill={fill!r}: expected one of {list(FILL_METHODS)}")
+        if int(seed) != seed or seed < 0:
+            raise ValueError(f"dataset.seed={seed}: expected a non-negative integer")
         if int(train_stride) != train_stride or train_stride < 1:
             raise ValueError(
                 f"dataset.train_stride={train_stride}: expected an integer >= 1 (every n-th frame)"
             )
-        split_path = None if split_file is None else Path(split_file).expanduser().resolve()
-        frames = split_frames(settings.root, split_path, exclude_test_drives, int(train_stride))
-        params = {
+        self.raw_root = Path(raw_root).expanduser().resolve()
+        self.sparse_points = None if sparse_points is None else int(sparse_points)
+        self.fill = fill
+        self.seed = int(seed)
+        self.split_path = None if split_file is None else Path(split_file).expanduser().resolve()
+        self.exclude_test_drives = bool(exclude_test_drives)
+        self.train_stride = int(train_stride)
+        super().__init__(split, root, cache_root, height, width, on_error)
+
+    def resolve_root(self, root: str | os.PathLike) -> Path:
+        path = Path(root).expanduser().resolve()
+        check_layout(path, self.raw_root)
+        return path
+
+    def read_only(self) -> dict[str, Path]:
+        return {"root": self.root, "raw_root": self.raw_root}
+
+    def list_frames(self) -> FrameList:
+        frames = split_frames(
+            self.root, self.split_path, self.exclude_test_drives, self.train_stride
+        )
+        by_id = {name: {f.id: f for f in split} for name, split in frames.items()}
+        return FrameList(by_id, _digest(frames))
+
+    def cache_key(self, listed: FrameList) -> dict:
+        return {
             "kitti_version": KITTI_VERSION,
-            "root": str(settings.root),
-            "raw_root": str(settings.raw_root),
-            "height": settings.height,
-            "width": settings.width,
-            "sparse_points": settings.sparse_points,
-            "fill": settings.fill,
-            "seed": settings.seed,
-            "split_file": None if split_path is None else str(split_path),
-            "exclude_test_drives": bool(exclude_test_drives),
-            "train_stride": int(train_stride),
-            "frames": _digest(frames),
+            "root": str(self.root),
+            "raw_root": str(self.raw_root),
+            "height": self.height,
+            "width": self.width,
+            "sparse_points": self.sparse_points,
+            "fill": self.fill,
+            "seed": self.seed,
+            "split_file": None if self.split_path is None else str(self.split_path),
+            "exclude_test_drives": self.exclude_test_drives,
+            "train_stride": self.train_stride,
+            "frames": listed.files,
         }
-        self.cache = cache_dir(
-            cache_root,
-            "kitti",
-            params,
-            read_only={"root": settings.root, "raw_root": settings.raw_root},
-        )
-        folders = {name: name for name in frames}
-        if split_path is None:
-            folders["test"] = "val"  # the same frames: prepared once
-        needed = list(dict.fromkeys(folders[name] for name in SPLITS))  # train, val[, test]
-        if not all(is_prepared(self.cache, name) for name in needed):
-            if on_error == "raise":  # fail before anything is written; "skip" names each frame
-                for name in needed:
-                    check_files(frames[name], settings.root, settings.raw_root, name)
-            jobs = [
-                SplitJob(
-                    self.cache,
-                    name,
-                    [f.id for f in frames[name]],
-                    lambda i, train=(name == "train"): load_frame(
-                        KittiFrame.from_id(i), settings, train
-                    ),
-                    params,
-                )
-                for name in needed
-            ]
-            prepare_splits(jobs, on_error=on_error)
-        super().__init__(
-            self.cache / folders[split], use_filled=split == "train" and settings.fill != "none"
-        )
 
+    def split_folder(self, split: str) -> str:
+        # Without a split file the test split is the val split: the same frames, prepared once.
+        return "val" if split == "test" and self.split_path is None else split
 
-def _settings(
-    root: str | os.PathLike,
-    raw_root: str | os.PathLike,
-    height: int,
-    width: int,
-    sparse_points: int | None,
-    fill: str,
-    seed: int,
-) -> FrameSettings:
-    for name, size in (("height", height), ("width", width)):
-        if int(size) != size or size <= 0 or size % 32:
-            raise ValueError(
-                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
-                "downsamples by 32; the paper uses 384x1248)"
-            )
-    if sparse_points is not None and (int(sparse_points) != sparse_points or sparse_points < 1):
-        raise ValueError(
-            f"dataset.sparse_points={sparse_points}: expected null (every Velodyne return) or a "
-            "number of points >= 1"
+    def check_frames(self, split: str, frames: dict[str, KittiFrame]) -> None:
+        check_files(list(frames.values()), self.root, self.raw_root, split)
+
+    def load_frame(self, split: str, frame: KittiFrame) -> PreparedFrame:
+        settings = FrameSettings(
+            self.root,
+            self.raw_root,
+            self.height,
+            self.width,
+            self.sparse_points,
+            self.fill,
+            self.seed,
         )
-    if fill not in FILL_METHODS:
-        raise ValueError(f"dataset.fill={fill!r}: expected one of {list(FILL_METHODS)}")
-    if int(seed) != seed or seed < 0:
-        raise ValueError(f"dataset.seed={seed}: expected a non-negative integer")
-    return FrameSettings(
-        root=Path(root).expanduser().resolve(),
-        raw_root=Path(raw_root).expanduser().resolve(),
-        height=int(height),
-        width=int(width),
-        sparse_points=None if sparse_points is None else int(sparse_points),
-        fill=fill,
-        seed=int(seed),
-    )
+        return load_frame(frame, settings, training=split == "train")
+
+    def serves_filled(self) -> bool:
+        return self.split == "train" and self.fill != "none"
 
 
 def split_frames(

@@ -92,15 +92,14 @@ import numpy as np
 from PIL import Image
 
 from fusion_depth.data import SPLITS
+from fusion_depth.data.base import PreparedDataset, check_conditions
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.prepared import (
     OnError,
     PreparedFrame,
-    PreparedSplit,
     SplitJob,
     cache_dir,
-    check_on_error,
     is_prepared,
     prepare_splits,
 )
@@ -135,7 +134,7 @@ TABLES = (
     "sample_annotation",
     "map",
 )
-CONDITIONS = ("day", "night", "rain")
+NUSCENES_CONDITIONS = ("day", "night", "rain")  # of CONDITIONS: nuScenes' scene descriptions
 RADAR_FILTERS = ("default", "off", "custom")
 # The state values each RadarPointCloud filter can take (what disable_filters() allows).
 RADAR_STATE_RANGES = {"invalid_states": 18, "dynprop_states": 8, "ambig_states": 5}
@@ -492,15 +491,6 @@ def split_frames(
     return tokens
 
 
-def _resolve_root(root: str | os.PathLike | None) -> Path:
-    if root is None or str(root) in ("", "???", "None"):
-        raise ValueError(f"dataset.root is not set: expected {LAYOUT}")
-    path = Path(root).expanduser().resolve()
-    if not path.is_dir():
-        raise FileNotFoundError(f"dataset.root={path}: no such folder; expected {LAYOUT}")
-    return path
-
-
 def check_tables(root: Path, version: str) -> str:
     """Checks ``<root>/<version>/`` holds the 13 tables; returns a digest of their names, sizes
     and modification times (a changed download gets a new cache)."""
@@ -539,65 +529,20 @@ def load_tables(devkit: Devkit, root: Path, version: str) -> Any:
         ) from err
 
 
-def _check_options(
-    split: str,
-    version: str,
-    height: int,
-    width: int,
-    fill: str,
-    conditions: Sequence[str],
-    radar_channels: Sequence[str],
-    radar_nsweeps: int,
-    lidar_nsweeps: int,
-    min_distance: float,
-    stride: int,
-    test_split: str,
-) -> None:
-    def choice(name: str, value: object, allowed: Sequence[str]) -> None:
-        if value not in allowed:
-            raise ValueError(f"{name}={value!r}: expected one of {list(allowed)}")
+class NuScenesDepth(PreparedDataset):
+    """One split of nuScenes (see the module docstring), served from the prepared cache as
+    :class:`~fusion_depth.data.Sample` dicts; the train split serves the filled lidar map as
+    ``depth`` when ``fill`` is not ``none``.
 
-    choice("split", split, SPLITS)
-    choice("dataset.version", version, list(VERSIONS))
-    choice("dataset.fill", fill, FILL_METHODS)
-    choice("dataset.reader.test_split", test_split, TEST_SPLITS)
-    for name, size in (("height", height), ("width", width)):
-        if int(size) != size or size <= 0 or size % 32:
-            raise ValueError(
-                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
-                "downsamples by 32)"
-            )
-    if not conditions or any(c not in CONDITIONS for c in conditions):
-        raise ValueError(
-            f"dataset.conditions={list(conditions)}: expected a non-empty subset of "
-            f"{list(CONDITIONS)}"
-        )
-    if not radar_channels or any(c not in RADAR_CHANNELS for c in radar_channels):
-        raise ValueError(
-            f"dataset.reader.radar_channels={list(radar_channels)}: expected a non-empty list of "
-            f"{list(RADAR_CHANNELS)}"
-        )
-    for name, value in (("radar_nsweeps", radar_nsweeps), ("lidar_nsweeps", lidar_nsweeps)):
-        if int(value) != value or value < 1:
-            raise ValueError(f"dataset.reader.{name}={value}: expected an integer >= 1")
-    if int(stride) != stride or stride < 1:
-        raise ValueError(f"dataset.reader.stride={stride}: expected an integer >= 1")
-    if not (math.isfinite(min_distance) and min_distance > 0):
-        raise ValueError(f"dataset.reader.min_distance={min_distance}: expected metres > 0")
-
-
-class NuScenesDepth(PreparedSplit):
-    """One split of nuScenes (see the module docstring), served from the prepared cache.
-
-    Samples are the platform's ``{"image", "sparse", "depth", "condition"}`` dict; the train
-    split serves the filled lidar map as ``depth`` when ``fill`` is not ``none``.
-
-    ``on_error``: ``"raise"`` (default) fails at the first frame whose files cannot be read,
-    naming the file; ``"skip"`` prepares every other frame of every split, then raises
-    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
-    ``python -m fusion_depth.prepare`` uses). Missing files fail before anything is prepared
-    either way.
+    Missing files fail before anything is prepared, whatever ``on_error``; a file that cannot
+    be read is handled by ``on_error`` (:class:`~fusion_depth.data.base.PreparedDataset`). The
+    test split is prepared from another table version (``test_split="test"``), so each split
+    may have its own cache folder: this class prepares them itself (:meth:`prepare`).
     """
+
+    name = "nuscenes"
+    layout = LAYOUT
+    conditions_allowed = NUSCENES_CONDITIONS
 
     def __init__(
         self,
@@ -608,7 +553,7 @@ class NuScenesDepth(PreparedSplit):
         height: int = 448,
         width: int = 800,
         fill: str = "colorization",
-        conditions: Sequence[str] = CONDITIONS,
+        conditions: Sequence[str] = NUSCENES_CONDITIONS,
         radar_channels: Sequence[str] = ("RADAR_FRONT",),
         radar_nsweeps: int = 1,
         radar_filters: str = "default",
@@ -621,62 +566,82 @@ class NuScenesDepth(PreparedSplit):
         test_split: str = "val",
         on_error: OnError = "raise",
     ) -> None:
-        devkit = require_devkit()  # first: without it nothing else can work
-        check_on_error(on_error)
-        conditions = [str(c) for c in conditions]
-        radar_channels = [str(c) for c in radar_channels]
-        _check_options(
-            split,
-            version,
-            height,
-            width,
-            fill,
-            conditions,
-            radar_channels,
-            radar_nsweeps,
-            lidar_nsweeps,
-            min_distance,
-            stride,
-            test_split,
+        require_devkit()  # first: without it nothing else can work
+        for name, value, allowed in (
+            ("dataset.version", version, list(VERSIONS)),
+            ("dataset.fill", fill, FILL_METHODS),
+            ("dataset.reader.test_split", test_split, TEST_SPLITS),
+        ):
+            if value not in allowed:
+                raise ValueError(f"{name}={value!r}: expected one of {list(allowed)}")
+        self.conditions_kept = check_conditions(conditions, NUSCENES_CONDITIONS)
+        self.radar_channels = check_conditions(
+            radar_channels, RADAR_CHANNELS, "dataset.reader.radar_channels"
         )
-        states = radar_filter_states(
+        for name, value in (("radar_nsweeps", radar_nsweeps), ("lidar_nsweeps", lidar_nsweeps)):
+            if int(value) != value or value < 1:
+                raise ValueError(f"dataset.reader.{name}={value}: expected an integer >= 1")
+        if int(stride) != stride or stride < 1:
+            raise ValueError(f"dataset.reader.stride={stride}: expected an integer >= 1")
+        if not (math.isfinite(min_distance) and min_distance > 0):
+            raise ValueError(f"dataset.reader.min_distance={min_distance}: expected metres > 0")
+        self.radar_states = radar_filter_states(
             radar_filters, radar_invalid_states, radar_dynprop_states, radar_ambig_states
         )
-        root = _resolve_root(root)
+        self.version = version
+        self.fill = fill
+        self.radar_nsweeps = int(radar_nsweeps)
+        self.lidar_nsweeps = int(lidar_nsweeps)
+        self.min_distance = float(min_distance)
+        self.stride = int(stride)
+        self.test_split = test_split
+        super().__init__(split, root, cache_root, height, width, on_error)
+
+    def split_folder(self, split: str) -> str:
+        # test_split=val: the test split is the val split, the same frames prepared once.
+        return "val" if split == "test" and self.test_split == "val" else split
+
+    def serves_filled(self) -> bool:
+        return self.split == "train" and self.fill != "none"
+
+    def prepare(self, cache_root: Path) -> Path:
+        """Prepares every split not yet in its cache folder; returns this split's folder."""
         base = {
             "format_version": FORMAT_VERSION,
-            "root": str(root),
-            "version": version,
-            "tables": check_tables(root, version),
-            "height": int(height),
-            "width": int(width),
-            "conditions": conditions,
-            "radar_channels": radar_channels,
-            "radar_nsweeps": int(radar_nsweeps),
-            "radar_states": states,
-            "lidar_nsweeps": int(lidar_nsweeps),
-            "min_distance": float(min_distance),
-            "stride": int(stride),
+            "root": str(self.root),
+            "version": self.version,
+            "tables": check_tables(self.root, self.version),
+            "height": self.height,
+            "width": self.width,
+            "conditions": self.conditions_kept,
+            "radar_channels": self.radar_channels,
+            "radar_nsweeps": self.radar_nsweeps,
+            "radar_states": self.radar_states,
+            "lidar_nsweeps": self.lidar_nsweeps,
+            "min_distance": self.min_distance,
+            "stride": self.stride,
         }
-        train_key, val_key = VERSIONS[version]
-        # split -> (cache params, table version, the devkit's split name, folder, fill)
+        train_key, val_key = VERSIONS[self.version]
+        # split -> (cache params, table version, the devkit's split name, fill)
         sources = {
-            "train": ({**base, "fill": fill}, version, train_key, "train", fill),
-            "val": (base, version, val_key, "val", "none"),
-            "test": (base, version, val_key, "val", "none"),  # test_split=val: the same frames
+            "train": ({**base, "fill": self.fill}, self.version, train_key, self.fill),
+            "val": (base, self.version, val_key, "none"),
+            "test": (base, self.version, val_key, "none"),  # test_split=val: the same frames
         }
-        if test_split == "test":
+        if self.test_split == "test":
             test_params = {
                 **base,
                 "test_version": TEST_VERSION,
-                "test_tables": check_tables(root, TEST_VERSION),
+                "test_tables": check_tables(self.root, TEST_VERSION),
             }
-            sources["test"] = (test_params, TEST_VERSION, "test", "test", "none")
-        cache_root = Path(cache_root).expanduser()
-        folders: dict[str, tuple[Path, str]] = {}
-        for name, (params, _version, _key, folder, _fill) in sources.items():
-            cache = cache_dir(cache_root, "nuscenes", params, read_only={"root": root})
-            folders[name] = (cache, folder)
+            sources["test"] = (test_params, TEST_VERSION, "test", "none")
+        folders = {
+            name: (
+                cache_dir(cache_root, self.name, params, read_only=self.read_only()),
+                self.split_folder(name),
+            )
+            for name, (params, *_) in sources.items()
+        }
         todo = [
             name
             for i, name in enumerate(SPLITS)
@@ -685,18 +650,27 @@ class NuScenesDepth(PreparedSplit):
         ]
         if todo:
             settings = FrameSettings(
-                height=int(height),
-                width=int(width),
-                radar_channels=tuple(radar_channels),
-                radar_nsweeps=int(radar_nsweeps),
-                radar_states=states,
-                lidar_nsweeps=int(lidar_nsweeps),
-                min_distance=float(min_distance),
+                height=self.height,
+                width=self.width,
+                radar_channels=tuple(self.radar_channels),
+                radar_nsweeps=self.radar_nsweeps,
+                radar_states=self.radar_states,
+                lidar_nsweeps=self.lidar_nsweeps,
+                min_distance=self.min_distance,
                 fill="none",
             )
-            _prepare(devkit, root, sources, folders, todo, conditions, stride, settings, on_error)
-        cache, folder = folders[split]
-        super().__init__(cache / folder, use_filled=split == "train" and fill != "none")
+            _prepare(
+                require_devkit(),
+                self.root,
+                sources,
+                folders,
+                todo,
+                self.conditions_kept,
+                self.stride,
+                settings,
+                self.on_error,
+            )
+        return folders[self.split][0]
 
 
 def _prepare(
@@ -717,7 +691,7 @@ def _prepare(
     databases: dict[str, Any] = {}
     plans = []
     for name in todo:
-        params, version, key, _folder, fill = sources[name]
+        params, version, key, fill = sources[name]
         if version not in databases:
             databases[version] = load_tables(devkit, root, version)
         nusc = databases[version]

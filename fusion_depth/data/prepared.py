@@ -49,6 +49,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from fusion_depth.data import Sample
 from fusion_depth.data.depth_io import (
     DataFileError,
     read_depth_png,
@@ -344,9 +345,9 @@ def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
 
 
 class PreparedSplit(Dataset):
-    """Reads one prepared split; samples are the platform's ``{"image", "sparse", "depth",
-    "condition"}`` dict. ``use_filled`` serves the filled ground truth as ``depth`` where it
-    exists (training); evaluation leaves it off and scores the measured points."""
+    """Reads one prepared split as :class:`~fusion_depth.data.Sample` dicts. ``use_filled``
+    serves the filled ground truth as ``depth`` where it exists (training); evaluation leaves it
+    off and scores the measured points."""
 
     def __init__(self, split_dir: str | os.PathLike, use_filled: bool = False) -> None:
         self.split_dir = Path(split_dir)
@@ -374,7 +375,7 @@ class PreparedSplit(Dataset):
     def __len__(self) -> int:
         return len(self.frames)
 
-    def __getitem__(self, index: int) -> dict:
+    def __getitem__(self, index: int) -> Sample:
         frame = self.frames[index]
         stem = self.split_dir / frame["file"]
         depth_file = "filled" if self.use_filled and frame["filled"] else "depth"
@@ -392,7 +393,7 @@ class PreparedSplit(Dataset):
                     f"{stem}.image.png ({image.shape[0]}x{image.shape[1]}); delete "
                     f"{self.split_dir} to prepare the split again",
                 )
-        sample = {
+        sample: Sample = {
             "image": torch.from_numpy(image.transpose(2, 0, 1).copy()).float().div_(255.0),
             "sparse": torch.from_numpy(maps["sparse"])[None],
             "depth": torch.from_numpy(maps["depth"])[None],

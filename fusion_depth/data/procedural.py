@@ -44,14 +44,14 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fusion_depth.data import SPLITS
+from fusion_depth.data import CONDITIONS, SPLITS, Sample
 from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
 from fusion_depth.data._procedural_sensors import lidar_map, radar_map
+from fusion_depth.data.base import check_conditions, check_size, check_split
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SENSORS = ("radar", "lidar")
-CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
 DEPTH_SCALE = 256.0  # cache stores uint16 depth * 256
 _ARRAYS = ("image", "depth", "sparse")
 
@@ -101,10 +101,13 @@ def _check_choice(name: str, value: object, allowed: Sequence[str]) -> None:
 class ProceduralDepth(Dataset):
     """One split of the built-in procedural dataset (see the module docstring).
 
-    Samples are ``{"image": 3xHxW float in [0, 1], "sparse": 1xHxW metres (0 = no return),
-    "depth": 1xHxW metres (0 = invalid), "condition": str}``. Frame ``i`` has condition
-    ``conditions[i % len(conditions)]``, so every split holds each condition in equal shares.
+    Samples are :class:`~fusion_depth.data.Sample` dicts (no ``frame_box``). Frame ``i`` has
+    condition ``conditions[i % len(conditions)]``, so every split holds each condition in equal
+    shares.
     """
+
+    # Where it writes (the argument, a folder below the cache), as PreparedDataset.writes_into.
+    writes_into = ("root", "procedural")
 
     def __init__(
         self,
@@ -121,19 +124,10 @@ class ProceduralDepth(Dataset):
         fov_deg: float = 70.0,
         radar_height_extension: float = 0.0,
     ) -> None:
-        _check_choice("split", split, SPLITS)
+        check_split(split)
         _check_choice("sparse", sparse, SENSORS)
-        conditions = tuple(str(c) for c in conditions)
-        if not conditions:
-            raise ValueError(f"conditions=[]: expected a non-empty subset of {list(CONDITIONS)}")
-        for condition in conditions:
-            _check_choice("condition", condition, CONDITIONS)
-        for name, size in (("height", height), ("width", width)):
-            if int(size) != size or size <= 0 or size % 32:
-                raise ValueError(
-                    f"{name}={size}: must be a positive multiple of 32 (the network "
-                    "downsamples by 32)"
-                )
+        conditions = tuple(check_conditions(conditions))
+        height, width = check_size(height, width)
         counts = {"train": num_train, "val": num_val, "test": num_test}
         for name, count in counts.items():
             if int(count) != count or count < 1:
@@ -242,7 +236,7 @@ class ProceduralDepth(Dataset):
     def __len__(self) -> int:
         return self._length
 
-    def __getitem__(self, index: int) -> dict:
+    def __getitem__(self, index: int) -> Sample:
         if not -self._length <= index < self._length:
             raise IndexError(f"index {index} out of range for {self._length} frames")
         index %= self._length

@@ -55,33 +55,21 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion_depth.data import SPLITS
-from fusion_depth.data._folders import (
+from fusion_depth.data import CONDITIONS, SPLITS
+from fusion_depth.data.base import FrameList, PreparedDataset
+from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
+from fusion_depth.data.folders import (
     check_max_range,
-    check_size,
-    check_split,
     entries_not_files,
     fingerprint,
     list_files,
     require_dir,
-    require_root,
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
-from fusion_depth.data.prepared import (
-    OnError,
-    PreparedFrame,
-    PreparedSplit,
-    SplitJob,
-    cache_dir,
-    check_on_error,
-    not_a_file,
-    prepare_splits,
-)
+from fusion_depth.data.prepared import OnError, PreparedFrame, check_on_error, not_a_file
 
 FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
-CONDITIONS = ("day", "night", "fog", "rain", "cloudy")
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".png", ".npy", ".exr")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -154,9 +142,7 @@ class TopViewFrame:
     problem: OSError | None = None
 
 
-def scan_folder(
-    root: Path, on_error: OnError = "raise"
-) -> tuple[dict[str, list[TopViewFrame]], str]:
+def scan_folder(root: Path, on_error: OnError = "raise") -> FrameList:
     """Every split's frames (image and depth matched by name) and a fingerprint of the files.
 
     A frame's breakage (module docstring, "Broken frames") raises here with ``on_error="raise"``;
@@ -165,7 +151,7 @@ def scan_folder(
     one name concern the whole split and always raise.
     """
     check_on_error(on_error)
-    frames: dict[str, list[TopViewFrame]] = {}
+    frames: dict[str, dict[str, TopViewFrame]] = {}
     entries: list[os.DirEntry] = []
     for split in SPLITS:
         split_dir = require_dir(root / split, f"the {split} split of {LAYOUT}")
@@ -209,8 +195,8 @@ def scan_folder(
                 len(orphans),
                 orphans[0],
             )
-        frames[split] = kept
-    return frames, fingerprint(entries)
+        frames[split] = {frame.id: frame for frame in kept}
+    return FrameList(frames, fingerprint(entries))
 
 
 def load_frame(
@@ -246,15 +232,18 @@ def load_frame(
     )
 
 
-class TopViewDepth(PreparedSplit):
+class TopViewDepth(PreparedDataset):
     """One split of a Top-View folder (format: the module docstring), served from the prepared
-    cache. Samples are the platform's dict with an all-zero ``sparse``.
+    cache as :class:`~fusion_depth.data.Sample` dicts with an all-zero ``sparse``.
 
-    ``on_error``: ``"raise"`` (default) fails at the first broken frame, naming its file;
-    ``"skip"`` prepares every other frame of every split, then raises
-    :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones (what
-    ``python -m fusion_depth.prepare`` uses).
+    ``depth_unit`` is metres per stored unit, ``condition`` the one every frame gets, and
+    ``max_range`` the metres at and beyond which depth is invalid; the other arguments are
+    :class:`~fusion_depth.data.base.PreparedDataset`'s.
     """
+
+    name = "topview"
+    layout = LAYOUT
+    format_version = FORMAT_VERSION
 
     def __init__(
         self,
@@ -268,9 +257,6 @@ class TopViewDepth(PreparedSplit):
         max_range: float = 250.0,
         on_error: OnError = "raise",
     ) -> None:
-        check_split(split)
-        check_on_error(on_error)
-        height, width = check_size(height, width)
         if not depth_unit > 0:
             raise ValueError(
                 f"dataset.reader.depth_unit={depth_unit}: expected metres per stored unit > 0 "
@@ -280,33 +266,22 @@ class TopViewDepth(PreparedSplit):
             raise ValueError(
                 f"dataset.reader.condition={condition!r}: expected one of {list(CONDITIONS)}"
             )
-        max_range = check_max_range(max_range)
-        root = require_root(root, LAYOUT)
-        frames, files = scan_folder(root, on_error)
-        params = {
-            "format_version": FORMAT_VERSION,
-            "root": str(root),
-            "height": height,
-            "width": width,
-            "depth_unit": float(depth_unit),
-            "condition": condition,
-            "max_range": max_range,
-            "files": files,
+        self.depth_unit = float(depth_unit)
+        self.condition = condition
+        self.max_range = check_max_range(max_range)
+        super().__init__(split, root, cache_root, height, width, on_error)
+
+    def list_frames(self) -> FrameList:
+        return scan_folder(self.root, self.on_error)
+
+    def settings(self) -> dict:
+        return {
+            "depth_unit": self.depth_unit,
+            "condition": self.condition,
+            "max_range": self.max_range,
         }
-        cache = cache_dir(cache_root, "topview", params, read_only={"root": root})
-        jobs = []
-        for name in SPLITS:
-            by_id = {frame.id: frame for frame in frames[name]}
-            jobs.append(
-                SplitJob(
-                    cache,
-                    name,
-                    list(by_id),
-                    lambda frame_id, by_id=by_id: load_frame(
-                        by_id[frame_id], height, width, float(depth_unit), max_range, condition
-                    ),
-                    params,
-                )
-            )
-        prepare_splits(jobs, on_error=on_error)
-        super().__init__(cache / split)
+
+    def load_frame(self, split: str, frame: TopViewFrame) -> PreparedFrame:
+        return load_frame(
+            frame, self.height, self.width, self.depth_unit, self.max_range, self.condition
+        )

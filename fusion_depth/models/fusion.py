@@ -8,6 +8,8 @@ import torch
 from torch import nn
 
 FUSION_MODES = ("rgb", "concat", "add")
+# How tables and plots name each mode (the paper's Table 1: RGB, RGB-Fusion, and addition).
+FUSION_LABELS: dict[str, str] = {"rgb": "RGB", "concat": "RGB-Fusion", "add": "RGB-Add"}
 SPARSE_ENCODINGS = ("log", "linear")
 
 

@@ -46,7 +46,7 @@ from typing import Any
 from fusion_depth.report.compare import COMPARE_KEYS, build_comparison_table, compare_groups
 from fusion_depth.report.groups import BY_SECTIONS, build_by_table, build_table, group_runs
 from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
-from fusion_depth.runs import load_runs
+from fusion_depth.run_record import METRICS_FILE, load_runs
 
 # --- W&B: --wandb ------------------------------------------------------------------------------
 
@@ -174,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         runs = load_runs(args.directory)
         if not runs:
-            raise ValueError(f"{args.directory}: no metrics.json found below it")
+            raise ValueError(f"{args.directory}: no {METRICS_FILE} found below it")
         groups = group_runs(runs)
         comparisons = None
         if args.compare:
@@ -204,4 +204,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     return 0
-

@@ -11,15 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion_depth.losses import PIXEL_LOSS_LABELS
+from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.report.groups import (
     ALL,
-    LOSS,
-    MODALITY,
     identity_cells,
     identity_columns,
     metric_label,
     tex_escape,
 )
+from fusion_depth.run_record import RunRecord
 from fusion_depth.runs import PER_IMAGE_FILE
 from fusion_depth.stats import BootstrapResult, paired_bootstrap
 from fusion_depth.tables import format_table
@@ -41,17 +42,17 @@ class PerImage:
     values: np.ndarray  # float64, aligned with index
 
 
-def per_image_path(run: dict) -> Path:
+def per_image_path(run: RunRecord) -> Path:
     """Where a run's ``per_image.csv`` is (``per_image_file`` is relative to metrics.json)."""
-    return Path(run["path"]).parent / run.get("per_image_file", PER_IMAGE_FILE)
+    return Path(run.path).parent / (run.per_image_file or PER_IMAGE_FILE)
 
 
-def load_per_image(run: dict, metric: str) -> PerImage:
+def load_per_image(run: RunRecord, metric: str) -> PerImage:
     """Read ``metric`` of every image from the run's per-image file, checking it on the way."""
     path = per_image_path(run)
     if not path.is_file():
         raise FileNotFoundError(
-            f"{run['path']}: its per-image results {path} are missing; --compare needs "
+            f"{run.path}: its per-image results {path} are missing; --compare needs "
             f"{PER_IMAGE_FILE}, which runs of older versions did not write: re-score them with "
             f"python -m fusion_depth.evaluate ckpt_path=<sweep folder> and compare the output"
         )
@@ -81,26 +82,26 @@ def load_per_image(run: dict, metric: str) -> PerImage:
     return PerImage(path, index, np.array([r[1] for r in rows], dtype=object), values)
 
 
-def _check_same_images(ref: dict, ref_pi: PerImage, run: dict, pi: PerImage) -> None:
+def _check_same_images(ref: RunRecord, ref_pi: PerImage, run: RunRecord, pi: PerImage) -> None:
     """Refuse to pair runs scored on different images: their differences would mean nothing."""
 
     def refuse(reason: str) -> ValueError:
         return ValueError(
-            f"{ref['path']} and {run['path']}: not scored on the same test images ({reason}); "
+            f"{ref.path} and {run.path}: not scored on the same test images ({reason}); "
             "--compare pairs images by index, so both runs must use the same dataset, split "
             "and protocol"
         )
 
     for what, a, b in (
-        ("dataset", ref["run"].get("dataset"), run["run"].get("dataset")),
-        ("split", ref.get("split"), run.get("split")),
+        ("dataset", ref.run.dataset, run.run.dataset),
+        ("split", ref.split, run.split),
     ):
         if a != b:
             raise refuse(f"{what} {a!r} vs {b!r}")
-    if "protocol" in ref and "protocol" in run:
-        keys = (set(ref["protocol"]) | set(run["protocol"])) - _AGGREGATION_ONLY
+    if ref.protocol is not None and run.protocol is not None:
+        keys = (set(ref.protocol) | set(run.protocol)) - _AGGREGATION_ONLY
         for key in sorted(keys):
-            a, b = ref["protocol"].get(key), run["protocol"].get(key)
+            a, b = ref.protocol.get(key), run.protocol.get(key)
             if a != b:
                 raise refuse(f"protocol {key} {a!r} vs {b!r}")
     _, i, j = np.intersect1d(ref_pi.index, pi.index, assume_unique=True, return_indices=True)
@@ -138,10 +139,10 @@ def _by_seed(group: dict) -> dict:
     """seed → run of a group; two runs with one seed cannot be paired unambiguously."""
     runs: dict = {}
     for run in group["runs"]:
-        seed = run["run"].get("seed")
+        seed = run.run.seed
         if seed in runs:
             raise ValueError(
-                f"{runs[seed]['path']} and {run['path']}: two runs of one group with seed "
+                f"{runs[seed].path} and {run.path}: two runs of one group with seed "
                 f"{seed}; --compare pairs runs by seed"
             )
         runs[seed] = run
@@ -156,7 +157,7 @@ def paired_differences(
     baseline: dict,
     group: dict,
     metric: str,
-    load: Callable[[dict, str], PerImage] = load_per_image,
+    load: Callable[[RunRecord, str], PerImage] = load_per_image,
 ) -> tuple[np.ndarray, np.ndarray, tuple]:
     """Per-image ``metric`` differences (group − baseline) over the images all runs share.
 
@@ -174,17 +175,17 @@ def paired_differences(
     ref_pi = load(ref, metric)
     loaded = {}
     for run in (*base_runs, *other_runs):
-        loaded[run["path"]] = pi = load(run, metric)
+        loaded[run.path] = pi = load(run, metric)
         _check_same_images(ref, ref_pi, run, pi)
     common = reduce(np.intersect1d, (pi.index for pi in loaded.values()))
     if len(common) < 2:
         raise ValueError(
-            f"{ref['path']} and {other_runs[0]['path']}: share {len(common)} scored test "
+            f"{ref.path} and {other_runs[0].path}: share {len(common)} scored test "
             "image(s); --compare needs at least 2"
         )
 
-    def at_common(run: dict) -> np.ndarray:
-        pi = loaded[run["path"]]
+    def at_common(run: RunRecord) -> np.ndarray:
+        pi = loaded[run.path]
         return pi.values[np.searchsorted(pi.index, common)]
 
     b = np.stack([at_common(r) for r in base_runs])
@@ -194,11 +195,11 @@ def paired_differences(
     return diff, conditions, seeds
 
 
-def _condition_columns(runs: Sequence[dict], conditions: np.ndarray) -> list[str]:
+def _condition_columns(runs: Sequence[RunRecord], conditions: np.ndarray) -> list[str]:
     """``all``, then the conditions in the order the metrics files list them, then the rest."""
     order: dict[str, None] = {}
     for run in runs:
-        order.update(dict.fromkeys(run.get("test_by_condition", {})))
+        order.update(dict.fromkeys(run.test_by_condition or {}))
     order.update(dict.fromkeys(conditions.tolist()))
     present = set(conditions.tolist())
     return [ALL, *(c for c in order if c in present)]
@@ -234,12 +235,12 @@ def compare_groups(
     def same_but_key(a: dict, b: dict) -> bool:
         return all(a[k] == b[k] for k in identity)
 
-    cache: dict[tuple[str, str], PerImage] = {}
+    cache: dict[tuple[Path | None, str], PerImage] = {}
 
-    def load(run: dict, m: str) -> PerImage:
-        if (run["path"], m) not in cache:
-            cache[run["path"], m] = load_per_image(run, m)
-        return cache[run["path"], m]
+    def load(run: RunRecord, m: str) -> PerImage:
+        if (run.path, m) not in cache:
+            cache[run.path, m] = load_per_image(run, m)
+        return cache[run.path, m]
 
     comparisons = []
     for g in groups:
@@ -275,7 +276,7 @@ def _group_name(group: dict) -> str:
 
 
 def key_label(key: str, value: str) -> str:
-    return {"fusion": MODALITY, "loss": LOSS}.get(key, {}).get(value, value)
+    return {"fusion": FUSION_LABELS, "loss": PIXEL_LOSS_LABELS}.get(key, {}).get(value, value)
 
 
 def build_comparison_table(comparisons: Sequence[Comparison], fmt: str = "markdown") -> str:

@@ -6,44 +6,43 @@ from __future__ import annotations
 import statistics
 from collections.abc import Sequence
 
+from fusion_depth.losses import PIXEL_LOSS_LABELS
+from fusion_depth.metrics import HIGHER_IS_BETTER, METRIC_LABELS, METRIC_LATEX, TABLE_METRICS
+from fusion_depth.models.fusion import FUSION_LABELS
+from fusion_depth.run_record import BREAKDOWNS, RunRecord
 from fusion_depth.tables import format_table
 
-# (metric key, column header, LaTeX header, better) in the paper's order.
-COLUMNS = (
-    ("rmse", "RMSE", "RMSE", min),
-    ("abs_rel", "ARD", "ARD", min),
-    ("sq_rel", "SRD", "SRD", min),
-    ("delta1", "δ1", r"$\delta_1$", max),
-    ("delta2", "δ2", r"$\delta_2$", max),
-    ("delta3", "δ3", r"$\delta_3$", max),
+# (metric key, column header, LaTeX header, better) of the tables, from the metrics' own tables.
+COLUMNS = tuple(
+    (k, METRIC_LABELS[k], METRIC_LATEX[k], max if HIGHER_IS_BETTER[k] else min)
+    for k in TABLE_METRICS
 )
-MODALITY = {"rgb": "RGB", "concat": "RGB-Fusion", "add": "RGB-Add"}
-LOSS = {"l1": "L1", "l2": "L2", "berhu": "BerHu"}
 # Overrides that already have a column or are averaged over.
 _IDENTITY_KEYS = {"dataset", "backbone", "fusion", "loss", "seed"}
 
 
-def _setting(run: dict) -> str:
+def _setting(run: RunRecord) -> str:
     """Overrides other than the identity columns and the seed, e.g. ``optimizer.lr=0.001``."""
     keys = [
-        o
-        for o in run["run"].get("overrides", [])
-        if o.split("=", 1)[0].lstrip("+~") not in _IDENTITY_KEYS
+        o for o in run.run.overrides or [] if o.split("=", 1)[0].lstrip("+~") not in _IDENTITY_KEYS
     ]
     return " ".join(sorted(keys))
 
 
-def group_runs(runs: Sequence[dict]) -> list[dict]:
-    """Groups of runs that differ only in seed, in the paper's order (loss, then modality)."""
-    groups: dict[tuple, list[dict]] = {}
+def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
+    """Groups of runs (:func:`fusion_depth.run_record.load_runs`) that differ only in seed, in
+    the paper's order (loss, then modality). Each group: its identity (``dataset``, ``sensor``,
+    ``backbone``, ``loss``, ``fusion``, ``setting``), ``n``, ``seeds``, ``stats`` (metric →
+    mean, std over seeds) and its ``runs``."""
+    groups: dict[tuple, list[RunRecord]] = {}
     for run in runs:
-        r = run["run"]
+        r = run.run
         key = (
-            r["dataset"],
-            r.get("sensor") or "",
-            r["backbone"],
-            r["loss"],
-            r["fusion"],
+            r.dataset,
+            r.sensor or "",
+            r.backbone,
+            r.loss,
+            r.fusion,
             _setting(run),
         )
         groups.setdefault(key, []).append(run)
@@ -54,9 +53,9 @@ def group_runs(runs: Sequence[dict]) -> list[dict]:
             dataset,
             sensor,
             backbone,
-            list(LOSS).index(loss) if loss in LOSS else 99,
+            list(PIXEL_LOSS_LABELS).index(loss) if loss in PIXEL_LOSS_LABELS else 99,
             loss,
-            list(MODALITY).index(fusion) if fusion in MODALITY else 99,
+            list(FUSION_LABELS).index(fusion) if fusion in FUSION_LABELS else 99,
             fusion,
             setting,
         )
@@ -66,7 +65,7 @@ def group_runs(runs: Sequence[dict]) -> list[dict]:
         members = groups[key]
         stats = {}
         for metric, *_ in COLUMNS:
-            values = [m["test"][metric] for m in members]
+            values = [m.test[metric] for m in members]
             stats[metric] = (
                 statistics.fmean(values),
                 statistics.stdev(values) if len(values) > 1 else None,
@@ -81,7 +80,7 @@ def group_runs(runs: Sequence[dict]) -> list[dict]:
                 "fusion": fusion,
                 "setting": setting,
                 "n": len(members),
-                "seeds": sorted(m["run"].get("seed") for m in members),
+                "seeds": sorted(m.run.seed for m in members),
                 "stats": stats,
                 "runs": members,
             }
@@ -106,8 +105,8 @@ def identity_columns(groups: Sequence[dict]) -> list[tuple[str, str]]:
 def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
     """The cells naming a group: the varying identity fields, then Modality and Loss."""
     return [group[key] for _, key in extra] + [
-        MODALITY.get(group["fusion"], group["fusion"]),
-        LOSS.get(group["loss"], group["loss"]),
+        FUSION_LABELS.get(group["fusion"], group["fusion"]),
+        PIXEL_LOSS_LABELS.get(group["loss"], group["loss"]),
     ]
 
 
@@ -151,17 +150,13 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown") -> str:
 # --- Per-column tables: --by condition / distance / cap ---------------------------------------
 
 # --by choice → the metrics.json section holding one metrics dict per column.
-BY_SECTIONS = {
-    "condition": "test_by_condition",
-    "distance": "test_by_distance",
-    "cap": "test_by_cap",
-}
+BY_SECTIONS = BREAKDOWNS
 ALL = "all"
 
 
 def higher_is_better(metric: str) -> bool:
-    """Only the δ thresholds go up; every error metric goes down."""
-    return metric.startswith("delta")
+    """Only the δ thresholds go up; every error metric goes down (:data:`HIGHER_IS_BETTER`)."""
+    return HIGHER_IS_BETTER.get(metric, False)
 
 
 def metric_label(metric: str, latex: bool = False) -> str:
@@ -184,17 +179,17 @@ def _lower_bound(key: str) -> float | None:
         return None
 
 
-def _column_keys(runs: Sequence[dict], by: str) -> list[str]:
+def _column_keys(runs: Sequence[RunRecord], by: str) -> list[str]:
     """``all``, then every key of the ``--by`` section in file order (distance bins by range)."""
-    section = BY_SECTIONS[by]
     keys: dict[str, None] = {}
     for run in runs:
-        if section not in run:
+        section = run.breakdown(by)
+        if section is None:
             raise ValueError(
-                f"{run['path']}: no {section!r} (written by an older version); "
+                f"{run.path}: no {BY_SECTIONS[by]!r} (written by an older version); "
                 f"--by {by} needs the run evaluated again"
             )
-        keys.update(dict.fromkeys(run[section]))
+        keys.update(dict.fromkeys(section))
     ordered = list(keys)
     bounds = [_lower_bound(k) for k in ordered]
     if by != "condition" and all(b is not None for b in bounds):
@@ -202,14 +197,14 @@ def _column_keys(runs: Sequence[dict], by: str) -> list[str]:
     return [ALL, *ordered]
 
 
-def run_metric(run: dict, by: str | None, column: str, metric: str) -> float | None:
+def run_metric(run: RunRecord, by: str | None, column: str, metric: str) -> float | None:
     """One run's ``metric`` for a column (``all`` = the whole test set); None when absent."""
-    values = run["test"] if column == ALL else run[BY_SECTIONS[by]].get(column)
+    values = run.test if column == ALL else run.breakdown(by).get(column)
     if values is None:
         return None
     if metric not in values:
         known = ", ".join(k for k, v in values.items() if isinstance(v, int | float))
-        raise ValueError(f"{run['path']}: no metric {metric!r}; expected one of {known}")
+        raise ValueError(f"{run.path}: no metric {metric!r}; expected one of {known}")
     return float(values[metric])
 
 

@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from fusion_depth.losses import PIXEL_LOSS_LABELS
+from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.report.compare import Comparison, key_label
 from fusion_depth.report.groups import (
     ALL,
-    LOSS,
-    MODALITY,
     by_column_stats,
     higher_is_better,
     identity_cells,
@@ -89,7 +89,7 @@ def plot_groups(
     extra = [key for _, key in identity_columns(groups)]
 
     def category(g: dict) -> str:
-        return " / ".join([*(g[k] for k in extra), LOSS.get(g["loss"], g["loss"])])
+        return " / ".join([*(g[k] for k in extra), PIXEL_LOSS_LABELS.get(g["loss"], g["loss"])])
 
     categories = list(dict.fromkeys(category(g) for g in groups))
     fusions = list(dict.fromkeys(g["fusion"] for g in groups))
@@ -107,7 +107,7 @@ def plot_groups(
                     values = [run_metric(r, None, ALL, metric) for r in g["runs"]]
                     cells.append(mean_std(values))
             heights = [np.nan if c is None else c[0] for c in cells]
-            series.append((MODALITY.get(fusion, fusion), heights, _std_errors(cells)))
+            series.append((FUSION_LABELS.get(fusion, fusion), heights, _std_errors(cells)))
         _grouped_bars(ax, categories, series)
         ax.set_title(f"{metric_label(metric)} ({_direction(metric)})")
         if n == 0:

@@ -1,4 +1,5 @@
-"""Helpers shared by the folder-based synthetic datasets (``carla``, ``topview``).
+"""Helpers for datasets read from folders of files (``carla``, ``topview``, and yours: see the
+README's "Add your own dataset").
 
 Resizing keeps the depth values exact: images are resampled, depth maps only ever sampled, so
 evaluation scores depths that really were rendered and never a blend across an object edge.
@@ -15,28 +16,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fusion_depth.data import SPLITS
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 
 # The prepared cache stores uint16 depth × 256, so nothing beyond this fits.
 CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE
-
-
-def check_size(height: int, width: int) -> tuple[int, int]:
-    """The network downsamples by 32, so both sides must be positive multiples of 32."""
-    for name, size in (("height", height), ("width", width)):
-        if int(size) != size or size <= 0 or size % 32:
-            raise ValueError(
-                f"dataset.{name}={size}: expected a positive multiple of 32 (the encoder "
-                "downsamples by 32)"
-            )
-    return int(height), int(width)
-
-
-def check_split(split: str) -> str:
-    if split not in SPLITS:
-        raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
-    return split
 
 
 def check_max_range(max_range: float) -> float:
@@ -52,7 +35,7 @@ def check_max_range(max_range: float) -> float:
 def require_root(root: str | os.PathLike, layout: str) -> Path:
     """The dataset folder, resolved; a missing one fails naming it and the layout expected."""
     if str(root) in ("", "???", "None"):
-        raise ValueError(f"dataset.root is not set: expected the folder holding {layout}")
+        raise ValueError(f"dataset.root is not set: expected {layout}")
     path = Path(root).expanduser().resolve()
     if not path.is_dir():
         raise FileNotFoundError(f"dataset.root={path}: no such folder; expected {layout}")
@@ -103,12 +86,17 @@ def entries_not_files(folder: Path, suffixes: Sequence[str]) -> dict[str, Path]:
     return found
 
 
-def fingerprint(entries: Iterable[os.DirEntry]) -> str:
-    """A digest of names, sizes and modification times: a changed dataset gets a new cache."""
+def fingerprint(entries: Iterable[os.DirEntry | Path]) -> str:
+    """A digest of the files' paths, sizes and modification times (16 hex digits), for a
+    dataset's cache key: a changed dataset gets a new cache.
+
+    Raises:
+        OSError: a file cannot be stat'ed (e.g. FileNotFoundError).
+    """
     digest = hashlib.sha256()
     for entry in entries:
         stat = entry.stat()
-        digest.update(json.dumps([entry.path, stat.st_size, stat.st_mtime_ns]).encode())
+        digest.update(json.dumps([os.fspath(entry), stat.st_size, stat.st_mtime_ns]).encode())
     return digest.hexdigest()[:16]
 
 

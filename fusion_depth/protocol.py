@@ -1,6 +1,8 @@
-"""The evaluation protocol and the record it produces, shared by ``train`` (test stage) and
-``evaluate``: the ``eval`` config group, the breakdown tables, ``metrics.json`` and
-``per_image.csv``.
+"""The evaluation protocol and what it measures, shared by ``train`` (test stage) and
+``evaluate``: the ``eval`` config group (:class:`EvalProtocol`: depth caps, crop, averaging,
+flip TTA, upsampling, distance bins), a test stage's :class:`EvaluationResult` (metric tables,
+per-image records, latency), ``per_image.csv`` and the printed and W&B tables. The run record
+that holds the results, ``metrics.json``, is :mod:`fusion_depth.run_record`'s.
 """
 
 from __future__ import annotations
@@ -10,28 +12,19 @@ import io
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from fusion_depth.inference import UPSAMPLING
-from fusion_depth.metrics import METRIC_KEYS, DepthMetrics
-from fusion_depth.runs import METRICS_FILE, PER_IMAGE_FILE, write_json_atomic, write_text_atomic
+from fusion_depth.metrics import METRIC_KEYS, METRIC_LABELS, TABLE_METRICS, DepthMetrics
+from fusion_depth.runs import write_text_atomic
 from fusion_depth.speed import cpu_model
 from fusion_depth.tables import format_table
 
-# (metric key, column header) of the printed tables, in the paper's order plus MAE.
-TABLE_COLUMNS = (
-    ("rmse", "RMSE"),
-    ("abs_rel", "ARD"),
-    ("sq_rel", "SRD"),
-    ("mae", "MAE"),
-    ("delta1", "δ1"),
-    ("delta2", "δ2"),
-    ("delta3", "δ3"),
-)
+# (metric key, column header) of the printed tables.
+TABLE_COLUMNS: tuple[tuple[str, str], ...] = tuple((k, METRIC_LABELS[k]) for k in TABLE_METRICS)
 
 
 @dataclass(frozen=True)
@@ -125,20 +118,38 @@ def latency_summary(
     }
 
 
-def evaluation_record(
-    results: Mapping[str, Any], protocol: EvalProtocol, split: str, latency: Mapping | None
-) -> dict[str, Any]:
-    """The evaluation part of ``metrics.json`` (``test`` holds the scored split's headline)."""
-    return {
-        "split": split,
-        "protocol": protocol.as_dict(),
-        "test": results["overall"],
-        "test_by_condition": results["by_condition"],
-        "test_by_distance": results["by_distance"],
-        "test_by_cap": results["by_cap"],
-        "latency": dict(latency) if latency else None,
-        "per_image_file": PER_IMAGE_FILE,
-    }
+@dataclass(frozen=True)
+class EvaluationResult:
+    """What one test stage measured (:meth:`fusion_depth.module.DepthModule.run_test`).
+
+    Each metrics dict holds every key of :data:`~fusion_depth.metrics.METRIC_KEYS` (RMSE and
+    MAE in metres) plus ``num_images`` and ``num_pixels``; groups without a scored image are
+    left out (see :meth:`fusion_depth.metrics.DepthMetrics.results`).
+    """
+
+    protocol: EvalProtocol  # how the predictions were scored
+    overall: dict[str, float]  # the headline: every scored image, within the largest cap
+    by_condition: dict[str, dict[str, float]]  # per weather/light condition
+    by_distance: dict[str, dict[str, float]]  # per distance bin, "0-10" (m), ...
+    by_cap: dict[str, dict[str, float]]  # per depth cap, "80" (m), ...
+    per_image: list[dict[str, Any]]  # one row per scored image, by index (per_image.csv's)
+    latency: dict[str, Any]  # per-frame inference latency (:func:`latency_summary`)
+
+    @classmethod
+    def from_metrics(
+        cls, protocol: EvalProtocol, metrics: DepthMetrics, latency: dict[str, Any]
+    ) -> EvaluationResult:
+        """The result of ``metrics`` (a DepthMetrics that scored the whole split)."""
+        tables = metrics.results()
+        return cls(
+            protocol=protocol,
+            overall=tables["overall"],
+            by_condition=tables["by_condition"],
+            by_distance=tables["by_distance"],
+            by_cap=tables["by_cap"],
+            per_image=metrics.per_image(),
+            latency=latency,
+        )
 
 
 def write_per_image(path: str | os.PathLike, rows: Sequence[Mapping[str, Any]]) -> None:
@@ -166,31 +177,26 @@ def _rows(groups: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
     ]
 
 
-def results_tables(record: Mapping[str, Any]) -> str:
-    """Markdown tables of an evaluation record: per condition, per distance bin, per cap."""
+def results_tables(result: EvaluationResult) -> str:
+    """Markdown tables of a test stage's result: per condition, per distance bin, per cap, and
+    the latency line."""
 
     header = [name for _, name in TABLE_COLUMNS] + ["Images", "Pixels"]
-    caps = record["protocol"]["max_depth"]
-    head_cap = f"{caps[-1]:g}"
+    head_cap = f"{result.protocol.max_depth[-1]:g}"
     parts = [
-        format_table(
-            ["Condition", *header],
-            _rows({"all": record["test"], **record["test_by_condition"]}),
-        )
+        format_table(["Condition", *header], _rows({"all": result.overall, **result.by_condition}))
     ]
-    if record.get("test_by_distance"):
+    if result.by_distance:
+        parts.append(
+            format_table([f"Distance (m, cap {head_cap})", *header], _rows(result.by_distance))
+        )
+    if len(result.by_cap) > 1:
         parts.append(
             format_table(
-                [f"Distance (m, cap {head_cap})", *header], _rows(record["test_by_distance"])
+                ["Cap (m)", *header], _rows({f"< {k}": v for k, v in result.by_cap.items()})
             )
         )
-    if len(record.get("test_by_cap", {})) > 1:
-        parts.append(
-            format_table(
-                ["Cap (m)", *header], _rows({f"< {k}": v for k, v in record["test_by_cap"].items()})
-            )
-        )
-    latency = record.get("latency") or {}
+    latency = result.latency or {}
     if latency.get("mean_s") is not None:
         parts.append(
             f"Inference latency per frame ({latency['input_size'][0]}x{latency['input_size'][1]}, "
@@ -200,7 +206,7 @@ def results_tables(record: Mapping[str, Any]) -> str:
     return "\n\n".join(parts)
 
 
-def wandb_tables(record: Mapping[str, Any]) -> dict[str, tuple[list[str], list[list]]]:
+def wandb_tables(result: EvaluationResult) -> dict[str, tuple[list[str], list[list]]]:
     """The breakdowns as (columns, rows) for W&B Tables, keyed by their dashboard name."""
     columns = ["group", *METRIC_KEYS, "num_images", "num_pixels"]
 
@@ -211,38 +217,20 @@ def wandb_tables(record: Mapping[str, Any]) -> dict[str, tuple[list[str], list[l
         ]
         return columns, rows
 
-    tables = {"test/by_condition": table({"all": record["test"], **record["test_by_condition"]})}
-    if record.get("test_by_distance"):
-        tables["test/by_distance"] = table(record["test_by_distance"])
-    if record.get("test_by_cap"):
-        tables["test/by_cap"] = table(record["test_by_cap"])
+    tables = {"test/by_condition": table({"all": result.overall, **result.by_condition})}
+    if result.by_distance:
+        tables["test/by_distance"] = table(result.by_distance)
+    if result.by_cap:
+        tables["test/by_cap"] = table(result.by_cap)
     return tables
 
 
-def log_to_loggers(loggers: Sequence[Any], record: Mapping[str, Any]) -> None:
+def log_to_loggers(loggers: Sequence[Any], result: EvaluationResult) -> None:
     """Send the breakdown tables to every W&B logger (other loggers get the flat metrics from
     the module's ``log_dict``)."""
     from lightning.pytorch.loggers import WandbLogger
 
     for logger in loggers:
         if isinstance(logger, WandbLogger):
-            for key, (columns, rows) in wandb_tables(record).items():
+            for key, (columns, rows) in wandb_tables(result).items():
                 logger.log_table(key=key, columns=columns, data=rows)
-
-
-def publish_results(
-    output_dir: str | os.PathLike,
-    results: Mapping[str, Any],
-    rows: Sequence[Mapping[str, Any]],
-    loggers: Sequence[Any],
-    title: str,
-) -> Path:
-    """Send the breakdowns to W&B, write ``per_image.csv`` then ``metrics.json`` (last, so its
-    presence means the run is complete), and print ``title`` with the tables."""
-    log_to_loggers(loggers, results)
-    output_dir = Path(output_dir)
-    write_per_image(output_dir / PER_IMAGE_FILE, rows)
-    path = output_dir / METRICS_FILE
-    write_json_atomic(path, results)
-    print(f"\n{title}:\n{results_tables(results)}\nWritten to {path}", flush=True)
-    return path

@@ -1,0 +1,62 @@
+"""Where the Hydra configs are (:data:`CONF_DIR`, :data:`SWEEPS_DIR`), and what a config goes
+through before any work, one module per concern:
+
+- :mod:`.resolvers`: the ``fd.*`` OmegaConf resolvers that ``conf/`` uses.
+- :mod:`.values`: the values the network, the trainer and the data pipeline can take.
+- :mod:`.keys`: unknown keys (every key must be read by something).
+- :mod:`.validation`: :func:`validate_config`, those checks together as one-line errors.
+- :mod:`.output_dir`: the output directory (writable, room for the checkpoints).
+- :mod:`.show`: a value as written on the command line, for the errors.
+
+The errors they raise are in :mod:`fusion_depth.errors`; the redaction of secrets from what a run
+writes is :mod:`fusion_depth.redaction`. Every public name is importable from here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fusion_depth.config.keys import (
+    PASSED_BY_CODE,
+    PLAIN_CONSUMERS,
+    READ_BY_CODE,
+    check_known_keys,
+    target_accepts,
+    unknown_key_error,
+)
+from fusion_depth.config.output_dir import MB, check_output_dir, checkpoint_bytes
+from fusion_depth.config.resolvers import register_resolvers
+from fusion_depth.config.validation import validate_config
+from fusion_depth.config.values import check_bottleneck, check_dataset, check_values
+
+__all__ = [
+    "CONF_DIR",
+    "MB",
+    "PASSED_BY_CODE",
+    "PLAIN_CONSUMERS",
+    "READ_BY_CODE",
+    "SWEEPS_DIR",
+    "check_bottleneck",
+    "check_dataset",
+    "check_known_keys",
+    "check_output_dir",
+    "check_values",
+    "checkpoint_bytes",
+    "register_resolvers",
+    "target_accepts",
+    "unknown_key_error",
+    "validate_config",
+]
+
+
+def _shipped(name: str) -> str:
+    """A folder that sits at the repository's top level and ships inside the package: the
+    installed copy (``fusion_depth/<name>``) or, in a checkout, the repository's own."""
+    package = Path(__file__).resolve().parents[1]  # fusion_depth/, above this config/ package
+    installed = package / name
+    return str(installed if installed.is_dir() else package.parent / name)
+
+
+# The Hydra configs every entry point composes, and the ready-made sweep configs.
+CONF_DIR = _shipped("conf")
+SWEEPS_DIR = _shipped("sweeps")

@@ -1,0 +1,41 @@
+"""Trained networks as deployable model files, one module per back end.
+
+Every format exports the same :class:`DepthExportModel` (:mod:`.contract`): ``image``
+(B, 3, H, W) float32 RGB in [0, 1] and, for ``fusion=concat``/``add`` checkpoints, ``sparse``
+(B, 1, H, W) float32 metres (0 = no return), to ``depth`` (B, 1, H, W) float32 metres in
+``[min_depth, max_depth]``, by the code path of ``predict`` and ``evaluate``, so exported and
+PyTorch predictions agree. H × W is fixed when exporting; the batch axis is dynamic unless fixed.
+
+* :mod:`.exporter`: :func:`export_model`, the options, the atomic write, the format registry;
+* :mod:`.onnx`, :mod:`.torchscript`: the back ends (each a :class:`Backend`);
+* :mod:`.verification`: :class:`ExportError` and the comparison with PyTorch;
+* :mod:`.sidecar`: ``<model file>.json``, what deployment code feeds the model and gets back.
+"""
+
+from fusion_depth.exporting.contract import Backend, DepthExportModel
+from fusion_depth.exporting.exporter import (
+    BACKENDS,
+    FORMATS,
+    check_export_options,
+    check_format,
+    default_output,
+    export_model,
+)
+from fusion_depth.exporting.onnx import require_onnx
+from fusion_depth.exporting.sidecar import sidecar_path
+from fusion_depth.exporting.verification import TOLERANCE, ExportError
+
+__all__ = [
+    "BACKENDS",
+    "FORMATS",
+    "TOLERANCE",
+    "Backend",
+    "DepthExportModel",
+    "ExportError",
+    "check_export_options",
+    "check_format",
+    "default_output",
+    "export_model",
+    "require_onnx",
+    "sidecar_path",
+]
