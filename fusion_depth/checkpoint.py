@@ -28,7 +28,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from fusion_depth.data import READERS, cache_dir, reader_class
-from fusion_depth.models import DepthNet
+from fusion_depth.models import DEFAULT_MODEL, DepthModel, create_model, model_arguments
 from fusion_depth.runs import write_atomic
 
 CONFIG_KEY = "fusion_depth_config"
@@ -36,15 +36,8 @@ RUN_KEY = "fusion_depth_run"
 # Hydra's instantiation keys: a config holding one names code to import and call.
 INSTANTIATION_KEYS = ("_target_", "_partial_", "_args_", "_recursive_", "_convert_")
 _PLAIN_TYPES = (str, int, float, bool, type(None))
-# The DepthNet constructor arguments a checkpoint may set (everything else in the file is ignored).
-_NET_KEYS = (
-    "backbone",
-    "fusion",
-    "min_depth",
-    "max_depth",
-    "depth_scale",
-    "sparse_encoding",
-)
+# Network arguments a checkpoint never sets: its own weights replace ImageNet's.
+_NOT_FROM_CHECKPOINT = ("pretrained", "weights", "association_weights")  # files read at build time
 
 
 class CheckpointError(ValueError, CompactHydraException):
@@ -102,7 +95,7 @@ def check_no_code(checkpoint: Any, path: Path) -> None:
 class LoadedModel:
     """A network rebuilt from a checkpoint, with the run config it was trained with."""
 
-    net: DepthNet
+    net: DepthModel
     config: dict[str, Any]
     path: Path
     run: dict[str, Any] | None = None  # the training run's identity, when train recorded it
@@ -221,7 +214,7 @@ def check_expected(
 def load_model(
     path: str | os.PathLike, fusion: str | None = None, backbone: str | None = None
 ) -> LoadedModel:
-    """Rebuild the DepthNet of a training checkpoint and load its weights (eval mode, CPU).
+    """Rebuild the network of a training checkpoint and load its weights (eval mode, CPU).
 
     ``fusion``/``backbone``, when given, must match what the checkpoint was trained with.
     """
@@ -234,10 +227,15 @@ def load_model(
     except (KeyError, TypeError) as err:
         raise CheckpointError(f"ckpt_path={path}: its run config lacks {err}") from err
     check_expected(config, path, fusion, backbone)
-    # pretrained=False: the checkpoint's weights replace ImageNet's, which need not be on disk.
+    # The network by its name in the package's table (checkpoints from before models had names
+    # hold the paper's), with the stored arguments its constructor takes; pretrained=False: the
+    # checkpoint's weights replace ImageNet's, which need not be on disk.
     try:
-        net = DepthNet(**{k: net_config[k] for k in _NET_KEYS if k in net_config}, pretrained=False)
-    except (ValueError, TypeError, KeyError) as err:
+        name = net_config.get("name", DEFAULT_MODEL)
+        arguments = set(model_arguments(name)) - set(_NOT_FROM_CHECKPOINT)
+        kwargs = {k: net_config[k] for k in arguments if k in net_config}
+        net = create_model(name, **kwargs, pretrained=False)
+    except (ValueError, TypeError, KeyError, AttributeError) as err:
         raise CheckpointError(
             f"ckpt_path={path}: its model.net config cannot be built ({err})"
         ) from err

@@ -1,7 +1,7 @@
 """Depth in metres from a trained network, at the resolution of the ground truth or the input.
 
 Shared by evaluation (test stage, ``evaluate``) and ``predict``, so every entry point turns the
-network's half-resolution reciprocal output into metres the same way.
+network's output (DenseDepth: reciprocal depth at half resolution) into metres the same way.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from fusion_depth.models import DepthNet
+from fusion_depth.models import DepthModel
 
 UPSAMPLING = ("bilinear", "nearest")
 
@@ -33,20 +33,23 @@ def resize_depth(
 
 @torch.no_grad()
 def predict_depth(
-    net: DepthNet,
+    net: DepthModel,
     image: torch.Tensor,
     sparse: torch.Tensor | None = None,
     flip_tta: bool = False,
     size: tuple[int, int] | None = None,
     upsample: str = "bilinear",
+    points: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth in metres ``(B, 1, H, W)`` for images ``(B, 3, H, W)`` in [0, 1].
 
     ``flip_tta`` averages the prediction with the mirrored prediction of the mirrored input
-    (DenseDepth's test-time augmentation). The half-resolution output is resized to ``size``
+    (DenseDepth's test-time augmentation). The network's output is resized to ``size``
     (default: the input's) with ``upsample``. Inputs whose sides are not multiples of 32 are
     padded at the bottom/right by edge replication (sparse maps with 0 = no return) and the
-    padding is cut off again, so any image size works.
+    padding is cut off again, so any image size works. ``points`` (B, P, 6), the batch's
+    ``radar_points`` (columns :data:`~fusion_depth.data.RADAR_POINT_FIELDS`), reach a network
+    that takes them (``model=radarnet``), mirrored with the image under ``flip_tta``.
     """
     _check_upsample(upsample)
     sparse = sparse if net.fusion.uses_sparse else None
@@ -56,13 +59,29 @@ def predict_depth(
         image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
         if sparse is not None:
             sparse = F.pad(sparse, (0, pad_w, 0, pad_h))
-    depth = net.predict_depth(image, sparse)
+    points = points if getattr(net, "takes_points", False) else None
+    depth = (
+        net.predict_depth(image, sparse)
+        if points is None
+        else net.predict_depth(image, sparse, points)
+    )
     if flip_tta:
-        mirrored = net.predict_depth(
-            image.flip(-1), None if sparse is None else sparse.flip(-1)
-        ).flip(-1)
-        depth = (depth + mirrored) / 2
+        flipped = None
+        if points is not None:  # column u of a W-wide image mirrors to W - 1 - u
+            flipped = points.clone()
+            flipped[..., 0] = torch.where(
+                points[..., 5] > 0, image.shape[-1] - 1 - points[..., 0], points[..., 0]
+            )
+        mirrored_sparse = None if sparse is None else sparse.flip(-1)
+        if flipped is None:
+            mirrored = net.predict_depth(image.flip(-1), mirrored_sparse).flip(-1)
+        else:
+            mirrored = net.predict_depth(image.flip(-1), mirrored_sparse, flipped).flip(-1)
+        # The mean of the two; where one is 0 (no prediction: model=radarnet's association
+        # stage), the other alone. Other networks never predict 0.
+        both = (depth > 0) & (mirrored > 0)
+        depth = torch.where(both, (depth + mirrored) / 2, depth + mirrored)
     if pad_h or pad_w:
-        # Back to the input's frame: the output is at half resolution, padding included.
+        # Back to the padded input's frame (the output may be at a lower resolution), then cut.
         depth = resize_depth(depth, (height + pad_h, width + pad_w), upsample)[..., :height, :width]
     return resize_depth(depth, size or (height, width), upsample)

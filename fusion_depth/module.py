@@ -1,4 +1,4 @@
-"""The LightningModule: one DepthNet, the paper's loss, and the depth metrics per stage."""
+"""The LightningModule: one depth network (model.net), its loss, and the depth metrics per stage."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from fusion_depth.checkpoint import CONFIG_KEY, RUN_KEY
 from fusion_depth.inference import predict_depth, resize_depth
 from fusion_depth.losses import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics import DepthMetrics
-from fusion_depth.models import DepthNet
+from fusion_depth.models import DepthModel
 from fusion_depth.protocol import EvalProtocol, EvaluationResult, latency_summary
 from fusion_depth.run_record import RunIdentity
 from fusion_depth.speed import speed_up
@@ -55,12 +55,13 @@ def downsample_depth(
 
 
 class DepthModule(L.LightningModule):
-    """Trains ``net`` on reciprocal depth; validates and tests in metres.
+    """Trains ``net`` in its output space (the paper's DenseDepth: reciprocal depth; see
+    :class:`~fusion_depth.models.DepthModel`); validates and tests in metres.
 
     Scoring follows one protocol, fixed at construction (see :class:`EvalProtocol`): either
     ``evaluation``, the ``eval`` config block (null depth limits take the network's range), or
     ``protocol``, a ready one (``evaluate``'s, whose limits come from the dataset it scores);
-    not both. Predictions are resized from the network's half resolution to the ground truth's,
+    not both. Predictions are resized from the network's resolution to the ground truth's,
     and the test stage may add flip test-time augmentation. Validation scores the same way
     without it. :meth:`run_test` runs the test stage and returns what it measured.
     ``channels_last``, ``compile`` (true/false/auto) and ``compile_mode`` are applied once the
@@ -72,7 +73,7 @@ class DepthModule(L.LightningModule):
 
     def __init__(
         self,
-        net: DepthNet,
+        net: DepthModel,
         loss: DepthLoss | None = None,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
@@ -187,8 +188,10 @@ class DepthModule(L.LightningModule):
         """Depth in metres at half the input resolution."""
         return self.net.predict_depth(image, sparse)
 
-    def _reciprocal(self, batch: dict) -> torch.Tensor:
+    def _network_output(self, batch: dict) -> torch.Tensor:
         sparse = batch["sparse"] if self.net.fusion.uses_sparse else None
+        if getattr(self.net, "takes_points", False):  # radar points from the batch when it has them
+            return self.net(batch["image"], sparse, batch.get("radar_points"))
         return self.net(batch["image"], sparse)
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
@@ -196,15 +199,20 @@ class DepthModule(L.LightningModule):
             batch = self.augmentation(batch)
         return batch
 
-    def _loss(self, reciprocal: torch.Tensor, depth: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _loss(self, output: torch.Tensor, depth: torch.Tensor) -> dict[str, torch.Tensor]:
         # In fp32 under mixed precision too: SSIM's local variances lose too much in bf16.
-        with torch.autocast(reciprocal.device.type, enabled=False):
-            target, mask = downsample_depth(depth, tuple(reciprocal.shape[-2:]))
-            return self.loss(reciprocal, self.net.to_reciprocal(target), mask)
+        with torch.autocast(output.device.type, enabled=False):
+            target, mask = downsample_depth(depth, tuple(output.shape[-2:]))
+            return self.loss(output, self.net.to_output(target), mask)
 
     def step_losses(self, batch: dict) -> dict[str, torch.Tensor]:
-        """The training loss of a batch (``"loss"``) and its terms; what ``bench`` times."""
-        return self._loss(self._reciprocal(batch), batch["depth"])
+        """The training loss of a batch (``"loss"``) and its terms; what ``bench`` times. A
+        network with its own ``training_loss(batch, depth_loss)`` (several outputs or stages,
+        e.g. ``model=radarnet``) computes it, given this module's depth loss."""
+        hook = getattr(self.net, "training_loss", None)
+        if hook is not None:
+            return hook(batch, self._loss)
+        return self._loss(self._network_output(batch), batch["depth"])
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor | None:
         losses = self.step_losses(batch)
@@ -248,34 +256,37 @@ class DepthModule(L.LightningModule):
 
     @staticmethod
     def _update(metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:
+        # A prediction of 0 is none (model=radarnet's association stage outputs its quasi-dense
+        # map, 0 where no point claims the pixel): those pixels are not scored. Other networks
+        # clip to min_depth > 0, so this changes nothing for them.
+        depth = batch["depth"]
+        depth = torch.where(pred > 0, depth, torch.zeros_like(depth))
         metrics.update(
             pred,
-            batch["depth"],
+            depth,
             batch["condition"] if metrics.conditions else None,
             index=batch.get("index"),
             frame_box=batch.get("frame_box"),
         )
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
-        reciprocal = self._reciprocal(batch)
+        output = self._network_output(batch)
         depth = batch["depth"]
-        pred = resize_depth(self.net.to_depth(reciprocal), depth.shape[-2:], self.protocol.upsample)
+        pred = resize_depth(self.net.to_depth(output), depth.shape[-2:], self.protocol.upsample)
         self._update(self.val_metrics, pred, batch)
-        self.log(
-            "val/loss",
-            self._loss(reciprocal, batch["depth"])["loss"],
-            batch_size=len(batch["image"]),
-        )
-        self._collect_panels(batch, reciprocal)
+        hook = getattr(self.net, "training_loss", None)
+        losses = hook(batch, self._loss) if hook is not None else self._loss(output, depth)
+        self.log("val/loss", losses["loss"], batch_size=len(batch["image"]))
+        self._collect_panels(batch, output)
 
-    def _collect_panels(self, batch: dict, reciprocal: torch.Tensor) -> None:
+    def _collect_panels(self, batch: dict, output: torch.Tensor) -> None:
         wanted = self.hparams.num_val_panels - len(self.val_panels)
         for i in range(min(wanted, len(batch["image"]))):
             self.val_panels.append(
                 depth_panel(
                     batch["image"][i],
                     batch["sparse"][i],
-                    self.net.to_depth(reciprocal[i]),
+                    self.net.to_depth(output[i]),
                     batch["depth"][i],
                     self.net.min_depth,
                     self.net.max_depth,
@@ -306,6 +317,7 @@ class DepthModule(L.LightningModule):
             self.net,
             image,
             batch["sparse"],
+            points=batch.get("radar_points"),
             flip_tta=self.protocol.flip_tta,
             size=tuple(depth.shape[-2:]),
             upsample=self.protocol.upsample,

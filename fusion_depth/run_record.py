@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from fusion_depth.models._registry import DEFAULT_MODEL
 from fusion_depth.protocol import (
     EvaluationResult,
     log_to_loggers,
@@ -88,9 +89,10 @@ class RunIdentity(_Stored):
 
     dataset: str | None = _written_by(_EVERY)  # dataset.name (re-scored: the dataset scored)
     sensor: str | None = _written_by(_EVERY)  # dataset.sensor (radar, lidar), if it has one
+    model: str | None = _written_by(_EVERY)  # model.net.name: densedepth, sparse_to_dense, ...
     backbone: str | None = _written_by(_EVERY)  # backbone.name
     fusion: str | None = _written_by(_EVERY)  # fusion.mode: rgb, concat, add
-    loss: str | None = _written_by(_EVERY)  # loss.pixel: l1, l2, berhu
+    loss: str | None = _written_by(_EVERY)  # loss.name if set (l1_only), else loss.pixel
     seed: int | None = _written_by(_EVERY)  # the training run's seed
     overrides: list[str] | None = _written_by(_EVERY)  # those that make the run, sorted, redacted
     wandb_id: str | None = _written_by(_IF_SET)  # training runs: their W&B run (resumes continue)
@@ -111,20 +113,23 @@ def run_identity(
     config: Mapping[str, Any], overrides: Sequence[str] = (), wandb_id: str | None = None
 ) -> RunIdentity:
     """The identity of the run that ``config`` (a run config: Hydra's, or the plain copy a
-    checkpoint holds) configures: its dataset, sensor, backbone, fusion mode, pixel loss and
-    seed; None where the config lacks one. ``overrides``: those that made the run (already
+    checkpoint holds) configures: its dataset, sensor, model, backbone, fusion mode, pixel loss
+    and seed; None where the config lacks one. ``overrides``: those that made the run (already
     filtered and redacted by the caller); ``wandb_id``: the run's W&B run."""
 
     def choice(group: str, key: str) -> Any:
         block = config.get(group)
         return block.get(key) if isinstance(block, Mapping) else None
 
+    net = choice("model", "net")
     return RunIdentity(
         dataset=choice("dataset", "name"),
         sensor=choice("dataset", "sensor"),
+        # Runs from before models had names trained the paper's network.
+        model=net.get("name", DEFAULT_MODEL) if isinstance(net, Mapping) else None,
         backbone=choice("backbone", "name"),
         fusion=choice("fusion", "mode"),
-        loss=choice("loss", "pixel"),
+        loss=choice("loss", "name") or choice("loss", "pixel"),
         seed=config.get("seed"),
         overrides=list(overrides),
         wandb_id=wandb_id,

@@ -49,6 +49,7 @@ from fusion_depth.run_record import (
     run_identity,
 )
 from fusion_depth.runs import RESOLVED_CONFIG_FILE, record_failure, write_text_atomic
+from fusion_depth.search import DEFAULT_METRIC, metric_key, objective
 from fusion_depth.speed import accelerator_device, resolve_precision
 
 log = logging.getLogger(__name__)
@@ -250,18 +251,19 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
     return record
 
 
-def test_rmse(record: RunRecord | None) -> float | None:
-    """The sweep objective (None on ranks that do not test)."""
-    return record.test["rmse"] if record else None
-
-
 @hydra_main("train")
 def main(cfg: DictConfig) -> float | None:
-    """Hydra entry point; in a sweep a failing job is recorded and the sweep goes on."""
+    """Hydra entry point. Returns the run's ``optimized_metric`` (a validation metric,
+    :func:`fusion_depth.search.objective`), what a sweeper such as ``hparams_search=optuna``
+    optimises; None on the ranks that do not test. In a sweep a failing job is recorded, returns
+    None (a failed trial to the Optuna sweeper) and the sweep goes on."""
+    metric = cfg.get("optimized_metric", DEFAULT_METRIC)
     if HydraConfig.get().mode != RunMode.MULTIRUN:
-        return test_rmse(train_record(cfg))
+        metric_key(metric)  # a bad name fails before training
+        return objective(train_record(cfg), metric)
     try:
-        return test_rmse(train_record(cfg))
+        metric_key(metric)
+        return objective(train_record(cfg), metric)
     except RunLockedError as err:  # the folder is another live process's: write nothing there
         log.error("job not run: %s", err)
         return None

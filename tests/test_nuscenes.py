@@ -28,6 +28,7 @@ from nuscenes.nuscenes import NuScenes  # noqa: E402
 from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
 
 import fusion_depth.data.nuscenes as nus  # noqa: E402
+from fusion_depth.data import RADAR_POINT_FIELDS  # noqa: E402
 from fusion_depth.data.nuscenes import NuScenesDepth  # noqa: E402
 
 # --- geometry -----------------------------------------------------------------------------
@@ -704,3 +705,79 @@ def test_the_nuscenes_sweep_runs_under_the_smoke_experiment(nusc_root, tmp_path)
     saved = json.loads(metrics.read_text())
     assert saved["run"]["dataset"] == "nuscenes" and saved["run"]["fusion"] == "concat"
     assert (metrics.parent / "per_image.csv").is_file()
+
+
+# --- radar points (issue 16) ------------------------------------------------------------------
+
+FILTERS_OFF = {(20, 10): 12.0, (22, 40): 30.0, (25, 50): 8.0, (18, 30): 20.0}
+
+
+def radar_rows(item: dict, max_points: int) -> np.ndarray:
+    """The valid rows of a sample's radar_points, checked: shape, dtype, zero padding."""
+    points = item["radar_points"].numpy()
+    assert points.shape == (max_points, len(RADAR_POINT_FIELDS)) and points.dtype == np.float32
+    valid = points[:, -1] == 1
+    count = int(valid.sum())
+    assert valid[:count].all() and (points[count:] == 0).all()
+    return points[:count]
+
+
+def test_radar_points_are_the_returns_of_the_sparse_map(nusc_root, tmp_path) -> None:
+    root, _ = nusc_root
+    train = make_reader(root, tmp_path, radar_filters="off")
+    assert train.max_radar_points == 128
+    for index in range(len(train)):
+        item = train[index]
+        rows = radar_rows(item, 128)
+        u, v, depth, rcs, velocity = rows[:, :5].T
+        # Every return of the map, nearest first, at the pixel centre the fixture chose (the
+        # devkit's chain, resized and cropped like the image), with the map's depth.
+        assert depth.tolist() == sorted(depth.tolist())
+        cells = {(int(r), int(c)): float(z) for r, c, z in zip(v // 1, u // 1, depth, strict=True)}
+        assert cells == pytest.approx(FILTERS_OFF, abs=1e-3)
+        assert nonzero(item["sparse"]) == pytest.approx(cells, abs=1 / 256)
+        np.testing.assert_allclose(u % 1, 0.5, atol=1e-3)
+        np.testing.assert_allclose(v % 1, 0.5, atol=1e-3)
+        assert (rcs == 5.0).all() and (velocity == 0).all()  # the fixture's rcs, still targets
+    # P is applied when serving: the nearest two, nothing prepared again.
+    files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    two = make_reader(root, tmp_path, radar_filters="off", max_radar_points=2)
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == files
+    assert radar_rows(two[0], 2)[:, 2].tolist() == pytest.approx([8.0, 12.0], abs=1e-3)
+    # Sweeps and channels add their points as they add pixels to the map.
+    both = make_reader(root, tmp_path, radar_channels=["RADAR_FRONT", "RADAR_FRONT_LEFT"])
+    assert [round(float(z), 3) for z in radar_rows(both[0], 128)[:, 2]] == [12.0, 15.0]
+
+
+def test_radial_velocity_is_the_compensated_velocity_along_the_line_of_sight(tmp_path) -> None:
+    xyz = np.array([[10.0, 0.0, 0.0], [0.0, 5.0, 0.0], [3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]).T
+    path = tmp_path / "radar.pcd"
+    write_radar_pcd(path, xyz, [{**VALID, "vx_comp": 3.0, "vy_comp": 4.0, "vx": 99.0}] * 4)
+    cloud = nus._radar_class(nus.require_devkit(), nus.radar_filter_states("off"))
+    points = cloud.from_file(str(path)).points
+    # Row 6 (vx, uncompensated) now holds the radial velocity; rcs and the rest are untouched.
+    assert points[nus.RADAR_RADIAL_ROW].tolist() == pytest.approx([3.0, 4.0, 5.0, 0.0])
+    assert points[nus.RADAR_RCS_ROW].tolist() == [5.0] * 4
+    assert RadarPointCloud.from_file(str(path)).points[6].tolist() == [99.0] * 4  # devkit's own
+
+
+def test_radar_points_carry_the_radial_velocity(fresh_root, tmp_path) -> None:
+    root, _ = fresh_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    expected = {}
+    for record in nusc.sample_data:
+        if record["channel"] != "RADAR_FRONT" or not record["is_key_frame"]:
+            continue
+        path = root / record["filename"]
+        every = list(range(18)), list(range(8)), list(range(5))
+        xyz = RadarPointCloud.from_file(str(path), *every).points[:3]
+        states = [p[3] for p in RADAR_POINTS["RADAR_FRONT"]]
+        velocity = [{"vx_comp": 2.0 + k, "vy_comp": -1.5} for k in range(xyz.shape[1])]
+        write_radar_pcd(path, xyz, [{**s, **v} for s, v in zip(states, velocity, strict=True)])
+        x, y = xyz[0, 0], xyz[1, 0]  # the return the default filters keep (12 m)
+        expected[record["sample_token"]] = (x * 2.0 - y * 1.5) / math.hypot(x, y)
+    train = make_reader(root, tmp_path / "cache")
+    for index, frame in enumerate(train.frames):
+        (row,) = radar_rows(train[index], 128)
+        assert row[2] == pytest.approx(12.0, abs=1e-3)
+        assert row[4] == pytest.approx(expected[frame["id"]], abs=1e-4)

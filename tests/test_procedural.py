@@ -53,7 +53,8 @@ def test_splits_use_different_streams(tmp_path, radar_train):
 def test_sample_format(radar_train):
     assert len(radar_train) == SMALL["num_train"]
     sample = radar_train[0]
-    assert set(sample) == {"image", "sparse", "depth", "condition"}
+    # A radar split adds its returns as points (issue 16; tests/test_radar_points.py).
+    assert set(sample) == {"image", "sparse", "depth", "condition", "radar_points"}
     assert sample["image"].shape == (3, H, W) and sample["image"].dtype == torch.float32
     for key in ("sparse", "depth"):
         assert sample[key].shape == (1, H, W) and sample[key].dtype == torch.float32

@@ -129,10 +129,15 @@ def _write_image_run(
     split="test",
     conditions=None,
     per_image=True,
+    model=None,
+    backbone="densenet169",
 ):
-    """A run with per-image RMSE ``rmse`` (one value per image) and consistent aggregates."""
+    """A run with per-image RMSE ``rmse`` (one value per image) and consistent aggregates;
+    ``model`` None: a record written before runs named their model."""
     rmse = np.asarray(rmse, dtype=float)
     conditions = conditions or [_condition(i) for i in range(len(rmse))]
+    identity = {"model": model} if model is not None else {}
+    model_override = [f"model={model}"] if model is not None else []
 
     def metrics(mask) -> dict:
         return {k: 0.1 for k in METRIC_KEYS} | {
@@ -149,16 +154,17 @@ def _write_image_run(
             "run": {
                 "dataset": dataset,
                 "sensor": "radar",
-                "backbone": "densenet169",
+                **identity,
+                "backbone": backbone,
                 "fusion": fusion,
                 "loss": loss,
                 "seed": seed,
-                "overrides": [f"fusion={fusion}", f"loss={loss}", f"seed={seed}"],
+                "overrides": [*model_override, f"fusion={fusion}", f"loss={loss}", f"seed={seed}"],
             },
             "split": split,
             "protocol": {"min_depth": 0.5, "max_depth": [80.0], "crop": "none"},
             "test": metrics(np.ones(len(rmse), bool)),
-            "test_by_condition": {c: metrics(cond == c) for c in CONDITIONS if (cond == c).any()},
+            "test_by_condition": {c: metrics(cond == c) for c in dict.fromkeys(conditions)},
             # Distance bins listed out of order on purpose: the table sorts them by range.
             "test_by_distance": {"10-20": metrics(~near), "0-10": metrics(near)},
             "per_image_file": "per_image.csv",
@@ -376,3 +382,236 @@ def test_wandb_logs_the_table_offline(grid, monkeypatch, capsys) -> None:
     runs = list((root / "wandb").glob("offline-run-*"))
     assert len(runs) == 1 and list(runs[0].glob("run-*.wandb"))
     assert "RGB-Fusion" in capsys.readouterr().out
+
+
+# --- Several models: the Model column, --by model, --compare model=...,fusion=... -----------
+
+MODEL_CONDITIONS = ("day", "night", "fog", "rain")
+S2D = ("sparse_to_dense", "resnet18")  # a model and its own encoder
+
+
+def _model_conditions(n: int) -> list[str]:
+    return [MODEL_CONDITIONS[i % len(MODEL_CONDITIONS)] for i in range(n)]
+
+
+@pytest.fixture
+def models_grid(tmp_path):
+    """3 seeds × DenseDepth (densenet169) and Sparse-to-Dense (resnet18) × RGB and RGB-Fusion;
+    Sparse-to-Dense is worse by 0.5 (1.0 at night), fusion better by 0.3."""
+    noise = np.random.default_rng(1).normal(0.0, 0.05, size=(3, NUM_IMAGES))
+    conditions = _model_conditions(NUM_IMAGES)
+    night = np.array([c == "night" for c in conditions])
+    runs = {}
+    for s, seed in enumerate((1, 2, 3)):
+        base = BASE + 0.1 * s
+        worse = np.where(night, 1.0, 0.5)
+        runs["densedepth", "rgb", seed] = base
+        runs["densedepth", "concat", seed] = base - 0.3 + noise[s]
+        runs["sparse_to_dense", "rgb", seed] = base + worse + noise[s]
+        runs["sparse_to_dense", "concat", seed] = base + worse - 0.3 + noise[s]
+    for (model, fusion, seed), rmse in runs.items():
+        backbone = S2D[1] if model == S2D[0] else "densenet169"
+        # Sparse-to-Dense's runs first on disk: the tables still list the model table's order.
+        prefix = "a" if model == S2D[0] else "b"
+        _write_image_run(
+            tmp_path,
+            f"{prefix}_{model}_{fusion}_{seed}",
+            fusion,
+            seed,
+            rmse,
+            conditions=conditions,
+            model=model,
+            backbone=backbone,
+        )
+    return tmp_path, runs, night
+
+
+def test_model_column_appears_when_models_vary(tmp_path, capsys) -> None:
+    from fusion_depth.models import MODELS
+    from fusion_depth.report import key_label
+
+    _write_image_run(tmp_path, "s2d", "rgb", 1, BASE + 1.0, model=S2D[0], backbone=S2D[1])
+    _write_image_run(tmp_path, "new", "rgb", 1, BASE, model="densedepth")
+    _write_image_run(tmp_path, "old", "rgb", 2, BASE + 0.2)  # no model recorded: DenseDepth
+    _write_image_run(tmp_path, "other", "rgb", 1, BASE, model="zz_net", backbone="x")
+    groups = group_runs(load_runs(tmp_path))
+    assert [(g["model"], g["n"]) for g in groups] == [
+        ("densedepth", 2),
+        ("sparse_to_dense", 1),
+        ("zz_net", 1),
+    ]
+    assert main([str(tmp_path)]) == 0
+    header, _, *lines = capsys.readouterr().out.strip().splitlines()
+    cells = [c.strip() for c in header.strip("|").split("|")]
+    assert cells[:4] == ["Model", "Backbone", "Modality", "Loss"]
+    assert [line.split("|")[1].strip() for line in lines] == [
+        "DenseDepth",
+        MODELS["sparse_to_dense"].label,
+        "zz_net",  # a model the table does not know keeps its name
+    ]
+    assert key_label("model", "sparse_to_dense") == "Sparse-to-Dense"
+    assert key_label("model", "zz_net") == "zz_net"
+    # One model: no Model column, as before.
+    assert main([str(tmp_path / "old")]) == 0
+    assert "Model" not in capsys.readouterr().out
+
+
+def test_by_model_gives_means_per_model_and_differences_to_densedepth(models_grid, capsys) -> None:
+    root, runs, night = models_grid
+    argv = [str(root), "--by", "model", "--resamples", "1000"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out.strip()
+    means, differences = out.split("\n\n")
+    header, _, *rows = means.splitlines()
+    assert [c.strip() for c in header.strip("|").split("|")][:3] == [
+        "Model",
+        "Backbone",
+        "Modality",
+    ]
+    # Night and fog first, then the others in file order.
+    assert [header.index(f"({c})") for c in ("all", "night", "fog", "day", "rain")] == sorted(
+        header.index(f"({c})") for c in ("all", "night", "fog", "day", "rain")
+    )
+    assert [r.split("|")[1].strip() for r in rows] == ["DenseDepth"] * 2 + ["Sparse-to-Dense"] * 2
+    assert all("±" in r for r in rows)
+    header, _, *rows = differences.splitlines()
+    assert "Baseline" in header and "ΔRMSE (night, 95% CI)" in header
+    assert header.index("(night,") < header.index("(fog,") < header.index("(day,")
+    assert len(rows) == 2 and all("Sparse-to-Dense" in r for r in rows)
+    assert all("DenseDepth / densenet169" in r for r in rows)  # the baseline and its encoder
+
+    assert main([*argv, "--format", "csv"]) == 0
+    rows = _csv(capsys)
+    assert [(r["Model"], r["Modality"]) for r in rows] == [
+        ("DenseDepth", "RGB"),
+        ("DenseDepth", "RGB-Fusion"),
+        ("Sparse-to-Dense", "RGB"),
+        ("Sparse-to-Dense", "RGB-Fusion"),
+    ]
+    assert rows[0]["Baseline"] == "" and rows[0]["rmse_all_diff"] == ""  # the baselines
+    for row, fusion in zip(rows[2:], ("rgb", "concat"), strict=True):
+        s2d = np.stack([runs["sparse_to_dense", fusion, s] for s in (1, 2, 3)])
+        dd = np.stack([runs["densedepth", fusion, s] for s in (1, 2, 3)])
+        assert row["Backbone"] == "resnet18" and row["Seeds"] == "3"
+        assert row["Pairing"] == "3 paired" and row["Images"] == str(NUM_IMAGES)
+        per_seed = s2d[:, night].mean(axis=1)
+        assert float(row["rmse_night_mean"]) == pytest.approx(per_seed.mean(), rel=1e-5)
+        assert float(row["rmse_night_std"]) == pytest.approx(np.std(per_seed, ddof=1), rel=1e-4)
+        day = np.array(_model_conditions(NUM_IMAGES)) == "day"
+        for column, mask in (("all", slice(None)), ("night", night), ("day", day)):
+            assert float(row[f"rmse_{column}_diff"]) == pytest.approx(
+                (s2d - dd)[:, mask].mean(), rel=1e-5
+            )
+        assert float(row["rmse_night_diff"]) == pytest.approx(1.0, abs=0.05)
+        assert row["rmse_night_significant"] == "yes" and row["level"] == "0.95"
+
+    out = root / "plots" / "by_model.png"
+    assert main([*argv, "--plot", str(out)]) == 0
+    with Image.open(out) as image:
+        assert image.format == "PNG"
+
+
+def test_by_model_of_one_model_prints_the_table(grid, capsys) -> None:
+    root, _ = grid
+    assert main([str(root), "--by", "model"]) == 0
+    captured = capsys.readouterr()
+    assert "\n\n" not in captured.out.strip() and "Model" in captured.out.splitlines()[0]
+    assert "DenseDepth" in captured.out and "one model" in captured.err
+
+
+def test_compare_model_and_fusion_pairs_on_shared_images(models_grid, capsys) -> None:
+    root, runs, night = models_grid
+    # Sparse-to-Dense RGB-Add (seed 1) scored on the first 30 images only; an L2 group, which
+    # differs in loss, is not compared.
+    add = runs["sparse_to_dense", "rgb", 1][:30] + 0.25
+    _write_image_run(
+        root,
+        "s2d_add",
+        "add",
+        1,
+        add,
+        conditions=_model_conditions(30),
+        model=S2D[0],
+        backbone=S2D[1],
+    )
+    _write_image_run(
+        root,
+        "s2d_l2",
+        "rgb",
+        1,
+        runs["sparse_to_dense", "rgb", 1],
+        loss="l2",
+        conditions=_model_conditions(NUM_IMAGES),
+        model=S2D[0],
+        backbone=S2D[1],
+    )
+    argv = [str(root), "--compare", "model=densedepth,fusion=rgb", "--resamples", "1000"]
+    assert main([*argv, "--format", "csv"]) == 0
+    rows = {(r["Model"], r["Backbone"], r["Modality"]): r for r in _csv(capsys)}
+    assert set(rows) == {
+        ("DenseDepth", "densenet169", "RGB-Fusion"),
+        ("Sparse-to-Dense", "resnet18", "RGB"),
+        ("Sparse-to-Dense", "resnet18", "RGB-Fusion"),
+        ("Sparse-to-Dense", "resnet18", "RGB-Add"),
+    }
+    assert rows["DenseDepth", "densenet169", "RGB-Fusion"]["Baseline"] == "DenseDepth / RGB"
+    row = rows["Sparse-to-Dense", "resnet18", "RGB-Add"]
+    assert row["Baseline"] == "DenseDepth / densenet169 / RGB" and row["Loss"] == "L1"
+    # Seed 1 only, over the 30 images both scored.
+    expected = (add - runs["densedepth", "rgb", 1][:30]).mean()
+    assert row["Seeds"] == "1 paired" and row["Images"] == "30"
+    assert float(row["rmse_all_diff"]) == pytest.approx(expected, rel=1e-6)
+    assert float(row["rmse_all_low"]) <= expected <= float(row["rmse_all_high"])
+    s2d_concat = rows["Sparse-to-Dense", "resnet18", "RGB-Fusion"]
+    diff = np.stack(
+        [runs["sparse_to_dense", "concat", s] - runs["densedepth", "rgb", s] for s in (1, 2, 3)]
+    )
+    assert float(s2d_concat["rmse_all_diff"]) == pytest.approx(diff.mean(), rel=1e-5)
+
+    # One model compared against another, fusion held fixed: backbone may differ too.
+    assert main([str(root), "--compare", "model=densedepth", "--format", "csv"]) == 0
+    pairs = {(r["Modality"], r["Loss"], r["Baseline"]) for r in _csv(capsys)}
+    assert pairs == {
+        ("RGB", "L1", "DenseDepth / densenet169"),
+        ("RGB-Fusion", "L1", "DenseDepth / densenet169"),
+    }
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("model=nope", "--compare model=nope: no runs with model=nope (have: densedepth, "),
+        (  # each value has runs, but not together
+            "model=sparse_to_dense,backbone=densenet169",
+            "--compare model=sparse_to_dense,backbone=densenet169: no runs with "
+            "model=sparse_to_dense and backbone=densenet169 (have: ",
+        ),
+    ],
+)
+def test_compare_unknown_value_is_one_line(models_grid, capsys, spec, message) -> None:
+    root, _, _ = models_grid
+    assert main([str(root), "--compare", spec]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {message}") and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "spec", ["model=densedepth,model=x", "model=densedepth,seed=1", "model=densedepth,", "model"]
+)
+def test_bad_multi_key_compare_is_rejected(spec) -> None:
+    with pytest.raises(SystemExit):
+        main(["x", "--compare", spec])
+
+
+def test_first_puts_columns_first(grid, capsys) -> None:
+    root, _ = grid
+    assert main([str(root), "--by", "condition", "--first", "night"]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header.index("(all)") < header.index("(night)") < header.index("(day)")
+    assert main([str(root), "--by", "condition"]) == 0  # without it: file order
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header.index("(day)") < header.index("(night)")
+    assert main([str(root), "--by", "condition", "--first", "nigth"]) == 2
+    assert "--first nigth: no condition 'nigth' (have: day, night)" in capsys.readouterr().err
+    assert main([str(root), "--first", "night"]) == 2
+    assert "give --by too" in capsys.readouterr().err

@@ -39,6 +39,7 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_p
     assert saved["run"] | {"overrides": None, "wandb_id": None} == {
         "dataset": "procedural",
         "sensor": "radar",
+        "model": "densedepth",
         "backbone": "densenet169",
         "fusion": "concat",
         "loss": "l1",

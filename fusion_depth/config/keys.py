@@ -14,6 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.show import show
 from fusion_depth.errors import ConfigError
+from fusion_depth.models._registry import create_model, model_class
 
 # Nodes without a ``_target_`` whose keys are one callable's arguments: data → the datamodule
 # (``DepthDataModule(reader=..., **cfg.data)``), eval → the evaluation protocol.
@@ -220,7 +221,14 @@ def check_known_keys(cfg: DictConfig) -> None:
                 continue
             if not isinstance(target, str):
                 raise ConfigError(f"{_join(path, '_target_')}={show(target)}: expected a name")
-            _check_node(node, path, _import_target(target, _join(path, "_target_")))
+            built = _import_target(target, _join(path, "_target_"))
+            if built is create_model:  # a factory: the keys are the named model's arguments
+                try:
+                    built = model_class(OmegaConf.select(cfg, _join(path, "name")))
+                except ValueError as err:
+                    raise ConfigError(str(err)) from None
+                node = {k: v for k, v in node.items() if k != "name"}
+            _check_node(node, path, built)
             checked.append(path)
     for path, target in PLAIN_CONSUMERS.items():
         node = plain.get(path)

@@ -79,6 +79,55 @@ def check_dataset(ds: DictConfig, fusion: str) -> None:
         )
 
 
+def check_model(cfg: DictConfig) -> None:
+    """The chosen network (``model.net.name``, a key of the model table) takes the chosen fusion
+    mode, encoder and dataset; a refusal names the model and the value it cannot take."""
+    from fusion_depth.models import model_entry
+
+    name = _get(cfg, "model.net.name")
+    if name is _ABSENT:
+        return
+    try:
+        entry = model_entry(name)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    checks = (
+        ("fusion", _get(cfg, "model.net.fusion"), entry.fusions),
+        ("backbone", _get(cfg, "model.net.backbone"), entry.backbones),
+        ("dataset.sensor", _get(cfg, "dataset.sensor"), entry.sensors),
+    )
+    for key, value, allowed in checks:
+        if value is not _ABSENT and allowed is not None and value not in allowed:
+            dataset = f" (dataset={cfg.dataset.name})" if key == "dataset.sensor" else ""
+            raise ConfigError(
+                f"model={name} cannot take {key}={show(value)}{dataset}: it takes "
+                f"{key}={'/'.join(allowed)} ({entry.paper})"
+            )
+
+
+def check_backbone(cfg: DictConfig) -> None:
+    """``backbone.name`` and ``model.net.backbone``: an encoder the network can build with its
+    taps (``backbone.taps``/``model.net.backbone_taps``: ``paper``, the default, takes the
+    paper's backbones; ``pyramid``, ``backbone=timm``, any timm model name, with a did-you-mean).
+    Whether a timm model has a usable feature pyramid is only known once it is built."""
+    from fusion_depth.models.encoder import TAPS, check_backbone_name
+
+    taps = "paper"  # a network without backbone_taps takes the backbone group's (check_model)
+    for name_key, taps_key in (
+        ("backbone.name", "backbone.taps"),
+        ("model.net.backbone", "model.net.backbone_taps"),
+    ):
+        _require(cfg, taps_key, *_one_of(*TAPS))
+        name, value = _get(cfg, name_key), _get(cfg, taps_key)
+        taps = taps if value is _ABSENT else value
+        if name is _ABSENT:
+            continue
+        try:
+            check_backbone_name(name, taps, key=name_key)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+
+
 def check_bottleneck(cfg: DictConfig) -> None:
     """A training batch must hold more than one value per channel at the encoder's bottleneck
     (1/32 of the input): batch norm in training mode cannot normalise a single value, so batch 1
@@ -100,15 +149,19 @@ def check_values(cfg: DictConfig) -> None:
     from fusion_depth.inference import UPSAMPLING
     from fusion_depth.losses import NONFINITE_ACTIONS, PIXEL_LOSSES
     from fusion_depth.metrics import AVERAGING, EVAL_CROPS
-    from fusion_depth.models.encoder import ENCODER_SPECS
     from fusion_depth.models.fusion import FUSION_MODES, SPARSE_ENCODINGS
     from fusion_depth.resume import RESUME_MODES
     from fusion_depth.speed import COMPILE_MODES, PRECISIONS
 
     _require(cfg, "fusion.mode", *_one_of(*FUSION_MODES))
     _require(cfg, "loss.pixel", *_one_of(*PIXEL_LOSSES))
-    _require(cfg, "backbone.name", *_one_of(*sorted(ENCODER_SPECS)))
+    check_backbone(cfg)
     _require(cfg, "backbone.pretrained", *_one_of(True, False))
+    # A fusion mode no model takes is named alone; then the model check, before the dataset's
+    # own checks, so a model that needs a sensor the dataset lacks is refused naming both
+    # (model=radarnet on a camera-only dataset).
+    _require(cfg, "model.net.fusion", *_one_of(*FUSION_MODES))
+    check_model(cfg)
     check_dataset(cfg.dataset, cfg.fusion.mode)
     _require(cfg, "seed", _is_int, "an integer")
 
@@ -212,8 +265,6 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "scheduler.gamma", positive_number, "a factor > 0")
     _require(cfg, "callbacks.progress_log.every_s", positive_number, "seconds > 0")
 
-    _require(cfg, "model.net.fusion", *_one_of(*FUSION_MODES))
-    _require(cfg, "model.net.backbone", *_one_of(*sorted(ENCODER_SPECS)))
     _require(cfg, "model.net.sparse_encoding", *_one_of(*SPARSE_ENCODINGS))
     _require(cfg, "model.compile", *_one_of(True, False, "auto"))
     _require(cfg, "model.compile_mode", *_one_of(*COMPILE_MODES))

@@ -17,6 +17,16 @@ SPLITS: tuple[str, ...] = ("train", "val", "test")
 # day, night, rain on nuScenes; the synthetic sets add fog and cloud). A dataset may use a subset.
 CONDITIONS: tuple[str, ...] = ("day", "night", "fog", "rain", "cloudy")
 
+# The columns of a sample's ``radar_points`` (see :class:`Sample`), in order:
+# - u, v: the return's continuous pixel position in the sample's image (column, row; pixel i
+#   spans [i, i + 1), so it lies in pixel (floor(v), floor(u)) of ``image`` and ``sparse``);
+# - depth: metres, camera-frame z (the forward distance), the quantity ``sparse`` holds;
+# - rcs: radar cross-section in dBsm, where the dataset records it (nuScenes), else 0;
+# - velocity: radial velocity in m/s, as the dataset's radar reports it (nuScenes: ego-motion
+#   compensated, positive moving away; CARLA: RadarDetection.velocity), else 0;
+# - valid: 1 for a return, 0 for a padding row (all of whose columns are 0).
+RADAR_POINT_FIELDS: tuple[str, ...] = ("u", "v", "depth", "rcs", "velocity", "valid")
+
 
 class Sample(TypedDict):
     """One frame as every dataset serves it, and as the datamodule batches it (a batch adds a
@@ -31,6 +41,16 @@ class Sample(TypedDict):
         - frame_box: optional (4,) int64 ``(top, left, height, width)`` of the original frame in
           the arrays, when the reader cropped or padded it (evaluation crops are fractions of the
           original frame).
+        - radar_points: (P, K) float32, only from a dataset whose sparse sensor is a radar
+          (procedural with ``sparse=radar``, CARLA, nuScenes): the returns that ``sparse`` was
+          projected from, one row per return with the columns :data:`RADAR_POINT_FIELDS`
+          (``K = len(RADAR_POINT_FIELDS)``), nearest first. ``P`` is fixed per dataset config
+          (``dataset.max_radar_points``): a frame with more returns keeps the nearest ``P``
+          (the others stay in ``sparse``), one with fewer is padded with rows of zeros
+          (``valid`` = 0). Every valid row's return is drawn in ``sparse`` at pixel
+          ``(floor(v), floor(u))`` (with its depth unless a nearer return shares the pixel);
+          the procedural radar's ``radar_height_extension`` draws it as a vertical line through
+          that pixel.
     """
 
     image: Tensor
@@ -38,6 +58,7 @@ class Sample(TypedDict):
     depth: Tensor
     condition: str
     frame_box: NotRequired[Tensor]
+    radar_points: NotRequired[Tensor]
 
 
 # The package's own table of dataset readers, by the name a dataset config and a checkpoint

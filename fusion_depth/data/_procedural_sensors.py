@@ -1,7 +1,8 @@
 """Simulated automotive radar and 64-beam lidar for :mod:`fusion_depth.data.procedural`.
 
 Both return a sparse depth map aligned with the camera: camera-frame z in metres at the pixel a
-return projects to, 0 elsewhere, the nearer return winning where two share a pixel.
+return projects to, 0 elsewhere, the nearer return winning where two share a pixel. The radar's
+returns are also available as image points (:func:`radar_returns`).
 """
 
 from __future__ import annotations
@@ -31,12 +32,19 @@ LIDAR_RANGE = 120.0
 LIDAR_TOLERANCE_DEG = 0.03
 
 
+def _in_image(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``u, v, z`` (M,) of the world points (N, 3) in front of the camera and inside its image
+    (pixel ``(int(v), int(u))``), in their order; float32 for float32 points."""
+    u, v, z = camera.project(points)
+    ok = (z > NEAR) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return u[ok], v[ok], z[ok]
+
+
 def _splat(points: np.ndarray, camera: Camera) -> np.ndarray:
     """Sparse depth map of world points; the nearer point wins a shared pixel."""
     out = np.full((camera.height, camera.width), np.inf, dtype=np.float32)
-    u, v, z = camera.project(points)
-    ok = (z > NEAR) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    np.minimum.at(out, (v[ok].astype(np.int64), u[ok].astype(np.int64)), z[ok])
+    u, v, z = _in_image(points, camera)
+    np.minimum.at(out, (v.astype(np.int64), u.astype(np.int64)), z)
     out[np.isinf(out)] = 0.0
     return out
 
@@ -170,13 +178,31 @@ def extend_height(points: np.ndarray, camera: Camera, height: float) -> np.ndarr
     return lines
 
 
+def radar_returns(
+    scene: Scene, rng: np.random.Generator, weather: Weather, height_extension: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """One radar scan: the sparse depth map (H, W) float32 in the camera frame, and its returns
+    in the image as float32 (M, 3) ``u, v, z`` rows (continuous pixel position, column and row,
+    and camera-frame z in metres), in scan order.
+
+    Each return is a point at the radar's mounting height, drawn at pixel ``(int(v), int(u))``
+    with depth ``z`` (the nearer winning a shared pixel); ``height_extension`` > 0 draws it as a
+    vertical line up to that height instead (see :func:`extend_height`), which passes through
+    that point, whose row stays the one returned. Returns whose point lies outside the image
+    are left out of the rows (with an extension, part of their line may still be drawn).
+    """
+    points = radar_points(scene, rng, weather)
+    u, v, z = _in_image(points, scene.camera)
+    sparse = _splat(extend_height(points, scene.camera, height_extension), scene.camera)
+    return sparse, np.stack([u, v, z], 1).astype(np.float32)
+
+
 def radar_map(
     scene: Scene, rng: np.random.Generator, weather: Weather, height_extension: float = 0.0
 ) -> np.ndarray:
     """Sparse radar depth (H, W) in the camera frame; ``height_extension`` > 0 draws every
     return as a vertical line up to that height (see :func:`extend_height`)."""
-    points = extend_height(radar_points(scene, rng, weather), scene.camera, height_extension)
-    return _splat(points, scene.camera)
+    return radar_returns(scene, rng, weather, height_extension)[0]
 
 
 def lidar_map(

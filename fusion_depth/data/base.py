@@ -38,6 +38,7 @@ from fusion_depth.data.prepared import (
     is_prepared,
     prepare_splits,
 )
+from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, check_max_points
 
 # The encoder halves the resolution five times, and the decoder's skips must line up.
 SIZE_MULTIPLE = 32
@@ -99,10 +100,13 @@ class PreparedDataset(PreparedSplit):
             prepares every other frame of every split, then raises
             :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones
             (what ``python -m fusion_depth.prepare`` uses).
+        max_radar_points: ``P``, the rows of ``radar_points`` each sample serves (the nearest
+            returns, zero rows after) when :meth:`load_frame` gives radar points (a radar
+            dataset); it changes nothing in the cache.
 
     Raises:
-        ValueError: a bad split, ``on_error`` or size (naming the key), or what the subclass's
-            hooks raise for its files.
+        ValueError: a bad split, ``on_error``, size or ``max_radar_points`` (naming the key), or
+            what the subclass's hooks raise for its files.
         FileNotFoundError: ``root`` is not a folder.
     """
 
@@ -122,13 +126,19 @@ class PreparedDataset(PreparedSplit):
         height: int,
         width: int,
         on_error: OnError = "raise",
+        max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
     ) -> None:
         self.split = check_split(split)
         self.on_error = check_on_error(on_error)
         self.height, self.width = check_size(height, width)
+        max_radar_points = check_max_points(max_radar_points)
         self.root = self.resolve_root(root)
         self.cache = self.prepare(Path(cache_root).expanduser())
-        super().__init__(self.cache / self.split_folder(split), use_filled=self.serves_filled())
+        super().__init__(
+            self.cache / self.split_folder(split),
+            use_filled=self.serves_filled(),
+            max_radar_points=max_radar_points,
+        )
 
     # --- what a dataset fills in ----------------------------------------------------------------
 
@@ -143,7 +153,10 @@ class PreparedDataset(PreparedSplit):
         raise NotImplementedError
 
     def load_frame(self, split: str, frame: Any) -> PreparedFrame:
-        """One frame of ``split`` (a value of :meth:`list_frames`) at ``height x width``.
+        """One frame of ``split`` (a value of :meth:`list_frames`) at ``height x width``; a radar
+        dataset adds its returns as ``radar_points``
+        (:func:`~fusion_depth.data.radar_points.point_rows`, from the projection that draws
+        ``sparse``), for every frame.
 
         Raises:
             ValueError, OSError: a file of the frame is missing, corrupt or of the wrong size

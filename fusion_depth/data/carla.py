@@ -58,7 +58,9 @@ pixels: focal ``f = W / (2 tan(fov / 2))``, principal point at the image centre 
 a camera-frame point lands at ``u = W/2 + f y / x`` (right), ``v = H/2 - f z / x`` (down), in pixel
 ``(floor(v), floor(u))``, with depth ``x``: the same forward distance the depth camera encodes.
 Points behind the camera, at or beyond ``max_range``, or outside the image are dropped; where two
-detections land on one pixel the nearer wins.
+detections land on one pixel the nearer wins. The detections that land in the image are also
+served as ``radar_points`` (:data:`~fusion_depth.data.RADAR_POINT_FIELDS`: ``u, v`` as above,
+``depth`` = x, ``velocity`` from the CSV, ``rcs`` 0), the nearest ``max_radar_points``.
 
 Conditions
 ----------
@@ -124,6 +126,7 @@ from fusion_depth.data.prepared import (
     check_on_error,
     not_a_file,
 )
+from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
 
 FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
 SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
@@ -271,6 +274,59 @@ def detections_to_points(detections: np.ndarray) -> np.ndarray:
     )
 
 
+def radar_image_points(
+    detections: np.ndarray,
+    radar_to_camera: np.ndarray,
+    fov_deg: float,
+    source_size: tuple[int, int],
+    size: tuple[int, int],
+    max_range: float = math.inf,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The detections (N, 4) that land in the output image: float64 (M,) arrays ``u, v`` (the
+    continuous pixel position, column and row, in the ``size`` image), ``depth`` (metres, the
+    forward distance x) and ``velocity`` (the detection's, m/s), in the detections' order.
+
+    ``source_size`` is the recorded camera's (height, width), which with ``fov_deg`` fixes the
+    intrinsics; ``size`` the output's, to which they are scaled per axis. See the module
+    docstring for the conventions. Detections with a non-finite depth, azimuth or altitude are
+    skipped, and so is anything whose arithmetic overflows (absurd ranges), behind the camera,
+    at or beyond ``max_range``, or outside the image.
+    """
+    (src_h, src_w), (height, width) = source_size, size
+    detections = np.asarray(detections, dtype=np.float64).reshape(-1, len(RADAR_COLUMNS))
+    detections = detections[np.isfinite(detections[:, :3]).all(axis=1)]
+    if not len(detections):
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
+    focal = src_w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    fx, fy = focal * width / src_w, focal * height / src_h
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow gives inf/NaN: dropped
+        points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
+        points += radar_to_camera[:3, 3]
+        x, y, z = points.T
+        ahead = (x > 0) & (x < min(max_range, _FLOAT32_MAX))
+        x, y, z = x[ahead], y[ahead], z[ahead]
+        u = width / 2.0 + fx * y / x
+        v = height / 2.0 - fy * z / x
+    # NaN compares false, so this also drops what overflowed; floor(u) in [0, width) <=>
+    # u in [0, width).
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    velocity = detections[ahead, 3][inside]
+    return u[inside], v[inside], x[inside], velocity
+
+
+def splat_points(
+    u: np.ndarray, v: np.ndarray, depth: np.ndarray, size: tuple[int, int]
+) -> np.ndarray:
+    """Points inside the image (:func:`radar_image_points`) to a float32 (height, width) sparse
+    depth map in metres (0 = none): each at pixel ``(floor(v), floor(u))``, the nearer winning
+    a shared pixel."""
+    sparse = np.full(size, np.inf)
+    rows, cols = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    np.minimum.at(sparse, (rows, cols), depth)
+    sparse[np.isinf(sparse)] = 0.0
+    return sparse.astype(np.float32)
+
+
 def project_radar(
     detections: np.ndarray,
     radar_to_camera: np.ndarray,
@@ -281,36 +337,13 @@ def project_radar(
 ) -> np.ndarray:
     """Radar detections to a float32 (height, width) sparse depth map in metres (0 = none).
 
-    ``source_size`` is the recorded camera's (height, width), which with ``fov_deg`` fixes the
-    intrinsics; ``size`` the output's, to which they are scaled per axis. See the module
-    docstring for the conventions.
-
-    Detections with a non-finite depth, azimuth or altitude are skipped, and so is anything
-    whose arithmetic overflows (absurd ranges): the map is always finite and non-negative.
+    The arguments are :func:`radar_image_points`'s, which drops what does not land in the
+    image; the map is always finite and non-negative.
     """
-    (src_h, src_w), (height, width) = source_size, size
-    sparse = np.full((height, width), np.inf)
-    detections = np.asarray(detections, dtype=np.float64).reshape(-1, len(RADAR_COLUMNS))
-    detections = detections[np.isfinite(detections[:, :3]).all(axis=1)]
-    if len(detections):
-        focal = src_w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
-        fx, fy = focal * width / src_w, focal * height / src_h
-        with np.errstate(over="ignore", invalid="ignore"):  # overflow gives inf/NaN: dropped
-            points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
-            points += radar_to_camera[:3, 3]
-            x, y, z = points.T
-            ahead = (x > 0) & (x < min(max_range, _FLOAT32_MAX))
-            x, y, z = x[ahead], y[ahead], z[ahead]
-            u = width / 2.0 + fx * y / x
-            v = height / 2.0 - fy * z / x
-        # NaN compares false, so this also drops what overflowed; floor(u) in [0, width) <=>
-        # u in [0, width).
-        inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        cols = np.floor(u[inside]).astype(np.int64)
-        rows = np.floor(v[inside]).astype(np.int64)
-        np.minimum.at(sparse, (rows, cols), x[inside])
-    sparse[np.isinf(sparse)] = 0.0
-    return sparse.astype(np.float32)
+    u, v, depth, _ = radar_image_points(
+        detections, radar_to_camera, fov_deg, source_size, size, max_range
+    )
+    return splat_points(u, v, depth, size)
 
 
 def read_radar_csv(path: str | os.PathLike) -> np.ndarray:
@@ -535,7 +568,8 @@ def scan_recording(
 
 
 def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> PreparedFrame:
-    """Decodes, projects and resizes one recorded frame.
+    """Decodes, projects and resizes one recorded frame; its detections in the image become
+    ``radar_points`` too (rcs 0: CARLA's radar does not report it).
 
     Raises the frame's ``problem`` when the scan found one, else what the readers raise for a
     bad file (DataFileError, FileNotFoundError), naming it.
@@ -552,7 +586,7 @@ def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> 
             f"{image.shape[1]}x{image.shape[0]} ({frame.rgb})",
         )
     depth = np.where(depth < max_range, depth, 0.0).astype(np.float32)
-    sparse = project_radar(
+    u, v, radar_depth, velocity = radar_image_points(
         read_radar_csv(frame.radar),
         frame.meta.radar_to_camera,
         frame.meta.fov,
@@ -562,9 +596,10 @@ def load_frame(frame: CarlaFrame, height: int, width: int, max_range: float) -> 
     )
     return PreparedFrame(
         image=resize_rgb(image, height, width),
-        sparse=sparse,
+        sparse=splat_points(u, v, radar_depth, (height, width)),
         depth=resize_depth_nearest(depth, height, width),
         condition=frame.meta.condition,
+        radar_points=point_rows(u, v, radar_depth, velocity=velocity),
     )
 
 
@@ -574,7 +609,9 @@ class CarlaDepth(PreparedDataset):
 
     ``conditions`` keeps the frames recorded in those conditions, and ``max_range`` is the metres
     at and beyond which depth and radar returns are invalid; the other arguments are
-    :class:`~fusion_depth.data.base.PreparedDataset`'s.
+    :class:`~fusion_depth.data.base.PreparedDataset`'s. Samples carry ``radar_points``
+    (``max_radar_points`` rows: ``u, v`` in the output image, ``depth`` the forward distance x,
+    ``velocity`` the CSV's, ``rcs`` 0).
     """
 
     name = "carla"
@@ -591,10 +628,11 @@ class CarlaDepth(PreparedDataset):
         conditions: Sequence[str] = CONDITIONS,
         max_range: float = 250.0,
         on_error: OnError = "raise",
+        max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
     ) -> None:
         self.conditions_kept = check_conditions(conditions)
         self.max_range = check_max_range(max_range)
-        super().__init__(split, root, cache_root, height, width, on_error)
+        super().__init__(split, root, cache_root, height, width, on_error, max_radar_points)
 
     def list_frames(self) -> FrameList:
         return scan_recording(self.root, self.conditions_kept, self.on_error)

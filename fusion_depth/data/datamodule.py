@@ -136,8 +136,10 @@ class DepthDataModule(L.LightningDataModule):
     """Builds split datasets from ``reader(split=...)``, a partial from the dataset config.
 
     Every reader returns samples ``{"image", "sparse", "depth", "condition"}`` (optionally
-    ``"frame_box"``, see :func:`fusion_depth.metrics.crop_mask`), so the model never knows which
-    dataset it trains on; the datamodule adds ``"index"``.
+    ``"frame_box"``, see :func:`fusion_depth.metrics.crop_mask`, and, from a radar dataset,
+    ``"radar_points"`` (P, K), which batch to (B, P, K): P is fixed per dataset config), so the
+    model never knows which dataset it trains on; the datamodule adds ``"index"``. Every sample
+    of a split has the same keys, as the default collate needs.
     """
 
     def __init__(

@@ -45,6 +45,13 @@ Points with ``z < min_distance`` (default 1 m; the devkit also drops points with
 of their own sensor), outside the image, or beyond the cache's 255.99 m ceiling are dropped; where
 two points land on one pixel the nearer wins.
 
+Radar points. The radar returns that land in the image are also served as ``radar_points``
+(:data:`~fusion_depth.data.RADAR_POINT_FIELDS`, the nearest ``max_radar_points``): ``u, v`` the
+projected position in the output image, ``depth`` the camera-frame ``z`` (both as ``sparse``),
+``rcs`` the devkit's ``rcs`` field (dBsm), and ``velocity`` the radial velocity, the
+ego-motion-compensated ``vx_comp, vy_comp`` projected on the line of sight from the radar in the
+frame of the sweep that measured it, positive moving away (m/s).
+
 Resolution: the image is scaled uniformly (bilinear; area-averaging when shrinking) until it covers
 ``height x width``, then cropped: centred horizontally, from the top vertically (sky, where lidar
 never returns). The default 448x800 is 1600x900 halved with 2 rows cut from the top. Sparse maps
@@ -103,6 +110,7 @@ from fusion_depth.data.prepared import (
     is_prepared,
     prepare_splits,
 )
+from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
 
 FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
 INSTALL = 'pip install -e ".[nuscenes]"'
@@ -140,6 +148,10 @@ RADAR_FILTERS = ("default", "off", "custom")
 RADAR_STATE_RANGES = {"invalid_states": 18, "dynprop_states": 8, "ambig_states": 5}
 CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE  # 255.99 m, the cache's ceiling
 LIDAR_POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring index
+# Rows of the devkit's RadarPointCloud.points (its FIELDS order): rcs, the velocities, and the
+# row this module's radar class (_radar_class) overwrites with the radial velocity. Row 6 is
+# ``vx``, the velocity before ego-motion compensation, which nothing here reads.
+RADAR_RCS_ROW, RADAR_RADIAL_ROW, RADAR_VX_COMP_ROW, RADAR_VY_COMP_ROW = 5, 6, 8, 9
 LAYOUT = (
     "the nuScenes folder as published: samples/, sweeps/, maps/ and the table folder "
     "<version>/ (v1.0-trainval, v1.0-mini or v1.0-test) side by side"
@@ -217,6 +229,49 @@ def resize_and_crop(
     return np.ascontiguousarray(image[top : top + height, left : left + width]), k
 
 
+def image_points(
+    points: np.ndarray,
+    intrinsic: np.ndarray,
+    height: int,
+    width: int,
+    min_distance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The camera-frame points ``(>=3, N)`` (rows x, y, z first) that land in the image: float64
+    ``(M,)`` arrays ``u, v`` (continuous pixel position: column, row) and ``z`` (depth, metres),
+    and the int64 ``(M,)`` indices of those points among the N, in their order.
+
+    Drops points with depth ``z < min_distance`` (behind the camera included), beyond the cache's
+    ceiling, or outside the image.
+    """
+    points = np.asarray(points, dtype=np.float64)[:3]
+    z = points[2]
+    keep = np.flatnonzero(np.isfinite(points).all(0) & (z >= min_distance) & (z <= CACHE_MAX_DEPTH))
+    if not len(keep):
+        return np.zeros(0), np.zeros(0), np.zeros(0), keep
+    uv = require_devkit().view_points(
+        points[:, keep], np.asarray(intrinsic, np.float64), normalize=True
+    )
+    # floor(u) in [0, width) <=> u in [0, width)
+    inside = (uv[0] >= 0) & (uv[0] < width) & (uv[1] >= 0) & (uv[1] < height)
+    index = keep[inside]
+    return uv[0, inside], uv[1, inside], points[2, index], index
+
+
+def splat_nearest(
+    u: np.ndarray, v: np.ndarray, z: np.ndarray, height: int, width: int
+) -> np.ndarray:
+    """Points inside the image (:func:`image_points`) to a float32 ``(height, width)`` depth map
+    (0 = none): each at pixel ``(floor(v), floor(u))``, the nearest winning a shared pixel."""
+    depth_map = np.zeros((height, width), dtype=np.float32)
+    if not len(z):
+        return depth_map
+    flat = np.floor(v).astype(np.int64) * width + np.floor(u).astype(np.int64)
+    order = np.lexsort((z, flat))  # by pixel, nearest first within a pixel
+    _, first = np.unique(flat[order], return_index=True)
+    depth_map.flat[flat[order][first]] = z[order][first]
+    return depth_map
+
+
 def project_points(
     points: np.ndarray,
     intrinsic: np.ndarray,
@@ -229,22 +284,8 @@ def project_points(
     Drops points with depth ``z < min_distance`` (behind the camera included), beyond the cache's
     ceiling, or outside the image; the nearest point wins a shared pixel.
     """
-    depth_map = np.zeros((height, width), dtype=np.float32)
-    points = np.asarray(points, dtype=np.float64)[:3]
-    z = points[2]
-    keep = np.isfinite(points).all(0) & (z >= min_distance) & (z <= CACHE_MAX_DEPTH)
-    points = points[:, keep]
-    if not points.shape[1]:
-        return depth_map
-    uv = require_devkit().view_points(points, np.asarray(intrinsic, np.float64), normalize=True)
-    col, row = np.floor(uv[0]), np.floor(uv[1])
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    flat = row[inside].astype(np.int64) * width + col[inside].astype(np.int64)
-    z = points[2, inside]
-    order = np.lexsort((z, flat))  # by pixel, nearest first within a pixel
-    _, first = np.unique(flat[order], return_index=True)
-    depth_map.flat[flat[order][first]] = z[order][first]
-    return depth_map
+    u, v, z, _ = image_points(points, intrinsic, height, width, min_distance)
+    return splat_nearest(u, v, z, height, width)
 
 
 def radar_filter_states(
@@ -283,10 +324,38 @@ def radar_filter_states(
     return {name: sorted(int(v) for v in getattr(filters, name)) for name in RADAR_STATE_RANGES}
 
 
+def radial_velocity(points: np.ndarray) -> np.ndarray:
+    """The radial velocity (N,) in m/s, positive moving away, of radar returns ``(18, N)`` in
+    their sensor's frame: ``(vx_comp, vy_comp)`` projected on the direction from the sensor to
+    ``(x, y)``; 0 for a return at the sensor or with a non-finite value."""
+    x, y = points[0], points[1]
+    vx, vy = points[RADAR_VX_COMP_ROW], points[RADAR_VY_COMP_ROW]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        radial = (x * vx + y * vy) / np.hypot(x, y)
+    return np.where(np.isfinite(radial), radial, 0.0)
+
+
 def _radar_class(devkit: Devkit, states: dict[str, list[int]]) -> type:
     """A ``RadarPointCloud`` with these filter states as its class attributes: the devkit's
-    ``from_file_multisweep`` applies them, and the devkit's global defaults stay untouched."""
-    return type("FilteredRadarPointCloud", (devkit.RadarPointCloud,), dict(states))
+    ``from_file_multisweep`` applies them, and the devkit's global defaults stay untouched.
+
+    Its ``from_file`` also writes each return's :func:`radial_velocity` into row
+    :data:`RADAR_RADIAL_ROW` (``vx``, unused here) while the points are still in the sensor's
+    frame: ``from_file_multisweep`` moves only x, y, z into the camera frame, after which the
+    line of sight from the radar is no longer known.
+    """
+
+    class FilteredRadarPointCloud(devkit.RadarPointCloud):
+        @classmethod
+        def from_file(cls, file_name: str, *args: Any, **kwargs: Any) -> Any:
+            cloud = super().from_file(file_name, *args, **kwargs)
+            if cloud.points.shape[1]:
+                cloud.points[RADAR_RADIAL_ROW] = radial_velocity(cloud.points)
+            return cloud
+
+    for name, values in states.items():
+        setattr(FilteredRadarPointCloud, name, values)
+    return FilteredRadarPointCloud
 
 
 @dataclass(frozen=True)
@@ -365,7 +434,8 @@ def check_files(nusc: Any, tokens: Sequence[str], settings: FrameSettings) -> No
 def _camera_points(
     cloud: type, nusc: Any, sample: dict, channel: str, nsweeps: int, min_distance: float, what: str
 ) -> np.ndarray:
-    """``(3, N)`` camera-frame points of ``channel``'s last ``nsweeps`` sweeps, via the devkit."""
+    """Camera-frame points of ``channel``'s last ``nsweeps`` sweeps, via the devkit: the point
+    cloud's rows (x, y, z moved into the camera frame, the others as read), ``(rows, N)``."""
     try:
         pc, _ = cloud.from_file_multisweep(
             nusc, sample, channel, CAMERA, nsweeps=nsweeps, min_distance=min_distance
@@ -387,7 +457,7 @@ def _camera_points(
             f"sample {sample['token']}: the devkit could not accumulate {channel} from "
             f"{[str(p) for p in paths]} ({type(err).__name__}: {err})"
         ) from err
-    return np.asarray(pc.points[:3], dtype=np.float64)
+    return np.asarray(pc.points, dtype=np.float64)
 
 
 def _intrinsic(calibration: dict, image_path: Path) -> np.ndarray:
@@ -401,7 +471,8 @@ def _intrinsic(calibration: dict, image_path: Path) -> np.ndarray:
 
 
 def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -> PreparedFrame:
-    """One keyframe sample: image, projected radar and lidar, and the filled lidar map."""
+    """One keyframe sample: image, projected radar (as a map and as points) and lidar, and the
+    filled lidar map."""
     sample = nusc.get("sample", token)
     cam = nusc.get("sample_data", _channel_token(sample, CAMERA))
     image_path = Path(nusc.dataroot) / cam["filename"]
@@ -431,7 +502,11 @@ def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -
         )
         for channel in settings.radar_channels
     ]
-    sparse = project_points(np.concatenate(radar, 1), intrinsic, *size, settings.min_distance)
+    radar_all = np.concatenate(radar, 1)
+    u, v, z, index = image_points(radar_all, intrinsic, *size, settings.min_distance)
+    features = np.nan_to_num(
+        radar_all[[RADAR_RCS_ROW, RADAR_RADIAL_ROW]][:, index], nan=0.0, posinf=0.0, neginf=0.0
+    )
     lidar = _camera_points(
         devkit.LidarPointCloud,
         nusc,
@@ -441,14 +516,15 @@ def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -
         settings.min_distance,
         "lidar",
     )
-    depth = project_points(lidar, intrinsic, *size, settings.min_distance)
+    depth = project_points(lidar[:3], intrinsic, *size, settings.min_distance)
     scene = nusc.get("scene", sample["scene_token"])
     return PreparedFrame(
         image=image,
-        sparse=sparse,
+        sparse=splat_nearest(u, v, z, *size),
         depth=depth,
         condition=condition_from_description(scene.get("description", "")),
         filled=None if settings.fill == "none" else fill_depth(depth, image, settings.fill),
+        radar_points=point_rows(u, v, z, rcs=features[0], velocity=features[1]),
     )
 
 
@@ -532,7 +608,8 @@ def load_tables(devkit: Devkit, root: Path, version: str) -> Any:
 class NuScenesDepth(PreparedDataset):
     """One split of nuScenes (see the module docstring), served from the prepared cache as
     :class:`~fusion_depth.data.Sample` dicts; the train split serves the filled lidar map as
-    ``depth`` when ``fill`` is not ``none``.
+    ``depth`` when ``fill`` is not ``none``. Samples carry ``radar_points`` (the nearest
+    ``max_radar_points`` returns in the image; module docstring).
 
     Missing files fail before anything is prepared, whatever ``on_error``; a file that cannot
     be read is handled by ``on_error`` (:class:`~fusion_depth.data.base.PreparedDataset`). The
@@ -565,6 +642,7 @@ class NuScenesDepth(PreparedDataset):
         stride: int = 1,
         test_split: str = "val",
         on_error: OnError = "raise",
+        max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
     ) -> None:
         require_devkit()  # first: without it nothing else can work
         for name, value, allowed in (
@@ -595,7 +673,7 @@ class NuScenesDepth(PreparedDataset):
         self.min_distance = float(min_distance)
         self.stride = int(stride)
         self.test_split = test_split
-        super().__init__(split, root, cache_root, height, width, on_error)
+        super().__init__(split, root, cache_root, height, width, on_error, max_radar_points)
 
     def split_folder(self, split: str) -> str:
         # test_split=val: the test split is the val split, the same frames prepared once.

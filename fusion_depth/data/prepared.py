@@ -7,6 +7,10 @@ writes them under ``<cache root>/<dataset>/<hash of the settings>/<split>/`` as
 * ``000123.sparse.png`` the sparse sensor input, uint16 depth PNG (1/256 m, 0 = no return)
 * ``000123.depth.png``  the measured ground truth, same encoding (what evaluation scores)
 * ``000123.filled.png`` the densified ground truth, only when a filling method is set
+* ``000123.radar.npy``  the radar returns as points, only for a radar dataset: float32 (M, K)
+  rows, columns :data:`~fusion_depth.data.RADAR_POINT_FIELDS`, nearest first, every return of
+  the frame (:mod:`fusion_depth.data.radar_points`); served cut or padded to
+  ``max_radar_points`` rows, so that setting changes nothing in the cache
 * ``000123.json``       the frame's source id and condition, written last
 * ``index.json``        every frame of the split, written when all are done
 
@@ -16,7 +20,8 @@ later run would read as valid (a ``.json`` that does not parse, or names another
 prepared again). A split with ``index.json`` is complete: preparing it again does nothing. Other
 settings hash to another folder, leaving this one alone. The user's dataset folder is only ever
 read. A damaged cache file (an index that does not parse, a truncated PNG, maps of different
-sizes) raises :class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache
+sizes, a radar points file truncated or of another dtype or shape) raises
+:class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache
 folder prepares it again.
 
 Broken frames. A frame whose files cannot be read (``make_frame`` raises a ``ValueError``, e.g.
@@ -49,7 +54,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fusion_depth.data import Sample
+from fusion_depth.data import RADAR_POINT_FIELDS, Sample
 from fusion_depth.data.depth_io import (
     DataFileError,
     read_depth_png,
@@ -57,10 +62,19 @@ from fusion_depth.data.depth_io import (
     write_depth_png,
     write_rgb_png,
 )
+from fusion_depth.data.radar_points import (
+    DEFAULT_MAX_RADAR_POINTS,
+    VALID,
+    check_max_points,
+    inside_image,
+    pad_points,
+    read_points,
+    write_points,
+)
 from fusion_depth.progress import track
 from fusion_depth.runs import write_json_atomic
 
-PREPARED_VERSION = 1  # bump when the cache layout changes, so old caches are not reused
+PREPARED_VERSION = 2  # bump when the cache layout changes, so old caches are not reused
 INDEX_FILE = "index.json"
 META_FILE = "meta.json"
 ON_ERROR = ("raise", "skip")  # what prepare_split does with a frame it cannot read
@@ -83,6 +97,10 @@ class PreparedFrame:
     # (top, left, height, width) of the original frame in the arrays when a reader cropped or
     # padded it: evaluation crops (eval.crop) are fractions of the original frame.
     frame_box: tuple[int, int, int, int] | None = None
+    # float32 (M, K) radar returns, columns RADAR_POINT_FIELDS, nearest first (radar_points.
+    # point_rows), every return drawn in ``sparse``; None for a dataset without a radar. A radar
+    # dataset gives every frame an array, (0, K) when it has no return.
+    radar_points: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -249,12 +267,16 @@ def prepare_split(
         write_depth_png(split_dir / f"{stem}.depth.png", frame.depth)
         if frame.filled is not None:
             write_depth_png(split_dir / f"{stem}.filled.png", frame.filled)
+        if frame.radar_points is not None:
+            write_points(split_dir / f"{stem}.radar.npy", frame.radar_points)
         record = {
             "id": frame_id,
             "file": stem,
             "condition": frame.condition,
             "filled": frame.filled is not None,
         }
+        if frame.radar_points is not None:
+            record["radar_points"] = True
         if frame.frame_box is not None:
             record["frame_box"] = [int(v) for v in frame.frame_box]
         write_json_atomic(record_path, record)
@@ -325,6 +347,7 @@ def _valid_record(record: Any) -> bool:
         and record["file"].isdigit()
         and isinstance(record.get("condition"), str)
         and isinstance(record.get("filled"), bool)
+        and isinstance(record.get("radar_points", False), bool)
         and (
             box is None
             or isinstance(box, list)
@@ -342,14 +365,40 @@ def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
             raise ValueError(
                 f"frame {frame_id}: {name} has shape {array.shape}, expected the image's {(h, w)}"
             )
+    points = frame.radar_points
+    if points is not None and (
+        points.ndim != 2
+        or points.shape[1] != len(RADAR_POINT_FIELDS)
+        or not np.isfinite(points).all()
+        or not (points[:, VALID] == 1).all()
+        or not inside_image(points, h, w)
+    ):
+        raise ValueError(
+            f"frame {frame_id}: radar_points {points.dtype} {points.shape}, expected finite "
+            f"(M, {len(RADAR_POINT_FIELDS)}) rows with valid = 1 and (u, v) inside the {h}x{w} "
+            "image (radar_points.point_rows)"
+        )
 
 
 class PreparedSplit(Dataset):
     """Reads one prepared split as :class:`~fusion_depth.data.Sample` dicts. ``use_filled``
     serves the filled ground truth as ``depth`` where it exists (training); evaluation leaves it
-    off and scores the measured points."""
+    off and scores the measured points. A split prepared with radar points serves
+    ``radar_points`` as float32 (``max_radar_points``, K): the nearest returns, zero rows after.
 
-    def __init__(self, split_dir: str | os.PathLike, use_filled: bool = False) -> None:
+    Raises:
+        FileNotFoundError: the split has no ``index.json``.
+        DataFileError: the index is damaged (when reading a frame: a damaged file of it).
+        ValueError: ``max_radar_points`` is not an integer >= 1.
+    """
+
+    def __init__(
+        self,
+        split_dir: str | os.PathLike,
+        use_filled: bool = False,
+        max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
+    ) -> None:
+        self.max_radar_points = check_max_points(max_radar_points)
         self.split_dir = Path(split_dir)
         index = self.split_dir / INDEX_FILE
         if not index.is_file():
@@ -368,6 +417,11 @@ class PreparedSplit(Dataset):
             )
         if not frames:
             raise DataFileError(index, "the split has no frames")
+        if len({bool(frame.get("radar_points")) for frame in frames}) > 1:
+            raise DataFileError(
+                index,
+                f"some frames have radar points and others not, expected all or none; {again}",
+            )
         self.frames: list[dict] = frames
         self.use_filled = use_filled
         self.conditions = [frame["condition"] for frame in self.frames]
@@ -401,4 +455,14 @@ class PreparedSplit(Dataset):
         }
         if "frame_box" in frame:
             sample["frame_box"] = torch.tensor(frame["frame_box"], dtype=torch.long)
+        if frame.get("radar_points"):
+            path = f"{stem}.radar.npy"
+            rows = read_points(path)
+            if not inside_image(rows, *image.shape[:2]):
+                raise DataFileError(
+                    path,
+                    f"radar points outside the {image.shape[0]}x{image.shape[1]} image of "
+                    f"{stem}.image.png; delete {self.split_dir} to prepare the split again",
+                )
+            sample["radar_points"] = torch.from_numpy(pad_points(rows, self.max_radar_points))
         return sample

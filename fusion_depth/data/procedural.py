@@ -15,6 +15,13 @@ files that ``__getitem__`` memory-maps:
 * ``depth.npy``  uint16 (N, H, W), depth in 1/256 m (KITTI convention: 3.9 mm steps, so <= 2 mm
   rounding error up to the 250 m horizon; 0 = invalid)
 * ``sparse.npy`` uint16 (N, H, W), same encoding (0 = no return)
+* ``radar_points.npy`` float32 (N, P, K), radar only: each frame's returns as points, the
+  ``radar_points`` of a :class:`~fusion_depth.data.Sample` (columns
+  :data:`~fusion_depth.data.RADAR_POINT_FIELDS`; ``P = max_radar_points``, the nearest kept,
+  zero rows after). ``u, v, depth`` are where the return projects before
+  ``radar_height_extension`` draws it as a line, i.e. the pixel of ``sparse`` it lands on with
+  the extension off; ``rcs`` and ``velocity`` are 0 (the simulated scene is static, and the
+  simulation draws no cross-section).
 * ``conditions.json`` the condition of every frame
 
 ``<hash>`` covers every parameter and ``GENERATOR_VERSION``, so a change renders into a new
@@ -39,23 +46,69 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fusion_depth.data import CONDITIONS, SPLITS, Sample
+from fusion_depth.data import CONDITIONS, RADAR_POINT_FIELDS, SPLITS, Sample
 from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
-from fusion_depth.data._procedural_sensors import lidar_map, radar_map
+from fusion_depth.data._procedural_sensors import lidar_map, radar_returns
 from fusion_depth.data.base import check_conditions, check_size, check_split
+from fusion_depth.data.depth_io import DataFileError
+from fusion_depth.data.radar_points import (
+    check_max_points,
+    pad_points,
+    point_rows,
+    short_reason,
+)
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SENSORS = ("radar", "lidar")
 DEPTH_SCALE = 256.0  # cache stores uint16 depth * 256
-_ARRAYS = ("image", "depth", "sparse")
+_ARRAYS = ("image", "depth", "sparse")  # every split's; a radar split adds RADAR_ARRAY
+RADAR_ARRAY = "radar_points"
+DEFAULT_MAX_RADAR_POINTS = 64  # the simulated radar has tens of returns in view
 
 log = logging.getLogger(__name__)
+
+
+Frame3 = tuple[np.ndarray, np.ndarray, np.ndarray]
+Frame4 = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
+
+
+@overload
+def render_frame(
+    seed: int,
+    split: str,
+    index: int,
+    height: int,
+    width: int,
+    fov_deg: float,
+    condition: str,
+    sparse: str,
+    radar_height_extension: float = ...,
+    *,
+    with_points: Literal[False] = ...,
+) -> Frame3: ...
+
+
+@overload
+def render_frame(
+    seed: int,
+    split: str,
+    index: int,
+    height: int,
+    width: int,
+    fov_deg: float,
+    condition: str,
+    sparse: str,
+    radar_height_extension: float = ...,
+    *,
+    with_points: Literal[True],
+) -> Frame4: ...
 
 
 def render_frame(
@@ -68,11 +121,16 @@ def render_frame(
     condition: str,
     sparse: str,
     radar_height_extension: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    *,
+    with_points: bool = False,
+) -> Frame3 | Frame4:
     """Frame ``index`` of ``split``: image uint8 (H, W, 3), depth and sparse float32 (H, W).
 
     A pure function of its arguments. Scene, weather and sensor draw from separate streams, so
-    the same frame with lidar instead of radar shows the same street.
+    the same frame with lidar instead of radar shows the same street. ``with_points`` adds a
+    fourth item: the radar's returns in the image as float32 (M, K) rows
+    (:func:`~fusion_depth.data.radar_points.point_rows`, nearest first; ``rcs``, ``velocity``
+    0), None for lidar; the other three are the same either way.
     """
     stream = np.random.SeedSequence(seed, spawn_key=(SPLITS.index(split), index))
     scene_rng, weather_rng, sensor_rng = (np.random.default_rng(s) for s in stream.spawn(3))
@@ -82,11 +140,16 @@ def render_frame(
     depth = np.where(ids == SKY_ID, 0.0, t).astype(np.float32)
     weather = sample_weather(condition, weather_rng)
     image = shade(scene, dirs, t, ids, weather, weather_rng)
+    points = None
     if sparse == "radar":
-        sparse_map = radar_map(scene, sensor_rng, weather, radar_height_extension)
+        sparse_map, returns = radar_returns(scene, sensor_rng, weather, radar_height_extension)
+        points = point_rows(returns[:, 0], returns[:, 1], returns[:, 2])
     else:
         sparse_map = lidar_map(scene.camera, dirs, depth, sensor_rng, weather)
-    return (image * 255 + 0.5).astype(np.uint8), depth, sparse_map
+    image_u8 = (image * 255 + 0.5).astype(np.uint8)
+    if with_points:
+        return image_u8, depth, sparse_map, points
+    return image_u8, depth, sparse_map
 
 
 def _encode_depth(depth: np.ndarray) -> np.ndarray:
@@ -101,9 +164,15 @@ def _check_choice(name: str, value: object, allowed: Sequence[str]) -> None:
 class ProceduralDepth(Dataset):
     """One split of the built-in procedural dataset (see the module docstring).
 
-    Samples are :class:`~fusion_depth.data.Sample` dicts (no ``frame_box``). Frame ``i`` has
-    condition ``conditions[i % len(conditions)]``, so every split holds each condition in equal
-    shares.
+    Samples are :class:`~fusion_depth.data.Sample` dicts (no ``frame_box``); with
+    ``sparse="radar"`` they carry ``radar_points`` (``max_radar_points`` rows, the nearest
+    returns; see the module docstring), with ``"lidar"`` not. Frame ``i`` has condition
+    ``conditions[i % len(conditions)]``, so every split holds each condition in equal shares.
+
+    Raises:
+        ValueError: an option out of range, naming it.
+        DataFileError: a generated array that is damaged (truncated, another dtype or shape),
+            naming it, when the split is first read.
     """
 
     # Where it writes (the argument, a folder below the cache), as PreparedDataset.writes_into.
@@ -123,6 +192,7 @@ class ProceduralDepth(Dataset):
         seed: int = 0,
         fov_deg: float = 70.0,
         radar_height_extension: float = 0.0,
+        max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
     ) -> None:
         check_split(split)
         _check_choice("sparse", sparse, SENSORS)
@@ -145,6 +215,8 @@ class ProceduralDepth(Dataset):
                 "metres (0 keeps each radar return a single pixel)"
             )
 
+        max_radar_points = check_max_points(max_radar_points)
+
         self.split = split
         self.params = {
             "generator_version": GENERATOR_VERSION,
@@ -160,11 +232,13 @@ class ProceduralDepth(Dataset):
         }
         if sparse == "radar":
             self.params["radar_height_extension"] = float(radar_height_extension)
+            self.params["max_radar_points"] = max_radar_points
+        self.array_names = _ARRAYS + ((RADAR_ARRAY,) if sparse == "radar" else ())
         text = json.dumps(self.params, sort_keys=True)
         self.cache_dir = Path(root) / hashlib.sha256(text.encode()).hexdigest()[:12]
         self.split_dir = self.cache_dir / split
         self._length = int(counts[split])
-        if not _complete(self.split_dir):
+        if not _complete(self.split_dir, self.array_names):
             self._generate()
         self._arrays: dict[str, np.ndarray] | None = None
         self.conditions: list[str] = json.loads((self.split_dir / "conditions.json").read_text())
@@ -185,9 +259,17 @@ class ProceduralDepth(Dataset):
                 "depth": np.lib.format.open_memmap(tmp / "depth.npy", "w+", np.uint16, (n, h, w)),
                 "sparse": np.lib.format.open_memmap(tmp / "sparse.npy", "w+", np.uint16, (n, h, w)),
             }
+            radar = p["sparse"] == "radar"
+            if radar:
+                out[RADAR_ARRAY] = np.lib.format.open_memmap(
+                    tmp / f"{RADAR_ARRAY}.npy",
+                    "w+",
+                    np.float32,
+                    (n, p["max_radar_points"], len(RADAR_POINT_FIELDS)),
+                )
             conditions = [p["conditions"][i % len(p["conditions"])] for i in range(n)]
             for i, condition in enumerate(conditions):
-                image, depth, sparse = render_frame(
+                image, depth, sparse, points = render_frame(
                     p["seed"],
                     self.split,
                     i,
@@ -197,15 +279,18 @@ class ProceduralDepth(Dataset):
                     condition,
                     p["sparse"],
                     p.get("radar_height_extension", 0.0),
+                    with_points=True,
                 )
                 out["image"][i] = image
                 out["depth"][i] = _encode_depth(depth)
                 out["sparse"][i] = _encode_depth(sparse)
+                if radar:
+                    out[RADAR_ARRAY][i] = pad_points(points, p["max_radar_points"])
             for array in out.values():
                 array.flush()
             del out
             (tmp / "conditions.json").write_text(json.dumps(conditions))
-            _publish(tmp, self.split_dir)
+            _publish(tmp, self.split_dir, self.array_names)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         seconds = time.perf_counter() - start
@@ -222,11 +307,42 @@ class ProceduralDepth(Dataset):
         )
 
     def _open(self) -> dict[str, np.ndarray]:
+        """The split's arrays, memory-mapped, each checked against the dtype and shape it was
+        generated with (a DataFileError naming a damaged one)."""
         if self._arrays is None:
-            self._arrays = {
-                name: np.load(self.split_dir / f"{name}.npy", mmap_mode="r", allow_pickle=False)
-                for name in _ARRAYS
+            p = self.params
+            n, h, w = self._length, p["height"], p["width"]
+            expected = {
+                "image": (np.uint8, (n, h, w, 3)),
+                "depth": (np.uint16, (n, h, w)),
+                "sparse": (np.uint16, (n, h, w)),
+                RADAR_ARRAY: (np.float32, (n, p.get("max_radar_points"), len(RADAR_POINT_FIELDS))),
             }
+            arrays = {}
+            for name in self.array_names:
+                path = self.split_dir / f"{name}.npy"
+                dtype, shape = expected[name]
+                try:
+                    array = np.load(path, mmap_mode="r", allow_pickle=False)
+                except Exception as err:  # numpy raises ValueError, OSError, EOFError, ...
+                    raise DataFileError(
+                        path,
+                        f"unreadable ({short_reason(err)}); expected {np.dtype(dtype)} "
+                        f"{shape}; delete {self.split_dir} to generate it again",
+                    ) from err
+                if (
+                    not isinstance(array, np.ndarray)
+                    or array.dtype != dtype
+                    or array.shape != shape
+                ):
+                    got = f"{array.dtype} {array.shape}" if isinstance(array, np.ndarray) else "?"
+                    raise DataFileError(
+                        path,
+                        f"{got}, expected {np.dtype(dtype)} {shape}; delete {self.split_dir} to "
+                        "generate it again",
+                    )
+                arrays[name] = array
+            self._arrays = arrays
         return self._arrays
 
     def __getstate__(self) -> dict:
@@ -244,29 +360,32 @@ class ProceduralDepth(Dataset):
         image = torch.from_numpy(np.ascontiguousarray(arrays["image"][index].transpose(2, 0, 1)))
         depth = torch.from_numpy(arrays["depth"][index].astype(np.float32))
         sparse = torch.from_numpy(arrays["sparse"][index].astype(np.float32))
-        return {
+        sample: Sample = {
             "image": image.float().div_(255.0),
             "sparse": sparse.div_(DEPTH_SCALE).unsqueeze(0),
             "depth": depth.div_(DEPTH_SCALE).unsqueeze(0),
             "condition": self.conditions[index],
         }
+        if RADAR_ARRAY in arrays:
+            sample["radar_points"] = torch.from_numpy(np.array(arrays[RADAR_ARRAY][index]))
+        return sample
 
 
-def _complete(split_dir: Path) -> bool:
+def _complete(split_dir: Path, names: Sequence[str] = _ARRAYS) -> bool:
     """A split folder only appears by an atomic rename of a finished one."""
     return (
-        all((split_dir / f"{name}.npy").is_file() for name in _ARRAYS)
+        all((split_dir / f"{name}.npy").is_file() for name in names)
         and (split_dir / "conditions.json").is_file()
     )
 
 
-def _publish(tmp: Path, split_dir: Path) -> None:
+def _publish(tmp: Path, split_dir: Path, names: Sequence[str] = _ARRAYS) -> None:
     """Renames a finished split into place. When another process got there first its split is
     kept (rename onto a non-empty folder fails); both rendered identical frames."""
     try:
         os.replace(tmp, split_dir)
     except OSError:
-        if not _complete(split_dir):
+        if not _complete(split_dir, names):
             raise
 
 

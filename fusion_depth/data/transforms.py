@@ -12,9 +12,10 @@ from torch import nn
 class TrainAugmentation(nn.Module):
     """The paper's online augmentation: horizontal flip, brightness and contrast jitter.
 
-    The flip moves image, sparse map and depth together; the colour jitter touches the image
-    only. Kornia's ``ColorJitter`` uses the torchvision formulas (multiplicative brightness,
-    contrast blended with the mean), which is what the paper's ranges refer to.
+    The flip moves image, sparse map, depth and radar points (``radar_points``: u → W - 1 - u)
+    together; the colour jitter touches the image only. Kornia's ``ColorJitter`` uses the
+    torchvision formulas (multiplicative brightness, contrast blended with the mean), which is
+    what the paper's ranges refer to.
     """
 
     def __init__(
@@ -35,8 +36,18 @@ class TrainAugmentation(nn.Module):
         image, sparse, depth = batch["image"], batch["sparse"], batch["depth"]
         stacked = self.flip(torch.cat([image, sparse, depth], dim=1))
         image, sparse, depth = stacked.split([image.shape[1], 1, 1], dim=1)
+        out = dict(batch)
+        points = batch.get("radar_points")
+        if points is not None:  # the flipped images' returns mirror too: u → W - 1 - u
+            flipped = self.flip._params["batch_prob"].to(points.device) > 0.5
+            mirror = flipped[:, None] & (points[..., 5] > 0)
+            points = points.clone()
+            points[..., 0] = torch.where(
+                mirror, image.shape[-1] - 1 - points[..., 0], points[..., 0]
+            )
+            out["radar_points"] = points
         return {
-            **batch,
+            **out,
             "image": self.color(image.contiguous()),
             "sparse": sparse.contiguous(),
             "depth": depth.contiguous(),

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from fusion_depth.inference import predict_depth
-from fusion_depth.models import DepthNet
+from fusion_depth.models import DepthModel
 
 
 class DepthExportModel(nn.Module):
@@ -30,7 +30,7 @@ class DepthExportModel(nn.Module):
     Holds its own CPU fp32 copy of the network, so exporting never changes the caller's model.
     """
 
-    def __init__(self, net: DepthNet) -> None:
+    def __init__(self, net: DepthModel) -> None:
         super().__init__()
         net = copy.deepcopy(net).float().cpu().eval()
         self.net = net.to(memory_format=torch.contiguous_format)

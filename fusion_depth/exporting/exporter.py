@@ -22,7 +22,7 @@ from fusion_depth.exporting.onnx import ONNX
 from fusion_depth.exporting.sidecar import sidecar_contents, sidecar_path
 from fusion_depth.exporting.torchscript import TORCHSCRIPT
 from fusion_depth.exporting.verification import TOLERANCE
-from fusion_depth.models import DepthNet
+from fusion_depth.models import DepthModel
 from fusion_depth.runs import write_atomic, write_text_atomic
 
 # The formats, by their format= value; a new back end is a module with a Backend and a line here.
@@ -61,13 +61,13 @@ def check_size(key: str, value: Any) -> int:
 
 
 def resolve_size(
-    model: LoadedModel | DepthNet, height: int | None, width: int | None
+    model: LoadedModel | DepthModel, height: int | None, width: int | None
 ) -> tuple[int, int]:
     """``height``/``width`` in pixels, or the checkpoint's training resolution where not given.
 
     Raises:
         ValueError: a size is not a positive multiple of 32, or is None and ``model`` records
-            none (a bare :class:`DepthNet` never does).
+            none (a bare :class:`DepthModel` never does).
     """
     dataset = (model.config.get("dataset") or {}) if isinstance(model, LoadedModel) else {}
     size = []
@@ -125,7 +125,7 @@ def check_export_options(fmt: Any, height: Any, width: Any, batch_size: Any, ver
 
 
 def export_model(
-    model: LoadedModel | DepthNet,
+    model: LoadedModel | DepthModel,
     fmt: str,
     output: str | os.PathLike,
     height: int | None = None,
@@ -137,7 +137,7 @@ def export_model(
     tolerance: float = TOLERANCE,
     sidecar: bool = True,
 ) -> Path:
-    """Export ``model`` (a checkpoint's :class:`LoadedModel`, or a bare :class:`DepthNet`, which
+    """Export ``model`` (a checkpoint's :class:`LoadedModel`, or a bare :class:`DepthModel`, which
     then needs ``height``/``width``) to ``output``; returns ``output``.
 
     ``fmt``: ``onnx`` or ``torchscript``. ``height``/``width``: the input size (multiples of 32),

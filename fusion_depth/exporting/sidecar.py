@@ -64,7 +64,12 @@ def sidecar_contents(
         "file": output.name,
         "checkpoint": str(loaded.path.resolve()) if loaded is not None else None,
         "fusion": net.fusion.mode,
-        "backbone": net.encoder.name,
+        # The run config's encoder; a bare network's own (not every model has one ``encoder``).
+        "backbone": (
+            loaded.backbone
+            if loaded is not None
+            else getattr(getattr(net, "encoder", None), "name", None)
+        ),
         "dataset": dataset.get("name"),
         "sensor": dataset.get("sensor"),
         "inputs": inputs,

@@ -1,20 +1,30 @@
 """Pretrained timm backbones exposed as DenseDepth-style multi-scale encoders.
 
-The decoder needs the features at strides 2, 4, 8, 16 (skips) and 32 (bottleneck). DenseDepth taps
-DenseNet-169 after conv0's ReLU, after pool0, after transitions 1 and 2, and at norm5; timm's
-``features_only`` taps different points (the dense blocks), so we walk the backbone's own stages
-in order and keep the outputs of the named ones.
+The decoder needs the features at strides 2, 4, 8, 16 (skips) and 32 (bottleneck). Two ways to
+get them (``taps``):
+
+* ``paper`` (``backbone=densenet169|resnet50``): the paper's exact taps. DenseDepth taps
+  DenseNet-169 after conv0's ReLU, after pool0, after transitions 1 and 2, and at norm5; timm's
+  ``features_only`` taps different points (the dense blocks), so we walk the backbone's own stages
+  in order and keep the outputs of the named ones (:data:`ENCODER_SPECS`).
+* ``pyramid`` (``backbone=timm backbone.name=<any timm model>``): the model's own feature pyramid,
+  ``timm.create_model(name, features_only=True, out_indices=...)``, the deepest level at each of
+  the strides 4, 8, 16, 32 (and 2 where the model has one). A model whose first level is at
+  stride 4 (ConvNeXt, Swin-like hierarchies, FastViT, ...) gets a small learned stem for the
+  stride-2 skip (see :class:`Encoder`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import difflib
 import logging
 import os
 import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlparse
 
 import timm
@@ -47,6 +57,47 @@ ENCODER_SPECS: dict[str, EncoderSpec] = {
     "resnet18": EncoderSpec("", ("act1", "layer1", "layer2", "layer3", "layer4")),
 }
 
+# How the decoder's five inputs are taken from the backbone (see the module docstring).
+TAPS: tuple[str, ...] = ("paper", "pyramid")
+STRIDES: tuple[int, ...] = (2, 4, 8, 16, 32)  # the decoder's contract, finest first
+_PROBE_SIZE = 64  # side of the all-zero image each encoder is checked on when built
+
+
+def check_backbone_name(name: Any, taps: str = "paper", key: str = "backbone.name") -> None:
+    """Refuse a backbone ``name`` the encoder cannot build with ``taps``, in one line naming
+    ``key``, before anything is built (no model is created; this takes milliseconds).
+
+    ``paper``: one of :data:`ENCODER_SPECS`. ``pyramid``: a timm architecture
+    (``timm.list_models()``), optionally with a pretrained tag (``convnext_tiny.fb_in22k``, as
+    ``timm.list_pretrained()`` lists them). Whether the model has a usable feature pyramid is only
+    known once it is built (:class:`Encoder` refuses it then).
+
+    Raises:
+        ValueError: ``{key}={name}: ...`` with a did-you-mean for a misspelt timm name.
+    """
+    if taps == "paper":
+        if name not in ENCODER_SPECS:
+            raise ValueError(
+                f"{key}={name}: expected one of {', '.join(sorted(ENCODER_SPECS))} (the paper's "
+                "taps); any other timm model: backbone=timm"
+            )
+        return
+    if taps != "pyramid":
+        raise ValueError(f"backbone.taps={taps}: expected one of {', '.join(TAPS)}")
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{key}={name}: expected a timm model name (timm.list_models())")
+    arch, tag = timm.models.split_model_name_tag(name)
+    known = timm.list_pretrained(f"{arch}.*") if tag else timm.list_models()
+    if (name if tag else arch) in known:
+        return
+    what = "not a timm model" if arch not in timm.list_models() else f"no pretrained tag {tag!r}"
+    close = difflib.get_close_matches(name, known or timm.list_pretrained(), n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    raise ValueError(
+        f"{key}={name}: {what}{hint}; expected a name from timm.list_models() or "
+        "timm.list_pretrained()"
+    )
+
 
 @contextlib.contextmanager
 def _missing_keys_reported() -> Iterator[list[str]]:
@@ -70,8 +121,19 @@ def _missing_keys_reported() -> Iterator[list[str]]:
         timm_log.setLevel(level)
 
 
-def _create_timm_model(name: str, pretrained: bool, weights: str | None) -> nn.Module:
-    """Create ``name`` through timm; weights from a local file, the hub cache, or the hub."""
+def create_timm_model(name: str, pretrained: bool, weights: str | None, **kwargs: Any) -> nn.Module:
+    """Create ``name`` through timm; weights from a local file, the hub cache, or the hub.
+
+    ``kwargs`` go to ``timm.create_model`` (e.g. ``features_only=True, out_indices=(...)``: timm
+    loads the weights into the whole model, classifier dropped, before wrapping it, so the file
+    and missing-keys checks below hold for a feature pyramid too).
+
+    Raises:
+        ValueError, FileNotFoundError: ``weights`` is not a checkpoint file.
+        RuntimeError: ``weights`` is not a state dict of ``name`` (a key the model needs is
+            missing, or a shape differs).
+        WeightsUnavailableError: ``pretrained`` without a cached or downloadable checkpoint.
+    """
     if weights:
         path = Path(weights).expanduser()
         if path.suffix not in {".safetensors", ".pth", ".pt", ".bin"}:
@@ -91,6 +153,7 @@ def _create_timm_model(name: str, pretrained: bool, weights: str | None) -> nn.M
                     pretrained=True,
                     num_classes=0,
                     pretrained_cfg_overlay={"file": str(path), "hf_hub_id": None, "url": None},
+                    **kwargs,
                 )
             except RuntimeError as err:
                 raise RuntimeError(
@@ -102,8 +165,8 @@ def _create_timm_model(name: str, pretrained: bool, weights: str | None) -> nn.M
             )
         return model
     if not pretrained:
-        return timm.create_model(name, pretrained=False, num_classes=0)
-    return _create_from_hub(name)
+        return timm.create_model(name, pretrained=False, num_classes=0, **kwargs)
+    return _create_from_hub(name, **kwargs)
 
 
 def _hub_reachable(timeout: float = 3.0) -> bool:
@@ -135,15 +198,16 @@ def _cached_weights(name: str) -> Path | None:
     return None
 
 
-def _create_from_hub(name: str) -> nn.Module:
-    """ImageNet weights from the local cache, else downloaded; fails fast when offline."""
+def _create_from_hub(name: str, **kwargs: Any) -> nn.Module:
+    """ImageNet weights from the local cache, else downloaded; fails fast when offline.
+    ``kwargs`` go to ``timm.create_model``."""
     cached = _cached_weights(name)
     if cached is not None:
-        return _create_timm_model(name, pretrained=True, weights=str(cached))
+        return create_timm_model(name, pretrained=True, weights=str(cached), **kwargs)
     reason = "the hub cannot be reached (offline)"
     if _hub_reachable():
         try:
-            return timm.create_model(name, pretrained=True, num_classes=0)
+            return timm.create_model(name, pretrained=True, num_classes=0, **kwargs)
         except Exception as err:  # noqa: BLE001 - any failure means "not available here"
             reason = f"the download failed ({type(err).__name__}: {str(err).splitlines()[0]})"
     raise WeightsUnavailableError(
@@ -153,34 +217,164 @@ def _create_from_hub(name: str) -> nn.Module:
     )
 
 
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0][:200]}" if text else type(err).__name__
+
+
+def _pyramid_levels(info: list[dict[str, Any]], name: str) -> dict[int, int]:
+    """stride → position in timm's ``feature_info`` of the level the decoder takes there: the
+    deepest one at each of the strides 4, 8, 16, 32, and at 2 where the model has one.
+
+    Raises:
+        ValueError: no level at one of the strides 4, 8, 16, 32 (e.g. a ViT: all at 16).
+    """
+    chosen: dict[int, int] = {}
+    for position, level in enumerate(info):
+        if level["reduction"] in STRIDES:
+            chosen[level["reduction"]] = position  # later levels at one stride are deeper
+    if not all(stride in chosen for stride in STRIDES[1:]):
+        strides = ", ".join(str(r) for r in sorted({level["reduction"] for level in info}))
+        raise ValueError(
+            f"backbone.name={name}: its feature pyramid has levels at strides {strides}; "
+            "expected levels at strides 4, 8, 16 and 32 (and optionally 2) for the DenseDepth "
+            "decoder"
+        )
+    return chosen
+
+
 class Encoder(nn.Module):
-    """Runs a timm backbone's stages in order and returns the five tapped feature maps."""
+    """A timm backbone returning the five feature maps the DenseDepth decoder takes.
+
+    ``taps="paper"`` runs the stages of a model of :data:`ENCODER_SPECS` in order and keeps the
+    outputs of the listed ones (the paper's DenseNet-169/ResNet-50 taps, unchanged).
+    ``taps="pyramid"`` takes any timm model that supports ``features_only``: the deepest level of
+    its own pyramid at each of the strides 4, 8, 16, 32 (``feature_info``), and at stride 2 where
+    it has one (EfficientNet, RegNet, MobileNet: their stem). A model whose first level is at
+    stride 4 (ConvNeXt's 4×4 patchify stem has nothing at stride 2) gets a learned stem instead:
+    3×3 conv (stride 2, no bias) + BatchNorm + ReLU on the fused input image, ``max(16, C4 // 2)``
+    channels for a stride-4 level of C4. The decoder's last up-block needs a stride-2 skip to
+    reach half resolution with detail finer than stride 4; this stem is what the paper's taps
+    give there (DenseNet's conv0 → norm0 → ReLU, ResNet's conv1 → bn1 → act1), small, and trained
+    from scratch with the decoder.
+
+    Args:
+        name: a timm model name (``paper``: a key of :data:`ENCODER_SPECS`).
+        pretrained: ImageNet weights from the local hub cache, else the hub.
+        weights: a local ``.safetensors``/``.pth``/``.pt``/``.bin`` state dict of ``name``
+            (timm/torchvision layout; the classifier may be in it).
+        taps: ``paper`` or ``pyramid`` (see above).
+
+    Shape:
+        - input: (B, 3, H, W), the fused, normalised image; H and W multiples of 32.
+        - output: five maps (B, C_i, H / s, W / s) for s = 2, 4, 8, 16, 32 and C_i =
+          :attr:`channels` ``[i]``, NCHW (an NHWC timm pyramid, e.g. MambaOut's, is permuted).
+
+    Raises:
+        ValueError: ``name`` is no backbone for ``taps`` (:func:`check_backbone_name`), timm
+            cannot build its ``features_only`` pyramid, the pyramid lacks a level at stride 4, 8,
+            16 or 32 (ViT, LeViT), or the model cannot run on a 64×64 image (fixed input sizes:
+            ViT, Swin).
+        FileNotFoundError, RuntimeError, WeightsUnavailableError: see
+            :func:`create_timm_model`.
+    """
 
     def __init__(
-        self, name: str = "densenet169", pretrained: bool = False, weights: str | None = None
+        self,
+        name: str = "densenet169",
+        pretrained: bool = False,
+        weights: str | None = None,
+        taps: str = "paper",
     ) -> None:
         super().__init__()
-        if name not in ENCODER_SPECS:
-            raise ValueError(f"backbone.name={name!r}: expected one of {sorted(ENCODER_SPECS)}")
-        spec = ENCODER_SPECS[name]
-        model = _create_timm_model(name, pretrained, weights)
-        container = model.get_submodule(spec.container) if spec.container else model
-        names = [n for n, _ in container.named_children()]
-        last = names.index(spec.taps[-1])
-        # Only the stages up to the bottleneck; pooling and classifier are dropped.
-        self.stages = nn.ModuleDict({n: container.get_submodule(n) for n in names[: last + 1]})
-        self.taps = spec.taps
+        check_backbone_name(name, taps)
         self.name = name
+        self.body: nn.Module | None = None  # pyramid: timm's features_only model
+        self.stem: nn.Module | None = None  # pyramid without a stride-2 level: the learned stem
+        self.nhwc = False
+        if taps == "paper":
+            spec = ENCODER_SPECS[name]
+            model = create_timm_model(name, pretrained, weights)
+            container = model.get_submodule(spec.container) if spec.container else model
+            names = [n for n, _ in container.named_children()]
+            last = names.index(spec.taps[-1])
+            # Only the stages up to the bottleneck; pooling and classifier are dropped.
+            self.stages = nn.ModuleDict({n: container.get_submodule(n) for n in names[: last + 1]})
+            self.taps: tuple[str, ...] = spec.taps
+        else:
+            model = self._build_pyramid(name, pretrained, weights)
         self.mean = tuple(model.pretrained_cfg.get("mean", (0.485, 0.456, 0.406)))
         self.std = tuple(model.pretrained_cfg.get("std", (0.229, 0.224, 0.225)))
+        probe = torch.zeros(1, 3, _PROBE_SIZE, _PROBE_SIZE)
         with torch.no_grad():
             was_training = self.training
             self.eval()
-            feats = self(torch.zeros(1, 3, 64, 64))
-            self.train(was_training)
+            try:
+                feats = self(probe)
+            except Exception as err:  # noqa: BLE001 - any failure: the model cannot run here
+                raise ValueError(
+                    f"backbone.name={name}: cannot run on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
+                    f"({_first_line(err)}); expected a model that takes any size that is a "
+                    "multiple of 32 (fixed-size models such as ViT or Swin are not supported)"
+                ) from None
+            finally:
+                self.train(was_training)
+        sizes = [tuple(f.shape[-2:]) for f in feats]
+        wanted = [(_PROBE_SIZE // s, _PROBE_SIZE // s) for s in STRIDES]
+        if sizes != wanted:
+            raise ValueError(
+                f"backbone.name={name}: its feature maps on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
+                f"are {sizes}; expected strides 2, 4, 8, 16, 32, i.e. {wanted}"
+            )
         self.channels: tuple[int, ...] = tuple(f.shape[1] for f in feats)
 
+    def _build_pyramid(self, name: str, pretrained: bool, weights: str | None) -> nn.Module:
+        """Set :attr:`body` (and :attr:`stem`, :attr:`taps`, :attr:`nhwc`) from timm's
+        ``features_only`` model of ``name``; returns it (for its ``pretrained_cfg``)."""
+        # The levels are only known from a built model: a random-init one first (cheap), which
+        # is kept when it already outputs exactly the chosen levels and no weights are wanted.
+        try:
+            probe = timm.create_model(name, pretrained=False, features_only=True)
+        except Exception as err:  # noqa: BLE001 - any failure means "no feature pyramid"
+            raise ValueError(
+                f"backbone.name={name}: timm cannot build its feature pyramid "
+                f"(features_only=True: {_first_line(err)}); expected a model that supports "
+                "features_only"
+            ) from None
+        info = probe.feature_info.info
+        chosen = _pyramid_levels(info, name)
+        out_indices = tuple(chosen[s] for s in STRIDES if s in chosen)
+        if out_indices == tuple(probe.feature_info.out_indices) and not (pretrained or weights):
+            body = probe
+        else:
+            del probe
+            body = create_timm_model(
+                name, pretrained, weights, features_only=True, out_indices=out_indices
+            )
+        self.body = body
+        fmt = getattr(body, "output_fmt", "NCHW")
+        self.nhwc = getattr(fmt, "value", fmt) == "NHWC"
+        taps = [str(info[i]["module"]) for i in out_indices]
+        if 2 not in chosen:
+            width = max(16, int(info[chosen[4]]["num_chs"]) // 2)
+            self.stem = nn.Sequential(
+                nn.Conv2d(3, width, 3, stride=2, padding=1, bias=False),
+                nn.BatchNorm2d(width),
+                nn.ReLU(inplace=True),
+            )
+            taps.insert(0, "stem (learned)")
+        self.taps = tuple(taps)
+        return body
+
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """(B, 3, H, W) → five maps at strides 2, 4, 8, 16, 32 (see the class docstring)."""
+        if self.body is not None:
+            features = list(self.body(x))
+            if self.nhwc:
+                features = [f.permute(0, 3, 1, 2) for f in features]
+            if self.stem is not None:
+                features.insert(0, self.stem(x))
+            return features
         features = []
         for name, stage in self.stages.items():
             x = stage(x)

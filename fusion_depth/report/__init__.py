@@ -2,9 +2,11 @@
 :mod:`fusion_depth.report.cli` for the options).
 
 One module per concern: :mod:`.groups` (grouping runs, tables), :mod:`.compare` (paired
-comparisons), :mod:`.plots` (bar charts), :mod:`.cli` (the command line and W&B upload).
+comparisons), :mod:`.by_model` (``--by model``: per model, with differences between models),
+:mod:`.plots` (bar charts), :mod:`.cli` (the command line and W&B upload).
 """
 
+from fusion_depth.report.by_model import build_model_report, default_baseline
 from fusion_depth.report.cli import log_wandb, main, table_cells
 from fusion_depth.report.compare import (
     COMPARE_KEYS,
@@ -12,6 +14,7 @@ from fusion_depth.report.compare import (
     PerImage,
     build_comparison_table,
     compare_groups,
+    compare_to_baseline,
     load_per_image,
     paired_differences,
     per_image_path,
@@ -20,10 +23,12 @@ from fusion_depth.report.groups import (
     ALL,
     BY_SECTIONS,
     COLUMNS,
+    HARD_CONDITIONS,
     build_by_table,
     build_table,
     by_column_stats,
     group_runs,
+    key_label,
 )
 from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
 
@@ -35,11 +40,16 @@ __all__ = [
     "build_table",
     "by_column_stats",
     "group_runs",
+    "HARD_CONDITIONS",
+    "key_label",
+    "build_model_report",
+    "default_baseline",
     "COMPARE_KEYS",
     "Comparison",
     "PerImage",
     "build_comparison_table",
     "compare_groups",
+    "compare_to_baseline",
     "load_per_image",
     "paired_differences",
     "per_image_path",

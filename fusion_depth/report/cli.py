@@ -3,26 +3,43 @@
 Reads every ``metrics.json`` below a directory, averages runs that differ only in their seed
 (mean ± sample std), marks the best value of each column, and prints Markdown, LaTeX or CSV.
 
+Runs are grouped by dataset, sensor, model, backbone, loss, fusion mode and other overrides;
+a Model column (the model table's labels: DenseDepth, Sparse-to-Dense, ...) appears when the
+runs hold several models.
+
 Options:
   --format {markdown,latex,csv}  how to print the table (default markdown).
   --by {condition,distance,cap}  one metric (``--metric``) per condition, distance bin or depth
                                  cap: columns ``all`` then each of them, mean ± std over seeds.
+  --by model                     per model: the ``--by condition`` table with a Model column
+                                 (night and fog first), then the paired differences (as
+                                 --compare, per condition) of each model against DenseDepth
+                                 (the runs' first model if none is DenseDepth) with the same
+                                 fusion mode and loss, or against the --compare baseline (e.g.
+                                 model=densedepth,fusion=rgb). As CSV, one table (see
+                                 :mod:`fusion_depth.report.by_model`).
   --metric KEY                   the metric of --by, --compare and a --by plot (default rmse;
                                  any key of the metrics: abs_rel, delta1, mae, ...).
-  --compare KEY=VALUE            e.g. ``fusion=rgb``: every group that differs from a VALUE group
-                                 only in KEY (fusion, loss or backbone) is compared with it image
-                                 by image: mean of the per-image differences (other − baseline,
-                                 so negative is better for errors) with a paired bootstrap CI,
-                                 pairing runs by seed. ``Significant`` says whether the CI
-                                 excludes 0 (such cells are bold). With ``--by condition``, also
-                                 per condition. Needs each run's ``per_image.csv``.
+  --compare KEY=VALUE[,...]      e.g. ``fusion=rgb``: every group that differs from a VALUE group
+                                 only in KEY (fusion, loss, backbone or model) is compared with
+                                 it image by image: mean of the per-image differences (other −
+                                 baseline, so negative is better for errors) with a paired
+                                 bootstrap CI, pairing runs by seed. ``Significant`` says whether
+                                 the CI excludes 0 (such cells are bold). With ``--by
+                                 condition``, also per condition. Several pairs
+                                 (``model=densedepth,fusion=rgb``): the baseline has them all, and
+                                 groups may differ from it in all those keys. With ``model``, a
+                                 group may differ in backbone too (each model has its own
+                                 encoder). Needs each run's ``per_image.csv``.
+  --first COL[,COL...]           put these --by columns first, after ``all`` (e.g. night,fog;
+                                 --by model's default); each must be a column of the runs.
   --resamples N                  bootstrap resamples of --compare (default 10000).
   --level L                      confidence level of --compare's intervals (default 0.95).
   --plot OUT.png                 also save a bar chart (any Matplotlib format: .png, .pdf, .svg):
                                  one subplot per metric (RMSE, ARD, δ1, or --metric) with a bar
                                  per fusion mode over each loss; with --by, --metric per column;
-                                 with --compare, the differences with their CIs. Error bars are
-                                 the std over seeds (none for a single seed).
+                                 with --compare (and --by model), the differences with their
+                                 CIs. Error bars are the std over seeds (none for a single seed).
   --wandb                        also log the table as a W&B Table (project fusion-depth, job
                                  type report, named after the directory, written below it);
                                  offline unless you are logged in (``wandb sync`` uploads it).
@@ -43,8 +60,25 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fusion_depth.report.compare import COMPARE_KEYS, build_comparison_table, compare_groups
-from fusion_depth.report.groups import BY_SECTIONS, build_by_table, build_table, group_runs
+from fusion_depth.report.by_model import (
+    BY_MODEL,
+    SECTION,
+    build_model_report,
+    default_baseline,
+)
+from fusion_depth.report.compare import (
+    COMPARE_KEYS,
+    build_comparison_table,
+    compare_to_baseline,
+)
+from fusion_depth.report.groups import (
+    BY_SECTIONS,
+    HARD_CONDITIONS,
+    build_by_table,
+    build_table,
+    column_keys,
+    group_runs,
+)
 from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
 from fusion_depth.run_record import METRICS_FILE, load_runs
 
@@ -97,14 +131,28 @@ def log_wandb(
     return run_dir
 
 
-def _compare_option(text: str) -> tuple[str, str]:
-    key, sep, value = text.partition("=")
-    if not sep or key not in COMPARE_KEYS or not value:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected KEY=VALUE with KEY one of {', '.join(COMPARE_KEYS)}, "
-            "e.g. fusion=rgb"
-        )
-    return key, value
+def _compare_option(text: str) -> dict[str, str]:
+    """``fusion=rgb`` or ``model=densedepth,fusion=rgb`` → the baseline's key → value."""
+    baseline: dict[str, str] = {}
+    for pair in text.split(","):
+        key, sep, value = pair.partition("=")
+        if not sep or key not in COMPARE_KEYS or not value:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: expected KEY=VALUE with KEY one of {', '.join(COMPARE_KEYS)}, "
+                "e.g. fusion=rgb (several separated by commas: model=densedepth,fusion=rgb)"
+            )
+        if key in baseline:
+            raise argparse.ArgumentTypeError(f"{text!r}: {key} given twice")
+        baseline[key] = value
+    return baseline
+
+
+def _first_option(text: str) -> tuple[str, ...]:
+    """``night,fog`` → the column names."""
+    names = tuple(n for n in text.split(",") if n)
+    if not names:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected column names, e.g. night,fog")
+    return names
 
 
 def _resamples_option(text: str) -> int:
@@ -137,8 +185,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--format", choices=("markdown", "latex", "csv"), default="markdown")
     parser.add_argument(
         "--by",
-        choices=tuple(BY_SECTIONS),
-        help="columns: all, then each condition / distance bin / depth cap (one --metric)",
+        choices=(*BY_SECTIONS, BY_MODEL),
+        help="columns: all, then each condition / distance bin / depth cap (one --metric); "
+        "model: per model and condition, with paired differences against DenseDepth",
     )
     parser.add_argument(
         "--metric",
@@ -147,9 +196,15 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--compare",
         type=_compare_option,
-        metavar="KEY=VALUE",
+        metavar="KEY=VALUE[,...]",
         help="paired per-image comparison against the KEY=VALUE groups (KEY: fusion, loss, "
-        "backbone), with bootstrap CIs",
+        "backbone, model; several separated by commas), with bootstrap CIs",
+    )
+    parser.add_argument(
+        "--first",
+        type=_first_option,
+        metavar="COL[,...]",
+        help="put these --by columns first (after all), e.g. night,fog (--by model's default)",
     )
     parser.add_argument(
         "--resamples",
@@ -168,34 +223,59 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_first(runs: Sequence[Any], section: str | None, first: Sequence[str]) -> None:
+    """Refuse a ``--first`` column the runs do not have (or ``--first`` without ``--by``)."""
+    if section is None:
+        raise ValueError("--first orders the --by columns; give --by too")
+    have = column_keys(runs, section)
+    unknown = [c for c in first if c not in have]
+    if unknown:
+        raise ValueError(
+            f"--first {','.join(first)}: no {section} {unknown[0]!r} (have: {', '.join(have[1:])})"
+        )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     metric = args.metric or "rmse"
+    by_model = args.by == BY_MODEL
+    section = SECTION if by_model else args.by  # the metrics.json breakdown of the columns
     try:
         runs = load_runs(args.directory)
         if not runs:
             raise ValueError(f"{args.directory}: no {METRICS_FILE} found below it")
+        if args.first:
+            _check_first(runs, section, args.first)
+        first = args.first or (HARD_CONDITIONS if by_model else ())
         groups = group_runs(runs)
+        baseline = args.compare or (default_baseline(groups) if by_model else None)
         comparisons = None
-        if args.compare:
-            key, value = args.compare
-            comparisons = compare_groups(
-                groups, key, value, metric, args.by, args.resamples, args.level
+        if baseline:
+            comparisons = compare_to_baseline(
+                groups, baseline, metric, section, args.resamples, args.level, first
+            )
+        elif by_model:
+            print(
+                "note: --by model: the runs hold one model, so there are no differences "
+                "between models",
+                file=sys.stderr,
             )
 
         def render(fmt: str) -> str:
+            if by_model:
+                return build_model_report(groups, comparisons, metric, fmt, first)
             if comparisons is not None:
                 return build_comparison_table(comparisons, fmt)
             if args.by:
-                return build_by_table(groups, args.by, metric, fmt)
+                return build_by_table(groups, args.by, metric, fmt, first=first)
             return build_table(groups, fmt)
 
         print(render(args.format))
         if args.plot:
-            if comparisons is not None:
+            if comparisons:
                 plot_comparisons(comparisons, args.plot)
-            elif args.by:
-                plot_by(groups, args.plot, args.by, metric)
+            elif section:
+                plot_by(groups, args.plot, section, metric, first)
             else:
                 plot_groups(groups, args.plot, [args.metric] if args.metric else PLOT_METRICS)
         if args.wandb:

@@ -1,23 +1,30 @@
-"""Paired per-image comparisons between groups of runs (``report --compare KEY=VALUE``): the
-mean per-image difference with a hierarchical paired bootstrap interval, pairing runs by seed."""
+"""Paired per-image comparisons between groups of runs (``report --compare KEY=VALUE[,...]``):
+the mean per-image difference with a hierarchical paired bootstrap interval, pairing runs by
+seed.
+
+The baseline is the group(s) with every ``KEY=VALUE`` given; every other group that differs from
+a baseline only in those keys is compared with it. A model brings its own encoder, so when
+``model`` is among the keys the groups may differ in ``backbone`` too
+(``--compare model=densedepth,fusion=rgb``: every model and fusion mode against DenseDepth RGB).
+"""
 
 from __future__ import annotations
 
 import csv
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import reduce
 from pathlib import Path
 
 import numpy as np
 
-from fusion_depth.losses import PIXEL_LOSS_LABELS
-from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.report.groups import (
     ALL,
     identity_cells,
     identity_columns,
+    key_label,
     metric_label,
+    put_first,
     tex_escape,
 )
 from fusion_depth.run_record import RunRecord
@@ -25,9 +32,11 @@ from fusion_depth.runs import PER_IMAGE_FILE
 from fusion_depth.stats import BootstrapResult, paired_bootstrap
 from fusion_depth.tables import format_table
 
-# --- Paired comparisons: --compare KEY=VALUE -------------------------------------------------
+# --- Paired comparisons: --compare KEY=VALUE[,KEY=VALUE...] -----------------------------------
 
-COMPARE_KEYS = ("fusion", "loss", "backbone")
+COMPARE_KEYS = ("fusion", "loss", "backbone", "model")
+# Every identity field of a group, in the tables' order (a comparison holds all but its keys).
+_GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting")
 # Protocol fields that change how per-image results are aggregated, not the results themselves.
 _AGGREGATION_ONLY = {"distance_bins", "bin_width", "averaging"}
 
@@ -120,7 +129,7 @@ class Comparison:
 
     group: dict
     baseline: dict
-    key: str
+    keys: tuple[str, ...]  # the compared identity fields, as given (``--compare``)
     metric: str
     seeds: tuple  # the paired seeds; empty when each side was averaged over its seeds
     num_images: int
@@ -133,6 +142,18 @@ class Comparison:
         if self.seeds:
             return f"{len(self.seeds)} paired"
         return f"means {self.baseline['n']} vs {self.group['n']}"
+
+    @property
+    def baseline_label(self) -> str:
+        """The baseline as the tables name it: its values of the compared keys (``RGB``,
+        ``DenseDepth / RGB``), with its backbone where it differs from the group's."""
+        parts = [
+            key_label(k, self.baseline[k])
+            for k in _GROUP_KEYS
+            if k in self.keys
+            or (k == "backbone" and self.baseline[k] != self.group[k] and "model" in self.keys)
+        ]
+        return " / ".join(parts)
 
 
 def _by_seed(group: dict) -> dict:
@@ -195,14 +216,28 @@ def paired_differences(
     return diff, conditions, seeds
 
 
-def _condition_columns(runs: Sequence[RunRecord], conditions: np.ndarray) -> list[str]:
-    """``all``, then the conditions in the order the metrics files list them, then the rest."""
+def _condition_columns(
+    runs: Sequence[RunRecord], conditions: np.ndarray, first: Sequence[str] = ()
+) -> list[str]:
+    """``all``, then the conditions in the order the metrics files list them (those named in
+    ``first`` first), then the rest."""
     order: dict[str, None] = {}
     for run in runs:
         order.update(dict.fromkeys(run.test_by_condition or {}))
     order.update(dict.fromkeys(conditions.tolist()))
     present = set(conditions.tolist())
-    return [ALL, *(c for c in order if c in present)]
+    return put_first([ALL, *(c for c in order if c in present)], first)
+
+
+def _varying_keys(keys: Sequence[str] | Mapping[str, str]) -> set[str]:
+    """The identity fields a comparison over ``keys`` lets differ: the keys, and the backbone
+    with the model (a model brings its own encoder)."""
+    return {*keys, *(["backbone"] if "model" in keys else [])}
+
+
+def compare_spec(baseline: Mapping[str, str]) -> str:
+    """The ``--compare`` option naming ``baseline``: ``fusion=rgb``, ``model=densedepth,...``."""
+    return ",".join(f"{k}={v}" for k, v in baseline.items())
 
 
 def compare_groups(
@@ -214,25 +249,64 @@ def compare_groups(
     resamples: int = 10000,
     level: float = 0.95,
 ) -> list[Comparison]:
-    """Every group differing from a ``key=value`` group only in ``key``, against that group.
+    """Every group differing from a ``key=value`` group only in ``key``, against that group
+    (:func:`compare_to_baseline` with one key)."""
+    return compare_to_baseline(groups, {key: value}, metric, by, resamples, level)
+
+
+def compare_to_baseline(
+    groups: Sequence[dict],
+    baseline: Mapping[str, str],
+    metric: str = "rmse",
+    by: str | None = None,
+    resamples: int = 10000,
+    level: float = 0.95,
+    first: Sequence[str] = (),
+) -> list[Comparison]:
+    """Every group differing from a baseline group only in ``baseline``'s keys, against it.
+
+    A baseline group has every ``key: value`` of ``baseline`` (e.g. ``{"model":
+    "densedepth", "fusion": "rgb"}``); a group that has them all is a baseline, not compared.
+    With ``model`` among the keys, ``backbone`` counts as part of the model (each model has its
+    own encoder), so a group may differ from its baseline in backbone too; a group matching
+    several baselines (which then differ in backbone) is compared with each.
 
     Each comparison holds the mean per-image difference (other − baseline) and its bootstrap
     interval (:func:`fusion_depth.stats.paired_bootstrap`), over all shared images and, with
-    ``by="condition"``, over each condition's images.
+    ``by="condition"``, over each condition's images (columns in ``first`` first).
+
+    Raises:
+        ValueError: a key that cannot be compared, no group with the baseline's values
+            (naming the values there are), no group to compare, or runs that cannot be paired.
     """
-    if key not in COMPARE_KEYS:
-        raise ValueError(f"--compare {key}={value}: expected KEY one of {', '.join(COMPARE_KEYS)}")
+    spec = compare_spec(baseline)
+    if not baseline:
+        raise ValueError("--compare: expected at least one KEY=VALUE, e.g. fusion=rgb")
+    for key in baseline:
+        if key not in COMPARE_KEYS:
+            raise ValueError(f"--compare {spec}: expected KEY one of {', '.join(COMPARE_KEYS)}")
     if by not in (None, "condition"):
         raise ValueError(
             f"--by {by} with --compare: {PER_IMAGE_FILE} has no {by} per image; use --by condition"
         )
-    baselines = [g for g in groups if g[key] == value]
-    if not baselines:
-        have = ", ".join(sorted({str(g[key]) for g in groups}))
-        raise ValueError(f"--compare {key}={value}: no runs with {key}={value} (have: {have})")
-    identity = [k for k in ("dataset", "sensor", *COMPARE_KEYS, "setting") if k != key]
+    for key, value in baseline.items():
+        if not any(g[key] == value for g in groups):
+            have = ", ".join(sorted({str(g[key]) for g in groups}))
+            raise ValueError(f"--compare {spec}: no runs with {key}={value} (have: {have})")
 
-    def same_but_key(a: dict, b: dict) -> bool:
+    def is_baseline(g: dict) -> bool:
+        return all(g[k] == v for k, v in baseline.items())
+
+    baselines = [g for g in groups if is_baseline(g)]
+    if not baselines:
+        have = "; ".join(sorted({",".join(f"{k}={g[k]}" for k in baseline) for g in groups}))
+        raise ValueError(
+            f"--compare {spec}: no runs with {' and '.join(spec.split(','))} (have: {have})"
+        )
+    varying = _varying_keys(baseline)
+    identity = [k for k in _GROUP_KEYS if k not in varying]
+
+    def same_but_keys(a: dict, b: dict) -> bool:
         return all(a[k] == b[k] for k in identity)
 
     cache: dict[tuple[Path | None, str], PerImage] = {}
@@ -242,55 +316,64 @@ def compare_groups(
             cache[run.path, m] = load_per_image(run, m)
         return cache[run.path, m]
 
+    keys = tuple(baseline)
     comparisons = []
     for g in groups:
-        if g[key] == value:
+        if is_baseline(g):
             continue
-        baseline = next((b for b in baselines if same_but_key(b, g)), None)
-        if baseline is None:
-            continue
-        diff, conditions, seeds = paired_differences(baseline, g, metric, load)
-        columns = [ALL]
-        if by == "condition":
-            columns = _condition_columns([*baseline["runs"], *g["runs"]], conditions)
-        results: dict[str, BootstrapResult | None] = {}
-        for column in columns:
-            d = diff if column == ALL else diff[:, conditions == column]
-            results[column] = (
-                paired_bootstrap(d, resamples=resamples, level=level) if d.shape[1] >= 2 else None
+        for base in (b for b in baselines if same_but_keys(b, g)):
+            diff, conditions, seeds = paired_differences(base, g, metric, load)
+            columns = [ALL]
+            if by == "condition":
+                columns = _condition_columns([*base["runs"], *g["runs"]], conditions, first)
+            results: dict[str, BootstrapResult | None] = {}
+            for column in columns:
+                d = diff if column == ALL else diff[:, conditions == column]
+                results[column] = (
+                    paired_bootstrap(d, resamples=resamples, level=level)
+                    if d.shape[1] >= 2
+                    else None
+                )
+            comparisons.append(
+                Comparison(g, base, keys, metric, seeds, diff.shape[1], level, results)
             )
-        comparisons.append(
-            Comparison(g, baseline, key, metric, seeds, diff.shape[1], level, results)
-        )
     if not comparisons:
         raise ValueError(
-            f"--compare {key}={value}: no other group differs from it only in {key} "
+            f"--compare {spec}: no other group differs from it only in "
+            f"{' and '.join(k for k in _GROUP_KEYS if k in varying)} "
             f"(groups: {', '.join(_group_name(g) for g in groups)})"
         )
     return comparisons
 
 
 def _group_name(group: dict) -> str:
-    parts = [group["dataset"], group["backbone"], group["loss"], group["fusion"], group["setting"]]
-    return "/".join(p for p in parts if p)
+    parts = [group[k] for k in ("dataset", "model", "backbone", "loss", "fusion", "setting")]
+    return "/".join(str(p) for p in parts if p)
 
 
-def key_label(key: str, value: str) -> str:
-    return {"fusion": FUSION_LABELS, "loss": PIXEL_LOSS_LABELS}.get(key, {}).get(value, value)
+def comparison_identity_columns(
+    comparisons: Sequence[Comparison], show: Collection[str] = ()
+) -> list[tuple[str, str]]:
+    """The identity columns naming compared groups: those that vary, those in ``show``, and a
+    compared model with its encoder (as Modality and Loss are always named)."""
+    models = [k for c in comparisons if "model" in c.keys for k in _varying_keys(c.keys)]
+    return identity_columns([c.group for c in comparisons], {*show, *models})
 
 
-def build_comparison_table(comparisons: Sequence[Comparison], fmt: str = "markdown") -> str:
+def build_comparison_table(
+    comparisons: Sequence[Comparison], fmt: str = "markdown", show: Collection[str] = ()
+) -> str:
     """Mean per-image difference and CI per compared group; significant cells are marked.
 
     A cell is significant (bold, and listed in the ``Significant`` column) when its interval
     excludes 0. The sign is other − baseline: negative is better for errors, positive for δ.
+    ``show``: identity columns to show even when every compared group has the same value.
     """
     if not comparisons:
         raise ValueError("no comparisons to tabulate")
-    groups = [c.group for c in comparisons]
     columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
     metric, level = comparisons[0].metric, comparisons[0].level
-    extra = identity_columns(groups)
+    extra = comparison_identity_columns(comparisons, show)
     header = [name for name, _ in extra] + ["Modality", "Loss", "Baseline", "Seeds", "Images"]
     first = len(header)
     latex = fmt == "latex"
@@ -309,7 +392,7 @@ def build_comparison_table(comparisons: Sequence[Comparison], fmt: str = "markdo
     rows, bold = [], set()
     for i, c in enumerate(comparisons):
         row = identity_cells(c.group, extra)
-        row += [key_label(c.key, c.baseline[c.key]), c.pairing, str(c.num_images)]
+        row += [c.baseline_label, c.pairing, str(c.num_images)]
         significant = []
         for j, column in enumerate(columns):
             r = c.results.get(column)

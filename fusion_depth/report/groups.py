@@ -1,13 +1,20 @@
 """Runs grouped by their setting (seeds averaged, mean ± sample std) and the tables of a
-sweep: the paper-style table, and one metric per condition, distance bin or depth cap."""
+sweep: the paper-style table, and one metric per condition, distance bin or depth cap.
+
+A group is the runs that share dataset, sensor, model, backbone, loss, fusion mode and other
+overrides (``setting``); the tables name a model by its label in the model table
+(:data:`fusion_depth.models.MODELS`), and runs recorded before models had names
+(``model`` None) are :data:`~fusion_depth.models.DEFAULT_MODEL`'s.
+"""
 
 from __future__ import annotations
 
 import statistics
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 from fusion_depth.losses import PIXEL_LOSS_LABELS
 from fusion_depth.metrics import HIGHER_IS_BETTER, METRIC_LABELS, METRIC_LATEX, TABLE_METRICS
+from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.run_record import BREAKDOWNS, RunRecord
 from fusion_depth.tables import format_table
@@ -17,8 +24,25 @@ COLUMNS = tuple(
     (k, METRIC_LABELS[k], METRIC_LATEX[k], max if HIGHER_IS_BETTER[k] else min)
     for k in TABLE_METRICS
 )
-# Overrides that already have a column or are averaged over.
-_IDENTITY_KEYS = {"dataset", "backbone", "fusion", "loss", "seed"}
+# Overrides that already have a column or are averaged over (``model=`` chooses the network,
+# as does ``model.net.name=``; other ``model.*`` keys are settings).
+_IDENTITY_KEYS = {"dataset", "model", "model.net.name", "backbone", "fusion", "loss", "seed"}
+
+
+def key_label(key: str, value: str) -> str:
+    """How the tables name an identity value: a model by its label in the model table
+    (:data:`fusion_depth.models.MODELS`), a fusion mode or pixel loss by the paper's name
+    (RGB-Fusion, L1, ...); any other value, or one the tables do not know, as it is."""
+    if key == "model":
+        entry = MODELS.get(value) if isinstance(value, str) else None
+        return entry.label if entry is not None else value
+    return {"fusion": FUSION_LABELS, "loss": PIXEL_LOSS_LABELS}.get(key, {}).get(value, value)
+
+
+def _rank(value: object, order: Collection[str]) -> tuple[int, str]:
+    """Sort key putting ``value`` at its place in ``order`` (a table's keys), unknown ones last."""
+    known = list(order)
+    return (known.index(value) if value in known else len(known), str(value))
 
 
 def _setting(run: RunRecord) -> str:
@@ -31,15 +55,18 @@ def _setting(run: RunRecord) -> str:
 
 def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     """Groups of runs (:func:`fusion_depth.run_record.load_runs`) that differ only in seed, in
-    the paper's order (loss, then modality). Each group: its identity (``dataset``, ``sensor``,
-    ``backbone``, ``loss``, ``fusion``, ``setting``), ``n``, ``seeds``, ``stats`` (metric →
-    mean, std over seeds) and its ``runs``."""
+    the paper's order (models in the model table's order, then loss, then modality). Each
+    group: its identity (``dataset``, ``sensor``, ``model``, ``backbone``, ``loss``,
+    ``fusion``, ``setting``), ``n``, ``seeds``, ``stats`` (metric → mean, std over seeds) and
+    its ``runs``. A run recorded without a model (before models had names) is
+    :data:`~fusion_depth.models.DEFAULT_MODEL`'s."""
     groups: dict[tuple, list[RunRecord]] = {}
     for run in runs:
         r = run.run
         key = (
             r.dataset,
             r.sensor or "",
+            r.model if r.model is not None else DEFAULT_MODEL,
             r.backbone,
             r.loss,
             r.fusion,
@@ -48,15 +75,14 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
         groups.setdefault(key, []).append(run)
 
     def order(key: tuple) -> tuple:
-        dataset, sensor, backbone, loss, fusion, setting = key
+        dataset, sensor, model, backbone, loss, fusion, setting = key
         return (
             dataset,
             sensor,
+            _rank(model, MODELS),
             backbone,
-            list(PIXEL_LOSS_LABELS).index(loss) if loss in PIXEL_LOSS_LABELS else 99,
-            loss,
-            list(FUSION_LABELS).index(fusion) if fusion in FUSION_LABELS else 99,
-            fusion,
+            _rank(loss, PIXEL_LOSS_LABELS),
+            _rank(fusion, FUSION_LABELS),
             setting,
         )
 
@@ -70,11 +96,12 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
                 statistics.fmean(values),
                 statistics.stdev(values) if len(values) > 1 else None,
             )
-        dataset, sensor, backbone, loss, fusion, setting = key
+        dataset, sensor, model, backbone, loss, fusion, setting = key
         result.append(
             {
                 "dataset": dataset,
                 "sensor": sensor,
+                "model": model,
                 "backbone": backbone,
                 "loss": loss,
                 "fusion": fusion,
@@ -88,25 +115,28 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     return result
 
 
-def identity_columns(groups: Sequence[dict]) -> list[tuple[str, str]]:
-    """(header, key) of the identity fields that vary, so a uniform grid keeps a narrow table."""
+def identity_columns(groups: Sequence[dict], show: Collection[str] = ()) -> list[tuple[str, str]]:
+    """(header, key) of the identity fields that vary (and those in ``show``, e.g. ``model``
+    for ``--by model``), so a uniform grid keeps a narrow table."""
     return [
         (name, key)
         for name, key in (
             ("Dataset", "dataset"),
             ("Sensor", "sensor"),
+            ("Model", "model"),
             ("Backbone", "backbone"),
             ("Setting", "setting"),
         )
-        if len({g[key] for g in groups}) > 1
+        if key in show or len({g[key] for g in groups}) > 1
     ]
 
 
 def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
-    """The cells naming a group: the varying identity fields, then Modality and Loss."""
-    return [group[key] for _, key in extra] + [
-        FUSION_LABELS.get(group["fusion"], group["fusion"]),
-        PIXEL_LOSS_LABELS.get(group["loss"], group["loss"]),
+    """The cells naming a group: the varying identity fields, then Modality and Loss (models,
+    fusion modes and losses by their labels, :func:`key_label`)."""
+    return [key_label(key, group[key]) for _, key in extra] + [
+        key_label("fusion", group["fusion"]),
+        key_label("loss", group["loss"]),
     ]
 
 
@@ -152,6 +182,17 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown") -> str:
 # --by choice → the metrics.json section holding one metrics dict per column.
 BY_SECTIONS = BREAKDOWNS
 ALL = "all"
+# The conditions ``--by model`` puts first (after ``all``) when a sweep has them: where a camera
+# struggles, the question radar fusion is asked.
+HARD_CONDITIONS = ("night", "fog")
+
+
+def put_first(columns: Sequence[str], first: Sequence[str] = ()) -> list[str]:
+    """``columns`` with ``all`` first, then those named in ``first`` (in that order, where
+    present), then the others in their own order."""
+    lead = [c for c in columns if c == ALL]
+    lead += [c for c in dict.fromkeys(first) if c in columns and c != ALL]
+    return lead + [c for c in columns if c not in lead]
 
 
 def higher_is_better(metric: str) -> bool:
@@ -179,8 +220,9 @@ def _lower_bound(key: str) -> float | None:
         return None
 
 
-def _column_keys(runs: Sequence[RunRecord], by: str) -> list[str]:
-    """``all``, then every key of the ``--by`` section in file order (distance bins by range)."""
+def column_keys(runs: Sequence[RunRecord], by: str, first: Sequence[str] = ()) -> list[str]:
+    """``all``, then every key of the ``--by`` section: those named in ``first``, then the
+    others in file order (distance bins by range)."""
     keys: dict[str, None] = {}
     for run in runs:
         section = run.breakdown(by)
@@ -194,7 +236,7 @@ def _column_keys(runs: Sequence[RunRecord], by: str) -> list[str]:
     bounds = [_lower_bound(k) for k in ordered]
     if by != "condition" and all(b is not None for b in bounds):
         ordered = [k for _, k in sorted(zip(bounds, ordered, strict=True), key=lambda t: t[0])]
-    return [ALL, *ordered]
+    return put_first([ALL, *ordered], first)
 
 
 def run_metric(run: RunRecord, by: str | None, column: str, metric: str) -> float | None:
@@ -213,15 +255,16 @@ def mean_std(values: Sequence[float]) -> tuple[float, float | None]:
 
 
 def by_column_stats(
-    groups: Sequence[dict], by: str, metric: str = "rmse"
+    groups: Sequence[dict], by: str, metric: str = "rmse", first: Sequence[str] = ()
 ) -> tuple[list[str], list[dict[str, tuple[float, float | None] | None]]]:
-    """Columns (``all`` + the ``--by`` keys) and, per group, column → (mean, std over seeds).
+    """Columns (``all`` + the ``--by`` keys, those in ``first`` first) and, per group,
+    column → (mean, std over seeds).
 
     A column a group never saw (e.g. a condition missing from its test set) maps to None.
     """
     if by not in BY_SECTIONS:
         raise ValueError(f"--by {by}: expected one of {', '.join(BY_SECTIONS)}")
-    columns = _column_keys([r for g in groups for r in g["runs"]], by)
+    columns = column_keys([r for g in groups for r in g["runs"]], by, first)
     stats = []
     for g in groups:
         cells: dict[str, tuple[float, float | None] | None] = {}
@@ -234,13 +277,23 @@ def by_column_stats(
 
 
 def build_by_table(
-    groups: Sequence[dict], by: str, metric: str = "rmse", fmt: str = "markdown"
+    groups: Sequence[dict],
+    by: str,
+    metric: str = "rmse",
+    fmt: str = "markdown",
+    *,
+    first: Sequence[str] = (),
+    show: Collection[str] = (),
 ) -> str:
-    """One metric per condition (distance bin, depth cap): where does a fusion mode help?"""
+    """One metric per condition (distance bin, depth cap): where does a fusion mode help?
+
+    ``first``: columns to put first (after ``all``); ``show``: identity columns to show even
+    when every group has the same value (``("model",)`` for ``--by model``).
+    """
     if not groups:
         raise ValueError("no runs to tabulate")
-    columns, stats = by_column_stats(groups, by, metric)
-    extra = identity_columns(groups)
+    columns, stats = by_column_stats(groups, by, metric, first)
+    extra = identity_columns(groups, show)
     show_n = any(g["n"] > 1 for g in groups)
     header = [name for name, _ in extra] + ["Modality", "Loss"] + (["Seeds"] if show_n else [])
     first = len(header)

@@ -9,15 +9,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fusion_depth.losses import PIXEL_LOSS_LABELS
-from fusion_depth.models.fusion import FUSION_LABELS
-from fusion_depth.report.compare import Comparison, key_label
+from fusion_depth.report.compare import Comparison, comparison_identity_columns
 from fusion_depth.report.groups import (
     ALL,
     by_column_stats,
     higher_is_better,
     identity_cells,
     identity_columns,
+    key_label,
     mean_std,
     metric_label,
     run_metric,
@@ -89,7 +88,7 @@ def plot_groups(
     extra = [key for _, key in identity_columns(groups)]
 
     def category(g: dict) -> str:
-        return " / ".join([*(g[k] for k in extra), PIXEL_LOSS_LABELS.get(g["loss"], g["loss"])])
+        return " / ".join([*(key_label(k, g[k]) for k in extra), key_label("loss", g["loss"])])
 
     categories = list(dict.fromkeys(category(g) for g in groups))
     fusions = list(dict.fromkeys(g["fusion"] for g in groups))
@@ -107,7 +106,7 @@ def plot_groups(
                     values = [run_metric(r, None, ALL, metric) for r in g["runs"]]
                     cells.append(mean_std(values))
             heights = [np.nan if c is None else c[0] for c in cells]
-            series.append((FUSION_LABELS.get(fusion, fusion), heights, _std_errors(cells)))
+            series.append((key_label("fusion", fusion), heights, _std_errors(cells)))
         _grouped_bars(ax, categories, series)
         ax.set_title(f"{metric_label(metric)} ({_direction(metric)})")
         if n == 0:
@@ -115,11 +114,18 @@ def plot_groups(
     return _save_figure_atomic(fig, out)
 
 
-def plot_by(groups: Sequence[dict], out: str | os.PathLike, by: str, metric: str = "rmse") -> Path:
-    """``metric`` per condition (or bin): one bar per group, error bars = seed std."""
+def plot_by(
+    groups: Sequence[dict],
+    out: str | os.PathLike,
+    by: str,
+    metric: str = "rmse",
+    first: Sequence[str] = (),
+) -> Path:
+    """``metric`` per condition (or bin; ``first`` first): one bar per group, error bars = seed
+    std."""
     from matplotlib.figure import Figure
 
-    columns, stats = by_column_stats(groups, by, metric)
+    columns, stats = by_column_stats(groups, by, metric, first)
     extra = identity_columns(groups)
     fig = Figure(figsize=(min(16.0, 2.5 + 0.4 * len(columns) * max(1, len(groups))), 3.8))
     ax = fig.add_subplot()
@@ -142,7 +148,7 @@ def plot_comparisons(comparisons: Sequence[Comparison], out: str | os.PathLike) 
     if not comparisons:
         raise ValueError("no comparisons to plot")
     columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
-    extra = identity_columns([c.group for c in comparisons])
+    extra = comparison_identity_columns(comparisons)
     fig = Figure(figsize=(min(16.0, 2.5 + 0.4 * len(columns) * max(1, len(comparisons))), 3.8))
     ax = fig.add_subplot()
     series = []
@@ -152,7 +158,7 @@ def plot_comparisons(comparisons: Sequence[Comparison], out: str | os.PathLike) 
         low = [0.0 if r is None else r.mean - r.low for r in results]
         high = [0.0 if r is None else r.high - r.mean for r in results]
         name = " / ".join(identity_cells(c.group, extra))
-        name += f" vs {key_label(c.key, c.baseline[c.key])}"
+        name += f" vs {c.baseline_label}"
         series.append((name, heights, np.array([low, high])))
     _grouped_bars(ax, columns, series)
     ax.axhline(0.0, color="black", linewidth=0.8)
