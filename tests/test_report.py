@@ -568,12 +568,14 @@ def test_compare_model_and_fusion_pairs_on_shared_images(models_grid, capsys) ->
     )
     assert float(s2d_concat["rmse_all_diff"]) == pytest.approx(diff.mean(), rel=1e-5)
 
-    # One model compared against another, fusion held fixed: backbone may differ too.
+    # One model compared against another, fusion held fixed: backbone and loss may differ too
+    # (each model brings its own); a group is paired with the baseline sharing most of them.
     assert main([str(root), "--compare", "model=densedepth", "--format", "csv"]) == 0
     pairs = {(r["Modality"], r["Loss"], r["Baseline"]) for r in _csv(capsys)}
     assert pairs == {
         ("RGB", "L1", "DenseDepth / densenet169"),
         ("RGB-Fusion", "L1", "DenseDepth / densenet169"),
+        ("RGB", "L2", "DenseDepth / densenet169 / L1"),
     }
 
 

@@ -5,11 +5,11 @@ It is the ``--by condition`` table with a Model column (models in the model tabl
 named by their labels; conditions in :data:`~fusion_depth.report.groups.HARD_CONDITIONS` first),
 followed by the ``--compare`` table of every group against its baseline: by default
 ``model=densedepth`` (:data:`~fusion_depth.models.DEFAULT_MODEL`; the sweep's first model when
-it has none), i.e. each other model against DenseDepth with the same fusion mode, loss and
-settings; ``--compare`` picks another baseline (``model=densedepth,fusion=rgb``: every model and
-fusion mode against DenseDepth RGB). As CSV (and in W&B) the two are one table: a row per group
-and baseline, with the group's mean and std and its differences to that baseline (empty for the
-baselines themselves).
+it has none), i.e. each other model (with its own encoder and loss) against DenseDepth with the
+same fusion mode and settings; ``--compare`` picks another baseline
+(``model=densedepth,fusion=rgb``: every model and fusion mode against DenseDepth RGB). As CSV
+(and in W&B) the two are one table: a row per group and baseline, with the group's mean and std
+and its differences to that baseline (empty for the baselines themselves).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from fusion_depth.models._registry import DEFAULT_MODEL
-from fusion_depth.report.compare import Comparison, build_comparison_table
+from fusion_depth.report.compare import Comparison, build_comparison_table, csv_cells
 from fusion_depth.report.groups import (
     HARD_CONDITIONS,
     build_by_table,
@@ -100,16 +100,6 @@ def _merged_csv(
         for c in against:
             diffs = [c.baseline_label, c.pairing, str(c.num_images)]
             for col in compared:
-                r = c.results.get(col)
-                diffs += (
-                    ["", "", "", ""]
-                    if r is None
-                    else [
-                        f"{r.mean:.6g}",
-                        f"{r.low:.6g}",
-                        f"{r.high:.6g}",
-                        "yes" if r.excludes_zero else "no",
-                    ]
-                )
+                diffs += csv_cells(c.results.get(col))
             rows.append(row + diffs + [f"{c.level:g}"])
     return format_table(header, rows, "csv")

@@ -29,8 +29,8 @@ Options:
                                  condition``, also per condition. Several pairs
                                  (``model=densedepth,fusion=rgb``): the baseline has them all, and
                                  groups may differ from it in all those keys. With ``model``, a
-                                 group may differ in backbone too (each model has its own
-                                 encoder). Needs each run's ``per_image.csv``.
+                                 group may differ in backbone and loss too (each model has its
+                                 own). Needs each run's ``per_image.csv``.
   --first COL[,COL...]           put these --by columns first, after ``all`` (e.g. night,fog;
                                  --by model's default); each must be a column of the runs.
   --resamples N                  bootstrap resamples of --compare (default 10000).

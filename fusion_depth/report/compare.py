@@ -3,9 +3,10 @@ the mean per-image difference with a hierarchical paired bootstrap interval, pai
 seed.
 
 The baseline is the group(s) with every ``KEY=VALUE`` given; every other group that differs from
-a baseline only in those keys is compared with it. A model brings its own encoder, so when
-``model`` is among the keys the groups may differ in ``backbone`` too
-(``--compare model=densedepth,fusion=rgb``: every model and fusion mode against DenseDepth RGB).
+a baseline only in those keys is compared with it. A model brings its own encoder and loss
+(``model=<name>`` selects them), so when ``model`` is among the keys the groups may differ in
+``backbone`` and ``loss`` too (``--compare model=densedepth,fusion=rgb``: every model and fusion
+mode against DenseDepth RGB).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ from fusion_depth.tables import format_table
 COMPARE_KEYS = ("fusion", "loss", "backbone", "model")
 # Every identity field of a group, in the tables' order (a comparison holds all but its keys).
 _GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting")
+# What a model brings with it (conf/backbone/for_<model>.yaml, conf/loss/for_<model>.yaml).
+_MODEL_PARTS = ("backbone", "loss")
 # Protocol fields that change how per-image results are aggregated, not the results themselves.
 _AGGREGATION_ONLY = {"distance_bins", "bin_width", "averaging"}
 
@@ -146,12 +149,12 @@ class Comparison:
     @property
     def baseline_label(self) -> str:
         """The baseline as the tables name it: its values of the compared keys (``RGB``,
-        ``DenseDepth / RGB``), with its backbone where it differs from the group's."""
+        ``DenseDepth / RGB``), with its backbone and loss where they differ from the group's."""
         parts = [
             key_label(k, self.baseline[k])
             for k in _GROUP_KEYS
             if k in self.keys
-            or (k == "backbone" and self.baseline[k] != self.group[k] and "model" in self.keys)
+            or (k in _MODEL_PARTS and self.baseline[k] != self.group[k] and "model" in self.keys)
         ]
         return " / ".join(parts)
 
@@ -231,8 +234,13 @@ def _condition_columns(
 
 def _varying_keys(keys: Sequence[str] | Mapping[str, str]) -> set[str]:
     """The identity fields a comparison over ``keys`` lets differ: the keys, and the backbone
-    with the model (a model brings its own encoder)."""
-    return {*keys, *(["backbone"] if "model" in keys else [])}
+    and loss with the model (a model brings its own encoder and loss)."""
+    return {*keys, *(_MODEL_PARTS if "model" in keys else ())}
+
+
+def _shared_parts(a: dict, b: dict) -> int:
+    """How many of what a model brings (:data:`_MODEL_PARTS`) groups ``a`` and ``b`` share."""
+    return sum(a[k] == b[k] for k in _MODEL_PARTS)
 
 
 def compare_spec(baseline: Mapping[str, str]) -> str:
@@ -267,9 +275,10 @@ def compare_to_baseline(
 
     A baseline group has every ``key: value`` of ``baseline`` (e.g. ``{"model":
     "densedepth", "fusion": "rgb"}``); a group that has them all is a baseline, not compared.
-    With ``model`` among the keys, ``backbone`` counts as part of the model (each model has its
-    own encoder), so a group may differ from its baseline in backbone too; a group matching
-    several baselines (which then differ in backbone) is compared with each.
+    With ``model`` among the keys, ``backbone`` and ``loss`` count as part of the model (each
+    model has its own encoder and loss), so a group may differ from its baseline in them too; a
+    group matching several baselines is compared with those sharing most of its backbone and
+    loss.
 
     Each comparison holds the mean per-image difference (other − baseline) and its bootstrap
     interval (:func:`fusion_depth.stats.paired_bootstrap`), over all shared images and, with
@@ -321,7 +330,11 @@ def compare_to_baseline(
     for g in groups:
         if is_baseline(g):
             continue
-        for base in (b for b in baselines if same_but_keys(b, g)):
+        matching = [b for b in baselines if same_but_keys(b, g)]
+        # Of the baselines a group may be paired with, those sharing most of what a model
+        # brings (its encoder and loss): a model's own loss variant pairs with the same loss.
+        closest = max((_shared_parts(b, g) for b in matching), default=0)
+        for base in (b for b in matching if _shared_parts(b, g) == closest):
             diff, conditions, seeds = paired_differences(base, g, metric, load)
             columns = [ALL]
             if by == "condition":
@@ -358,6 +371,19 @@ def comparison_identity_columns(
     compared model with its encoder (as Modality and Loss are always named)."""
     models = [k for c in comparisons if "model" in c.keys for k in _varying_keys(c.keys)]
     return identity_columns([c.group for c in comparisons], {*show, *models})
+
+
+def csv_cells(result: BootstrapResult | None) -> list[str]:
+    """A comparison's CSV cells: mean difference, interval bounds, significant (yes/no); empty
+    when too few images were shared to compute it."""
+    if result is None:
+        return ["", "", "", ""]
+    return [
+        f"{result.mean:.6g}",
+        f"{result.low:.6g}",
+        f"{result.high:.6g}",
+        "yes" if result.excludes_zero else "no",
+    ]
 
 
 def build_comparison_table(
@@ -400,16 +426,7 @@ def build_comparison_table(
                 significant.append(column)
                 bold.add((i, first + j))
             if fmt == "csv":
-                row += (
-                    ["", "", "", ""]
-                    if r is None
-                    else [
-                        f"{r.mean:.6g}",
-                        f"{r.low:.6g}",
-                        f"{r.high:.6g}",
-                        "yes" if r.excludes_zero else "no",
-                    ]
-                )
+                row += csv_cells(r)
             else:
                 row.append("–" if r is None else f"{r.mean:+.3f} [{r.low:+.3f}, {r.high:+.3f}]")
         if fmt == "csv":
