@@ -2,6 +2,7 @@
 
 python -m fusion_depth.bench dataset.height=384 dataset.width=1248 --baseline --json bench.json
 python -m fusion_depth.bench backbone=resnet50 fusion=concat trainer.precision=32-true
+python -m fusion_depth.bench --only peak,infer --engines torch,onnxruntime,openvino,openvino-int8
 
 Positional arguments are Hydra overrides of the training config (``conf/train.yaml``), so the
 benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion, resolution
@@ -15,15 +16,19 @@ benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion,
 * ``train``: samples/s over full optimizer steps (forward, the real loss, backward, Adam) at
   ``data.batch_size``;
 * ``data``: the input pipeline without a model: samples/s per DataLoader worker (reading,
-  decoding, collating), the training augmentation on the device (where training runs it,
-  after the transfer), and both together;
+  collating the uint8/uint16 samples), the conversion to floats and the training augmentation
+  on the device (where training runs them, after the transfer), and both together;
 * ``peak``: the matrix-product GFLOP/s of this device in the precision's dtype, the ceiling the
   model's GFLOP/s are compared with.
 
 ``--baseline`` times the same network in eager fp32 with contiguous memory in the same process
 and prints the speed-up ratios: quote those, not absolute times from a shared machine.
-``--onnx`` also times the network exported to ONNX Runtime (needs the ``onnx`` extra). The
-measuring functions are :mod:`fusion_depth.benchmarks`.
+``--engines`` also times the network exported to deployment engines (``onnxruntime``,
+``openvino``, ``openvino-int8``, ``tensorrt``; ``torch``, the PyTorch path above, is the
+reference and always timed): each is exported by ``export_model`` into a temporary folder,
+verified, loaded by its engine and timed like PyTorch, and printed with its latency over the
+frame's FLOP floor (its FLOPs at the ``peak`` stage's matrix-product GFLOP/s) and its speed-up
+over PyTorch. The measuring functions are :mod:`fusion_depth.benchmarks`.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
-from fusion_depth.benchmarks import STAGES, run_bench
+from fusion_depth.benchmarks import BENCH_ENGINES, STAGES, run_bench
 from fusion_depth.cli import check_override_keys, literal_paths
 from fusion_depth.config import CONF_DIR
 from fusion_depth.console import quiet_known_noise
@@ -117,10 +122,6 @@ def format_table(result: dict[str, Any]) -> str:
             f"| speed-up | {_ratio(result.get('infer_speedup'))} | | | "
             f"| {_ratio(result.get('train_speedup'))} | | |"
         )
-    if "onnx_infer" in result:
-        onnx = result["onnx_infer"]
-        name = f"ONNX Runtime fp32 ({onnx['provider']})"
-        lines.append(row(name, onnx, None, result.get("baseline_peak_gflops")))
     notes = []
     if peak:
         notes.append(f"matrix-product peak {peak:.0f} GFLOP/s ({s['precision']})")
@@ -134,13 +135,44 @@ def format_table(result: dict[str, Any]) -> str:
         d = result["data"]
         notes.append(
             f"data ({d['dataset']} {d['split']}): {d['samples_per_s_per_worker']:.1f} samples/s "
-            f"per loader worker ({d['workers']}), augmentation on {d['augment_device']} "
-            f"{d['augment_samples_per_s']:.1f} samples/s, together "
+            f"per loader worker ({d['workers']}), to floats + augmentation on "
+            f"{d['augment_device']} {d['augment_samples_per_s']:.1f} samples/s, together "
             f"{d['pipeline_samples_per_s']:.1f} samples/s"
         )
     if notes:
         lines += ["", "; ".join(notes)]
+    engines = result.get("engines") or {}
+    if len(engines) > 1:
+        lines += ["", *format_engines(result)]
     return "\n".join(lines)
+
+
+def format_engines(result: dict[str, Any]) -> list[str]:
+    """The ``--engines`` table: each engine's batch-1 latency, its latency over the FLOP floor
+    and its speed-up over PyTorch, with a line saying what the floor is."""
+    lines = [
+        "| engine | computes in | batch-1 latency, median (p95) | latency / FLOP floor "
+        "| speed-up over torch | export (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, e in result["engines"].items():
+        floor = e["latency_over_floor"]
+        lines.append(
+            f"| {name} | {e['computes']} | {_fmt(e['latency_s_median'])} s "
+            f"({_fmt(e['latency_s_p95'])}) | {_ratio(floor)} | {_ratio(e['speedup'])} "
+            f"| {_fmt(e.get('export_s'), 0)} |"
+        )
+    floor_s, peak = result.get("infer_floor_s"), result.get("peak_gflops")
+    if floor_s:
+        lines += [
+            "",
+            f"FLOP floor {floor_s:.3f} s: {result['infer_gflop_per_frame']:.1f} GFLOP per frame at "
+            f"the {result['settings']['precision']} matrix-product peak, {peak:.0f} GFLOP/s "
+            "(latency / floor 1.00× = at the floor)",
+        ]
+    else:
+        lines += ["", "no FLOP floor: the peak stage did not run (--only peak,infer)"]
+    return lines
 
 
 def bench_parser() -> argparse.ArgumentParser:
@@ -154,7 +186,10 @@ def bench_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--baseline", action="store_true", help="also time eager fp32")
     parser.add_argument(
-        "--onnx", action="store_true", help="also time the ONNX export in ONNX Runtime"
+        "--engines",
+        default="torch",
+        help=f"engines timing batch-1 inference, comma-separated: {','.join(BENCH_ENGINES)} "
+        "(torch, the reference, always runs)",
     )
     parser.add_argument("--json", type=Path, help="write the results to this JSON file")
     parser.add_argument(
@@ -192,7 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             cfg,
             stages=[stage for stage in args.only.split(",") if stage],
             baseline=args.baseline,
-            onnx=args.onnx,
+            engines=[engine for engine in args.engines.split(",") if engine],
             warmup=args.warmup,
             runs=args.runs,
             train_steps=args.train_steps,

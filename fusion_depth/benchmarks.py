@@ -10,11 +10,16 @@ for and gathers the result that ``--json`` writes:
 * :func:`bench_training`: samples/s over full optimizer steps (forward, the real loss, backward,
   Adam) at ``data.batch_size``;
 * :func:`bench_data`: the input pipeline without a model: samples/s per DataLoader worker
-  (reading, decoding, collating), the training augmentation on the device (where training runs
-  it, after the transfer), and both together;
+  (reading and collating samples as stored: uint8 images, uint16 depth maps), the conversion to
+  floats and the training augmentation on the device (where training runs them, after the
+  transfer), and both together;
 * :func:`matmul_peak_gflops`: the matrix-product GFLOP/s of this device in the precision's dtype,
-  the ceiling the model's GFLOP/s are compared with;
-* :func:`bench_onnx`: batch-1 latency of the network exported to ONNX Runtime.
+  the ceiling the model's GFLOP/s are compared with, and so the FLOP floor of a frame (its
+  FLOPs at that peak), the latency no engine can beat at that precision;
+* :func:`bench_engine`: batch-1 latency of the network exported by
+  :func:`~fusion_depth.exporting.export_model` and run by its engine
+  (:data:`BENCH_ENGINES`: ONNX Runtime, OpenVINO bf16/fp32 and int8, TensorRT), against the
+  PyTorch path of :func:`bench_inference` (``torch``, the reference).
 
 Times are wall seconds (:func:`time_calls`, synchronising the GPU), memory the stage's peak in
 MB (:class:`PeakMemory`).
@@ -23,9 +28,11 @@ MB (:class:`PeakMemory`).
 from __future__ import annotations
 
 import copy
+import json
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +46,15 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from fusion_depth.config import check_dataset
 from fusion_depth.data.datamodule import DepthDataModule
-from fusion_depth.exporting import export_model, require_onnx
+from fusion_depth.data.encoding import decode_sample
+from fusion_depth.exporting import (
+    BACKENDS,
+    ENGINES,
+    check_export_options,
+    export_model,
+    load_exported,
+    sidecar_path,
+)
 from fusion_depth.inference import predict_depth
 from fusion_depth.module import DepthModule
 from fusion_depth.runs import provenance
@@ -53,6 +68,38 @@ from fusion_depth.speed import (
 )
 
 STAGES = ("peak", "infer", "train", "data")
+
+
+@dataclass(frozen=True)
+class BenchEngine:
+    """An engine ``bench --engines`` can time: the bench network exported to ``format`` with
+    the export ``options`` (``format`` None: PyTorch itself, the reference)."""
+
+    name: str
+    format: str | None
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def key(self) -> str:
+        """The name in the result's top-level keys: ``openvino-int8`` → ``openvino_int8``."""
+        return self.name.replace("-", "_")
+
+
+# The engines of ``bench --engines``, by name. What is timed is what users deploy: the file
+# export_model writes, run by its engine from the runtime's table (ENGINES). INT8 calibrates
+# on synthetic frames: the bench network has random weights, so latency, not accuracy, is
+# measured there.
+BENCH_ENGINES: dict[str, BenchEngine] = {
+    engine.name: engine
+    for engine in (
+        BenchEngine("torch", None),
+        BenchEngine("onnxruntime", "onnx"),
+        BenchEngine("openvino", "openvino", {"precision": "auto"}),
+        BenchEngine("openvino-int8", "openvino", {"precision": "auto", "quantize": "int8"}),
+        BenchEngine("tensorrt", "tensorrt", {"precision": "fp16"}),
+    )
+}
+CALIBRATION_FRAMES = 8  # synthetic frames an int8 engine calibrates on
 # Top-level keys of every result, for scripts comparing runs (with --baseline also
 # baseline_infer_latency_s_median, baseline_train_samples_per_s and the speed-ups).
 SUMMARY_KEYS = (
@@ -243,16 +290,22 @@ def _timed_batches(
 def bench_data(
     cfg: DictConfig, device: torch.device, workers: int, batches: int, split: str
 ) -> dict[str, float]:
-    """The input pipeline without a model. Workers read and decode samples and collate them;
-    the training augmentation then runs on the batch on ``device`` (as in training, where it
-    runs after the transfer). Timed: the loader alone (per worker: the total divided by
-    ``max(workers, 1)``), the augmentation alone, and both in one loop."""
+    """The input pipeline without a model. Workers read samples in their encoded form (uint8
+    image, uint16 depth maps) and collate them; on ``device`` the batch is converted to floats
+    (:func:`~fusion_depth.data.encoding.decode_sample`) and augmented, as in training, where
+    both run after the transfer. Timed: the loader alone (per worker: the total divided by
+    ``max(workers, 1)``), the conversion and augmentation alone (``augment_samples_per_s``),
+    and everything in one loop."""
     datamodule = DepthDataModule(
         reader=instantiate(cfg.dataset.reader),
         num_workers=workers,
         pin_memory=device.type == "cuda",
     )
-    augmentation = instantiate(cfg.model.augmentation).to(device)
+    augment = instantiate(cfg.model.augmentation).to(device)
+
+    def augmentation(batch: dict) -> dict:
+        return augment(decode_sample(batch))
+
     batch_size = int(cfg.data.batch_size)
     loader = datamodule.loader(split, shuffle=True, batch_size=batch_size)
     if len(loader) == 0:
@@ -278,7 +331,35 @@ def bench_data(
     }
 
 
-def bench_onnx(
+def check_engines(engines: Sequence[str], device: torch.device) -> list[BenchEngine]:
+    """The engines of ``--engines`` (``torch`` first, always: it is the reference), checked
+    before anything is timed.
+
+    Raises:
+        ValueError: an unknown name, or ``tensorrt`` on a device that is not a CUDA GPU.
+        ImportError: a package (or the GPU) an engine needs is missing (one line naming it).
+    """
+    unknown = [name for name in engines if name not in BENCH_ENGINES]
+    if unknown:
+        raise ValueError(
+            f"--engines {','.join(unknown)}: expected some of {','.join(BENCH_ENGINES)}"
+        )
+    chosen = [BENCH_ENGINES["torch"]]
+    chosen += [BENCH_ENGINES[name] for name in dict.fromkeys(engines) if name != "torch"]
+    for engine in chosen[1:]:
+        backend = BACKENDS[engine.format]
+        ENGINES[backend.engine].require()
+        check_export_options(engine.format, None, None, None, True, **engine.options)
+        if backend.engine == "tensorrt" and device.type != "cuda":
+            raise ValueError(
+                f"--engines {engine.name}: times a GPU engine against PyTorch on the same GPU, "
+                f"but this benchmark runs on {device}; pass trainer.accelerator=gpu"
+            )
+    return chosen
+
+
+def bench_engine(
+    engine: BenchEngine,
     net: torch.nn.Module,
     cfg: DictConfig,
     device: torch.device,
@@ -286,39 +367,44 @@ def bench_onnx(
     runs: int,
     memory: PeakMemory,
 ) -> dict[str, Any]:
-    """Batch-1 latency of the network exported to ONNX (fp32, as :func:`export_model`
-    writes it) in ONNX Runtime, on the CUDA provider when timing a GPU."""
-    require_onnx()
-    import onnxruntime as ort
-
+    """Batch-1 latency of ``net`` exported by :func:`export_model` as ``engine`` asks (into a
+    temporary folder, verified against PyTorch as every export is) and loaded by its engine
+    (:func:`~fusion_depth.exporting.load_exported`), timed as :func:`bench_inference` times
+    PyTorch: the same call on the same synthetic frame. An int8 engine calibrates on
+    :data:`CALIBRATION_FRAMES` synthetic frames."""
     height, width = int(cfg.dataset.height), int(cfg.dataset.width)
+    backend = BACKENDS[engine.format]
+    options = dict(engine.options)
+    if options.get("quantize"):
+        frames = [
+            synthetic_batch(cfg, 1, torch.device("cpu"), seed=1 + i)
+            for i in range(CALIBRATION_FRAMES)
+        ]
+        names = ["image", "sparse"] if net.fusion.uses_sparse else ["image"]
+        options["calibration"] = [tuple(frame[name] for name in names) for frame in frames]
     with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
         path = export_model(
-            copy.deepcopy(net).float().cpu(),
-            "onnx",
-            Path(folder) / "model.onnx",
+            net,
+            engine.format,
+            Path(folder) / f"model{backend.suffix}",
             height,
             width,
-            verify=False,
-            sidecar=False,
+            measure_accuracy=False,
+            **options,
         )
-        providers = ["CPUExecutionProvider"]
-        if device.type == "cuda" and "CUDAExecutionProvider" in ort.get_available_providers():
-            providers.insert(0, "CUDAExecutionProvider")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = torch.get_num_threads()
-        session = ort.InferenceSession(str(path), options, providers=providers)
-    batch = synthetic_batch(cfg, 1, torch.device("cpu"))
-    names = {i.name for i in session.get_inputs()}
-    feed = {k: v.numpy() for k, v in batch.items() if k in names}
-    memory.reset()
-    times = time_calls(lambda: session.run(None, feed), torch.device("cpu"), warmup, runs)
+        export_s = time.perf_counter() - start
+        verified = json.loads(sidecar_path(path).read_text())["verified"]
+        exported = load_exported(path).net
+        timed = bench_inference(exported, cfg, device, "32-true", warmup, runs, memory)
     return {
-        "latency_s_median": _percentile(times, 50),
-        "latency_s_p95": _percentile(times, 95),
-        "runs": runs,
-        "provider": session.get_providers()[0],
-        "peak_memory_mb": memory.read_mb(),
+        **timed,
+        "format": engine.format,
+        "computes": exported.runner.computes,
+        "runtime": exported.runner.description,
+        "export_s": export_s,
+        "verified_max_rel_diff": verified["max_rel_diff"],
+        "verified_mean_rel_diff": verified["mean_rel_diff"],
     }
 
 
@@ -335,7 +421,7 @@ def run_bench(
     cfg: DictConfig,
     stages: Sequence[str] = STAGES,
     baseline: bool = False,
-    onnx: bool = False,
+    engines: Sequence[str] = ("torch",),
     warmup: int = 3,
     runs: int = 20,
     train_steps: int = 10,
@@ -343,12 +429,25 @@ def run_bench(
     data_batches: int = 100,
     data_split: str = "train",
 ) -> dict[str, Any]:
-    """Every requested stage for the config; the result is what ``--json`` writes."""
+    """Every requested stage for the config; the result is what ``--json`` writes.
+
+    ``engines`` (:data:`BENCH_ENGINES`) other than ``torch`` are timed in the infer stage after
+    PyTorch, each as ``engines[<name>]`` and the top-level ``<key>_infer_latency_s_median`` and
+    ``<key>_speedup`` (PyTorch's latency over the engine's; ``<key>`` is the name with ``-`` as
+    ``_``), with ``latency_over_floor``: the latency over the frame's FLOP floor
+    (``infer_floor_s``, its FLOPs at the ``peak`` stage's matrix-product GFLOP/s).
+    """
     unknown = sorted(set(stages) - set(STAGES))
     if unknown:
         raise ValueError(f"--only {','.join(unknown)}: expected some of {list(STAGES)}")
     check_dataset(cfg.dataset, cfg.fusion.mode)
     device = accelerator_device(cfg.trainer.accelerator)
+    chosen = check_engines(engines, device)
+    if len(chosen) > 1 and "infer" not in stages:
+        raise ValueError(
+            f"--engines {','.join(e.name for e in chosen[1:])}: times batch-1 inference, "
+            "which --only leaves out; add infer"
+        )
     precision = resolve_precision(cfg.trainer.precision, device)
     compiled = should_compile(cfg.model.compile, device)
     memory = PeakMemory(device)
@@ -395,9 +494,8 @@ def run_bench(
             module.zero_grad(set_to_none=True)
             result["train_gflop_per_step"] = train_flops / 1e9
         reference = copy.deepcopy(module) if baseline else None
-        if onnx and "infer" in stages:
-            result["onnx_infer"] = bench_onnx(module.net, cfg, device, warmup, runs, memory)
-            result["onnx_infer_latency_s_median"] = result["onnx_infer"]["latency_s_median"]
+        # The eager network the engines export (before channels-last and compilation).
+        to_export = copy.deepcopy(module.net).cpu() if len(chosen) > 1 else None
         speed_up(module.net, settings["channels_last"], compiled, device, cfg.model.compile_mode)
         if "infer" in stages:
             torch.backends.cudnn.benchmark = settings["cudnn_benchmark"]
@@ -413,6 +511,13 @@ def run_bench(
                 result["baseline_infer_latency_s_median"] = base["latency_s_median"]
                 result["baseline_infer_latency_s_p95"] = base["latency_s_p95"]
                 result["infer_speedup"] = base["latency_s_median"] / infer["latency_s_median"]
+            computes = precision + (", channels-last" if settings["channels_last"] else "")
+            result["engines"] = {"torch": {**infer, "computes": computes}}
+            for engine in chosen[1:]:
+                result["engines"][engine.name] = bench_engine(
+                    engine, to_export, cfg, device, warmup, runs, memory
+                )
+            _engine_summary(result, chosen)
         if "train" in stages:
             torch.backends.cudnn.benchmark = settings["cudnn_benchmark"]
             train = bench_training(module, cfg, device, precision, warmup, train_steps, memory)
@@ -434,6 +539,21 @@ def run_bench(
         result["data"] = data
         result["data_samples_per_s_per_worker"] = data["samples_per_s_per_worker"]
     return result
+
+
+def _engine_summary(result: dict[str, Any], chosen: Sequence[BenchEngine]) -> None:
+    """Each engine's speed-up over PyTorch (``torch``) and latency over the FLOP floor, into
+    ``result["engines"][<name>]`` and the top-level ``<key>_...`` keys."""
+    peak = result.get("peak_gflops")
+    floor = result["infer_gflop_per_frame"] / peak if peak else None
+    result["infer_floor_s"] = floor
+    for engine in chosen:
+        entry = result["engines"][engine.name]
+        latency = entry["latency_s_median"]
+        entry["speedup"] = result["infer_latency_s_median"] / latency
+        entry["latency_over_floor"] = latency / floor if floor else None
+        result[f"{engine.key}_infer_latency_s_median"] = latency
+        result[f"{engine.key}_speedup"] = entry["speedup"]
 
 
 def _inputs(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -35,6 +35,8 @@ CONFIG_KEY = "fusion_depth_config"
 RUN_KEY = "fusion_depth_run"
 # Hydra's instantiation keys: a config holding one names code to import and call.
 INSTANTIATION_KEYS = ("_target_", "_partial_", "_args_", "_recursive_", "_convert_")
+# What records a model's dataset, by the option that names the file (LoadedModel.key).
+_RECORD = {"ckpt_path": "run config", "model_file": "sidecar"}
 _PLAIN_TYPES = (str, int, float, bool, type(None))
 # Network arguments a checkpoint never sets: its own weights replace ImageNet's.
 _NOT_FROM_CHECKPOINT = ("pretrained", "weights", "association_weights")  # files read at build time
@@ -76,29 +78,43 @@ def _code_in(data: Any, where: str) -> Iterator[str]:
         yield f"an interpolation at {where} ({data[:60]!r})"
 
 
-def check_no_code(checkpoint: Any, path: Path) -> None:
+def check_no_code(
+    checkpoint: Any,
+    path: Path,
+    key: str = "ckpt_path",
+    what: str = "a checkpoint",
+    writer: str = "fusion_depth.train",
+) -> None:
     """Refuse a checkpoint that holds an instantiation key or an interpolation anywhere in it,
     naming the key path: a checkpoint is data, and the code it runs with is chosen by name from
-    this package (training stores resolved configs without instantiation keys)."""
+    this package (training stores resolved configs without instantiation keys).
+
+    Other files read as data are refused the same way: ``key`` names the option that gave
+    ``path`` (empty: the message names the file alone), ``what`` the kind of file and
+    ``writer`` the command that writes it."""
+    where = f"{key}={path}" if key else str(path)
     try:
         found = next(_code_in(checkpoint, ""), None)
     except RecursionError:
-        raise CheckpointError(f"ckpt_path={path}: refused; it is nested too deeply") from None
+        raise CheckpointError(f"{where}: refused; it is nested too deeply") from None
     if found is not None:
         raise CheckpointError(
-            f"ckpt_path={path}: refused; it holds {found}, and a checkpoint may only hold "
-            "plain data (fusion_depth.train writes neither)"
+            f"{where}: refused; it holds {found}, and {what} may only hold "
+            f"plain data ({writer} writes neither)"
         )
 
 
 @dataclass
 class LoadedModel:
-    """A network rebuilt from a checkpoint, with the run config it was trained with."""
+    """A network rebuilt from a checkpoint, with the run config it was trained with (or an
+    exported model file run by an engine, :func:`fusion_depth.exporting.runtime.load_exported`:
+    then ``key`` is ``model_file`` and ``config`` holds what its sidecar records)."""
 
     net: DepthModel
     config: dict[str, Any]
     path: Path
     run: dict[str, Any] | None = None  # the training run's identity, when train recorded it
+    key: str = "ckpt_path"  # the option that named ``path``, for messages
 
     @property
     def fusion(self) -> str:
@@ -199,14 +215,19 @@ def _not_plain(data: Any, where: str) -> str | None:
 
 
 def check_expected(
-    config: dict[str, Any], path: Path, fusion: str | None = None, backbone: str | None = None
+    config: dict[str, Any],
+    path: Path,
+    fusion: str | None = None,
+    backbone: str | None = None,
+    option: str = "ckpt_path",
 ) -> None:
-    """Fail when the caller asked for another fusion mode or backbone than the checkpoint has."""
+    """Fail when the caller asked for another fusion mode or backbone than the checkpoint
+    (``option``: the key that named ``path``) has."""
     trained = {"fusion": config["fusion"]["mode"], "backbone": config["backbone"]["name"]}
     for key, wanted in (("fusion", fusion), ("backbone", backbone)):
         if wanted is not None and wanted != trained[key]:
             raise CheckpointError(
-                f"ckpt_path={path} was trained with {key}={trained[key]}, but {key}={wanted} "
+                f"{option}={path} was trained with {key}={trained[key]}, but {key}={wanted} "
                 f"was asked for: drop the {key}= override or pick a {key}={wanted} checkpoint"
             )
 
@@ -280,30 +301,34 @@ def dataset_config(loaded: LoadedModel, chosen: Any | None) -> dict[str, Any]:
             raise ValueError(
                 f"dataset settings {sorted(chosen)} were given but no dataset was chosen: add "
                 "dataset=<name> (e.g. dataset=procedural) to use them, or leave them out to use "
-                f"the dataset ckpt_path={loaded.path} was trained on"
+                f"the dataset {loaded.key}={loaded.path} was trained on"
             )
         return chosen
     block = loaded.config.get("dataset")
     if not isinstance(block, dict) or not isinstance(block.get("reader"), dict):
+        record = _RECORD.get(loaded.key, "record")
         raise CheckpointError(
-            f"ckpt_path={loaded.path}: its run config records no dataset reader; pass "
+            f"{loaded.key}={loaded.path}: its {record} records no dataset reader; pass "
             "dataset=<name> to choose the dataset"
         )
     name = block.get("name")
     if not isinstance(name, str) or name not in READERS:
         raise CheckpointError(
-            f"ckpt_path={loaded.path}: dataset.name={name!r} is not one of {sorted(READERS)}; "
-            "pass dataset=<name> to choose the dataset"
+            f"{loaded.key}={loaded.path}: dataset.name={name!r} is not one of "
+            f"{sorted(READERS)}; pass dataset=<name> to choose the dataset"
         )
     # What the reader needs installed is checked by importing it from the table (make_reader),
     # never by a module name the file gives.
     return {k: v for k, v in block.items() if k != "requires"}
 
 
-def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[..., Any]:
+def make_reader(
+    block: dict[str, Any], path: Path | None = None, key: str = "ckpt_path"
+) -> Callable[..., Any]:
     """The reader of a dataset block, as a callable taking ``split=``.
 
-    With ``path`` (the block came from that checkpoint), the reader class is looked up by
+    With ``path`` (the block came from that checkpoint, or the model file of ``key=model_file``
+    whose sidecar recorded it), the reader class is looked up by
     ``dataset.name`` in :data:`fusion_depth.data.READERS` and the stored ``dataset.reader``
     arguments must be plain data naming that constructor's parameters. Where the reader writes
     (generated or prepared data, the reader class's ``writes_into``) is this machine's cache
@@ -321,24 +346,24 @@ def make_reader(block: dict[str, Any], path: Path | None = None) -> Callable[...
         cls = reader_class(name)
     except ImportError as err:
         raise CheckpointError(
-            f"ckpt_path={path}: dataset={name} needs a package that is not installed ({err})"
+            f"{key}={path}: dataset={name} needs a package that is not installed ({err})"
         ) from err
     params = inspect.signature(cls).parameters
     args = dict(block["reader"])
-    for key, value in args.items():
-        if key not in params or key == "split":
+    for arg, value in args.items():
+        if arg not in params or arg == "split":
             raise CheckpointError(
-                f"ckpt_path={path}: dataset.reader.{key} is not an argument of the {name} "
+                f"{key}={path}: dataset.reader.{arg} is not an argument of the {name} "
                 f"reader; expected some of {sorted(k for k in params if k != 'split')}"
             )
-        if _not_plain(value, key) is not None:
+        if _not_plain(value, arg) is not None:
             raise CheckpointError(
-                f"ckpt_path={path}: dataset.reader.{key} holds a {type(value).__name__}; "
+                f"{key}={path}: dataset.reader.{arg} holds a {type(value).__name__}; "
                 "expected plain data (strings, numbers, lists)"
             )
-    key, folder = cls.writes_into
-    if key in args:
-        args[key] = str(Path(cache_dir()) / folder)
+    arg, folder = cls.writes_into
+    if arg in args:
+        args[arg] = str(Path(cache_dir()) / folder)
     return functools.partial(cls, **args)
 
 

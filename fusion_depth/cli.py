@@ -233,10 +233,25 @@ def _worker_error(text: str) -> str | None:
     return message if sep and raised_here else None
 
 
+def _study_without_completed_trial(err: BaseException) -> bool:
+    """Whether ``err`` is Optuna's answer to the Optuna sweeper asking, after the last trial, for
+    the best one of a study in which every trial failed (a ValueError raised under
+    ``Study.best_trial``: "Record does not exist." or "No trials are completed yet.")."""
+    frames = traceback.extract_tb(err.__traceback__)
+    return isinstance(err, ValueError) and any(
+        frame.name == "best_trial" and "optuna" in Path(frame.filename).parts for frame in frames
+    )
+
+
 def user_message(err: BaseException) -> str | None:
     """The message to show instead of a traceback for an error about the user's input (data,
     config values, files), or None for anything else (a bug keeps its traceback)."""
     text = str(err).strip()
+    if _study_without_completed_trial(err):
+        return (
+            "hparams_search: no trial of the study completed, so it has no best configuration; "
+            "each failed trial's error is above and in its run folder's failure.json"
+        )
     if isinstance(err, CompactHydraException):
         return _worker_error(text) or text
     if isinstance(err, OSError | ValueError):

@@ -19,7 +19,8 @@ class MissingValueError(MissingMandatoryValue, ConfigError):
 
 
 class MissingDependencyError(ImportError, CompactHydraException):
-    """The chosen dataset needs a package that is not installed."""
+    """The chosen dataset, export format or engine needs a package that is not installed, or a
+    device that is not there (a CUDA GPU for TensorRT)."""
 
 
 class OutputDirError(OSError, CompactHydraException):

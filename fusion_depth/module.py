@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from fusion_depth.checkpoint import CONFIG_KEY, RUN_KEY
+from fusion_depth.data.encoding import decode_sample
 from fusion_depth.inference import predict_depth, resize_depth
 from fusion_depth.losses import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics import DepthMetrics
@@ -195,6 +196,10 @@ class DepthModule(L.LightningModule):
         return self.net(batch["image"], sparse)
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        """Every stage's batch on the device: the loaders' encoded form (uint8 image, uint16
+        depth maps) to floats (:func:`~fusion_depth.data.encoding.decode_sample`), then, when
+        training, the augmentation."""
+        batch = decode_sample(batch)
         if self.augmentation is not None and self.trainer is not None and self.trainer.training:
             batch = self.augmentation(batch)
         return batch
@@ -254,13 +259,10 @@ class DepthModule(L.LightningModule):
             "of that batch, or set model.on_nonfinite_loss=skip (model.max_nonfinite_skips=N)"
         )
 
-    @staticmethod
-    def _update(metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:
-        # A prediction of 0 is none (model=radarnet's association stage outputs its quasi-dense
-        # map, 0 where no point claims the pixel): those pixels are not scored. Other networks
-        # clip to min_depth > 0, so this changes nothing for them.
+    def _update(self, metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:
         depth = batch["depth"]
-        depth = torch.where(pred > 0, depth, torch.zeros_like(depth))
+        if self.net.partial_output:  # 0 = no prediction: only the pixels it fills are scored
+            depth = torch.where(pred > 0, depth, torch.zeros_like(depth))
         metrics.update(
             pred,
             depth,

@@ -1,8 +1,16 @@
-"""``python -m fusion_depth.predict``: depth maps for new images from a trained checkpoint.
+"""``python -m fusion_depth.predict``: depth maps for new images from a trained checkpoint, or
+from a model file exported from one.
 
 python -m fusion_depth.predict ckpt_path=best.ckpt input=photos/ sparse=radar_pngs/
 python -m fusion_depth.predict ckpt_path=best.ckpt input=frame.jpg sparse=frame_radar.png npy=true
 python -m fusion_depth.predict ckpt_path=best.ckpt input=split:test limit=20   # a dataset split
+python -m fusion_depth.predict model_file=best.xml input=split:test   # an exported model file
+
+``model_file`` (instead of ``ckpt_path``) is a file written by ``python -m fusion_depth.export``,
+run on the CPU by the engine its sidecar names (:mod:`fusion_depth.exporting.runtime`), in the
+precision it was exported for (``device``, ``precision`` and ``channels_last`` are for
+checkpoints). It takes images of the size it was exported at only (other sizes are skipped,
+naming the size it takes); splits come from the dataset its sidecar records (or ``dataset=``).
 
 ``input`` is a folder of images (``.png``, ``.jpg``, ``.jpeg``, sorted by name), one image file, or
 ``split:<train|val|test>``: that split of the checkpoint's dataset (or of ``dataset=<name>``).
@@ -23,6 +31,7 @@ file input raises instead of skipping.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -33,6 +42,7 @@ from fusion_depth.checkpoint import load_model
 from fusion_depth.cli import hydra_main
 from fusion_depth.console import quiet_known_noise
 from fusion_depth.data import SPLITS
+from fusion_depth.exporting.runtime import check_source, load_exported
 from fusion_depth.prediction import (
     SPLIT_PREFIX,
     PredictSummary,
@@ -66,13 +76,20 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
                 f"input={source}: no such file or folder (expected a folder of images, an "
                 f"image file, or {SPLIT_PREFIX}<{'|'.join(SPLITS)}>)"
             )
-    loaded = load_model(cfg.ckpt_path)
-    device = resolve_device(str(cfg.device))
-    precision = resolve_precision(cfg.precision, device, key="precision")
-    speed_up(loaded.net.to(device), cfg.channels_last, False, device)
+    check_source(cfg.get("ckpt_path"), cfg.get("model_file"))
+    if cfg.get("model_file") is not None:
+        # Run by its engine on the CPU, in the precision recorded at export.
+        loaded = load_exported(cfg.model_file)
+        running = contextlib.nullcontext()
+    else:
+        loaded = load_model(cfg.ckpt_path)
+        device = resolve_device(str(cfg.device))
+        precision = resolve_precision(cfg.precision, device, key="precision")
+        speed_up(loaded.net.to(device), cfg.channels_last, False, device)
+        running = autocast(precision, device)
     output_dir = Path(cfg.output_dir)
     batching = {"batch_size": cfg.batch_size, "limit": cfg.limit, "progress": cfg.progress}
-    with autocast(precision, device):
+    with running:
         if source.startswith(SPLIT_PREFIX):
             split = source[len(SPLIT_PREFIX) :]
             return predict_split(

@@ -171,15 +171,16 @@ def _load_frame(
 def _check_sparse(loaded: LoadedModel, sparse: Path | None, where: str) -> None:
     if sparse is None and loaded.net.fusion.uses_sparse:
         raise ValueError(
-            f"sparse=null: ckpt_path={loaded.path} was trained with fusion={loaded.fusion}, which "
-            f"needs a sparse depth map for every image; pass sparse=<{where}> (depth PNGs in "
+            f"sparse=null: {loaded.key}={loaded.path} was trained with fusion={loaded.fusion}, "
+            f"which needs a sparse depth map for every image; pass sparse=<{where}> (depth PNGs in "
             "1/256 m, 0 = no return) or use an RGB-only (fusion=rgb) checkpoint"
         )
     if sparse is not None and not sparse.exists():
         raise FileNotFoundError(f"sparse={sparse}: no such file or folder")
     if sparse is not None and not loaded.net.fusion.uses_sparse:
         log.info(
-            "ckpt_path=%s has fusion=%s: sparse=%s is shown in the visualisation but not used",
+            "%s=%s has fusion=%s: sparse=%s is shown in the visualisation but not used",
+            loaded.key,
             loaded.path,
             loaded.fusion,
             sparse,
@@ -529,7 +530,8 @@ def predict_split(
     if isinstance(dataset, DictConfig):
         dataset = OmegaConf.to_container(dataset, resolve=True)
     block = dataset_config(loaded, dataset)
-    reader = make_reader(block, None if dataset is not None else loaded.path)(split=split)
+    reader = make_reader(block, None if dataset is not None else loaded.path, loaded.key)
+    reader = reader(split=split)
     total = len(reader) if limit is None else min(limit, len(reader))
     if total == 0:
         raise ValueError(f"input={SPLIT_PREFIX}{split}: dataset={block.get('name')} has no frames")

@@ -97,6 +97,10 @@ class RunIdentity(_Stored):
     overrides: list[str] | None = _written_by(_EVERY)  # those that make the run, sorted, redacted
     wandb_id: str | None = _written_by(_IF_SET)  # training runs: their W&B run (resumes continue)
     trained_on: str | None = _written_by(_IF_SET)  # re-scored runs: the dataset trained on
+    # Re-scored runs: what ran the network, ``torch`` (a checkpoint) or an exported model's
+    # engine (:func:`fusion_depth.exporting.runtime.engine_identity`: onnxruntime, torchscript,
+    # openvino-fp32|bf16|int8); None (training runs): torch.
+    engine: str | None = _written_by(_IF_SET)
 
     def to_json(self) -> dict[str, Any]:
         """The identity as plain data (``wandb_id`` and ``trained_on`` only where set; an
@@ -136,23 +140,35 @@ def run_identity(
     )
 
 
-def rescored_identity(
-    recorded: Mapping[str, Any] | None, config: Mapping[str, Any], dataset: Mapping[str, Any]
-) -> RunIdentity:
-    """The identity of a checkpoint re-scored on ``dataset`` (a dataset config block): the
-    training run's identity as ``recorded`` in the checkpoint (rebuilt from its run ``config``
-    by :func:`run_identity` where none is, or not as train writes it), with the dataset and
-    sensor scored now and ``trained_on`` the dataset it was trained on."""
+def training_identity(recorded: Mapping[str, Any] | None, config: Mapping[str, Any]) -> RunIdentity:
+    """The training run's identity as ``recorded`` in a checkpoint (or an exported model's
+    sidecar), rebuilt from its run ``config`` by :func:`run_identity` where none is, or not as
+    train writes it."""
     identity = RunIdentity.from_json(recorded or {})
     if not isinstance(identity.dataset, str):
         identity = run_identity(config)
+    return identity
+
+
+def rescored_identity(
+    recorded: Mapping[str, Any] | None,
+    config: Mapping[str, Any],
+    dataset: Mapping[str, Any],
+    engine: str = "torch",
+) -> RunIdentity:
+    """The identity of a checkpoint re-scored on ``dataset`` (a dataset config block): the
+    training run's identity (:func:`training_identity`), with the dataset and sensor scored
+    now, ``trained_on`` the dataset it was trained on and ``engine`` what ran the network
+    (``torch`` for a checkpoint, an exported model's engine identity)."""
+    identity = training_identity(recorded, config)
     # Written: the keys it had, and those set here (even where None).
-    keys = frozenset(identity.to_json()) | {"dataset", "sensor", "trained_on"}
+    keys = frozenset(identity.to_json()) | {"dataset", "sensor", "trained_on", "engine"}
     return replace(
         identity,
         trained_on=identity.dataset,
         dataset=dataset.get("name"),
         sensor=dataset.get("sensor"),
+        engine=engine,
         file_keys=keys,
     )
 
@@ -188,6 +204,9 @@ class RunRecord(_Stored):
     validation: list[dict[str, float | int]] | None = _written_by(_TRAINING)  # every epoch's
     wall_time_s: float | None = _written_by(_TRAINING)  # fit + test, seconds
     checkpoint: str | None = _written_by(_RESCORED)  # the checkpoint scored (absolute path)
+    # An exported model scored (evaluate model_file=; absolute path); ``checkpoint`` is then
+    # the one it was exported from, as its sidecar records it (None for a bare network).
+    model_file: str | None = _written_by(_IF_SET)
     seed: int | None = _written_by(_RESCORED)  # evaluate's seed
     versions: dict[str, Any] | None = _written_by(_EVERY)  # runs.provenance()
     path: Path | None = field(default=None, compare=False)  # where it was read from; not written
@@ -216,8 +235,9 @@ class RunRecord(_Stored):
 
     @property
     def rescored(self) -> bool:
-        """Whether this is ``evaluate``'s record of a re-scored checkpoint, not a training run's."""
-        return self.checkpoint is not None
+        """Whether this is ``evaluate``'s record of a re-scored checkpoint (or exported model
+        file), not a training run's."""
+        return self.checkpoint is not None or self.model_file is not None
 
     @property
     def finished(self) -> bool:

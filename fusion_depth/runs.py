@@ -10,7 +10,7 @@ import os
 import subprocess
 import tempfile
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -95,23 +95,33 @@ def write_atomic(
     write: Callable[[Path], None],
     check: Callable[[Path], Any] = lambda tmp: None,
     suffix: str = ".tmp",
+    companions: Sequence[str] = (),
 ) -> Any:
     """``write(tmp)`` then ``check(tmp)`` on a temporary sibling, renamed to ``path`` only if
     both succeed: readers never see a half-written file, and an existing one survives a
     failure. ``suffix`` is the temporary name's (for writers that go by the extension).
-    Returns what ``check`` returned."""
+
+    ``companions``: suffixes of files that ``write`` writes next to ``tmp`` with its stem
+    (``tmp.with_suffix(".bin")``, as OpenVINO writes an IR's weights beside its ``.xml``); each
+    is renamed to ``path.with_suffix(<suffix>)`` with it (companions first, ``path`` last), and
+    removed on failure. Returns what ``check`` returned.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(name)
+    # (temporary file, final file), the main file last: it appears once its companions have.
+    moves = [(tmp.with_suffix(c), path.with_suffix(c)) for c in companions] + [(tmp, path)]
     try:
         write(tmp)
         result = check(tmp)
-        os.chmod(tmp, _file_mode())
-        os.replace(tmp, path)
+        for source, target in moves:
+            os.chmod(source, _file_mode())
+            os.replace(source, target)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        for source, _ in moves:
+            source.unlink(missing_ok=True)
         raise
     return result
 

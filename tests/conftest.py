@@ -56,15 +56,24 @@ def make_config(tmp_path: Path) -> Callable[..., DictConfig]:
     GlobalHydra.instance().clear()
 
 
-def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int = 0) -> Path:
+def save_untrained_checkpoint(
+    path: Path,
+    fusion: str,
+    dataset: dict,
+    seed: int = 0,
+    backbone: str = "densenet169",
+    spread: bool = False,
+) -> Path:
     """An untrained DepthNet saved the way training saves it (weights + run config), so tests of
-    evaluate/predict need no training run."""
+    evaluate/predict need no training run. ``backbone=resnet18`` is faster; an untrained one
+    predicts max_depth everywhere, so ``spread=True`` scales its output layer to depths around
+    10 m that vary across the image."""
     from fusion_depth.checkpoint import plain_config
     from fusion_depth.models import DepthNet
 
     torch.manual_seed(seed)
     kwargs = {
-        "backbone": "densenet169",
+        "backbone": backbone,
         "fusion": fusion,
         "min_depth": dataset["min_depth"],
         "max_depth": dataset["max_depth"],
@@ -72,10 +81,14 @@ def save_untrained_checkpoint(path: Path, fusion: str, dataset: dict, seed: int 
         "sparse_encoding": "log",
     }
     net = DepthNet(**kwargs, pretrained=False)
+    if spread:
+        with torch.no_grad():
+            net.decoder.head.bias.fill_(1.0)  # reciprocal depth 1: 10 m at depth_scale 10
+            net.decoder.head.weight.mul_(30.0)
     config = {
         "model": {"net": kwargs},
         "fusion": {"mode": fusion},
-        "backbone": {"name": "densenet169"},
+        "backbone": {"name": backbone},
         "loss": {"pixel": "l1"},
         "trainer": {"precision": "32-true"},  # what evaluate scores in by default
         "seed": seed,

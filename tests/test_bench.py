@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -122,8 +123,62 @@ def test_peak_memory_sees_a_large_allocation() -> None:
     assert after >= before + 50
 
 
-def test_bench_times_the_onnx_export(tmp_path: Path, cache: Path) -> None:
-    result = _run(tmp_path, "experiment=smoke", "fusion=add", "--only", "infer", "--onnx", *TINY)
-    onnx = result["onnx_infer"]
-    assert onnx["provider"] == "CPUExecutionProvider" and onnx["runs"] == 2
-    assert result["onnx_infer_latency_s_median"] == onnx["latency_s_median"] > 0
+ENGINE_KEYS = ("onnxruntime", "openvino", "openvino_int8")
+
+
+def test_bench_times_the_exported_engines(
+    tmp_path: Path, cache: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """Each engine is exported, loaded by its engine and timed; latency is measured, not
+    accuracy (random weights), and no timing is asserted."""
+    result = _run(
+        tmp_path,
+        "experiment=smoke",
+        "fusion=concat",
+        "backbone=resnet18",  # the export path is the same; a small network exports faster
+        "--only",
+        "peak,infer",
+        "--engines",
+        "onnxruntime,openvino,openvino-int8",
+        *TINY,
+    )
+    assert list(result["engines"]) == ["torch", "onnxruntime", "openvino", "openvino-int8"]
+    assert result["torch_speedup"] == 1.0
+    floor = result["infer_floor_s"]
+    assert floor == pytest.approx(result["infer_gflop_per_frame"] / result["peak_gflops"])
+    for key in ("torch", *ENGINE_KEYS):
+        latency, speedup = result[f"{key}_infer_latency_s_median"], result[f"{key}_speedup"]
+        assert isinstance(latency, float) and math.isfinite(latency) and latency > 0, key
+        assert math.isfinite(speedup) and speedup > 0, key
+        assert speedup == pytest.approx(result["infer_latency_s_median"] / latency), key
+    engines = result["engines"]
+    assert engines["onnxruntime"]["computes"] == "fp32"
+    assert engines["openvino"]["computes"] in ("bf16", "fp32")  # bf16 where the CPU has it
+    assert engines["openvino-int8"]["computes"].startswith("int8")
+    for name in ("onnxruntime", "openvino", "openvino-int8"):
+        entry = engines[name]
+        assert entry["runs"] == 2 and entry["export_s"] > 0, name
+        assert entry["latency_over_floor"] == pytest.approx(entry["latency_s_median"] / floor)
+        assert entry["verified_max_rel_diff"] >= 0, name  # verified against PyTorch on export
+    printed = capsys.readouterr().out
+    assert "| openvino-int8 | int8" in printed and "FLOP floor" in printed
+
+
+@pytest.mark.parametrize(
+    ("engines", "message"),
+    [
+        ("onnxruntime,onnx-gpu", "--engines onnx-gpu: expected some of torch,onnxruntime,"),
+        ("tensorrt", "engine tensorrt needs a CUDA GPU"),
+    ],
+)
+def test_bench_refuses_an_engine_it_cannot_run_in_one_line(
+    engines: str, message: str, cache: Path, capsys: pytest.CaptureFixture
+) -> None:
+    if "tensorrt" in engines and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["experiment=smoke", "--engines", engines])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert message in error
+    assert not cache.exists()  # refused before any stage ran

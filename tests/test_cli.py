@@ -467,7 +467,7 @@ def test_a_corrupt_file_read_in_a_loader_worker_is_a_short_error_naming_it(tmp_p
     base = ["dataset=topview", f"dataset.root={root}", "experiment=smoke", "logger=none"]
     prepared = run_module(["fusion_depth.prepare", *base], cwd=tmp_path, env=env)
     assert prepared.returncode == 0, prepared.stderr
-    (bad,) = cache.rglob("train/000001.image.png")
+    (bad,) = cache.rglob("train/000001.image.npy")
     _truncate(bad)
     args = ["fusion_depth.train", *base, "data.num_workers=1", f"hydra.run.dir={tmp_path / 'r'}"]
     done = run_module(args, cwd=tmp_path, env=env)

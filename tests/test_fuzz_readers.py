@@ -819,27 +819,13 @@ def test_nan_radar_rows_never_reach_a_sample(recording, tmp_path) -> None:
         torch.testing.assert_close(got["sparse"], want["sparse"], rtol=0, atol=0)
 
 
-def _garble_idat(path: Path) -> None:
-    """The compressed pixels replaced by noise of the same length, checksums repaired: only the
-    decoder can tell."""
-    data = bytearray(path.read_bytes())
-    at = data.index(b"IDAT")
-    (length,) = struct.unpack(">I", data[at - 4 : at])
-    noise = np.random.default_rng(0).integers(0, 256, length - 2, dtype=np.uint8).tobytes()
-    data[at + 6 : at + 4 + length] = noise  # keeps the 2-byte zlib header
-    path.write_bytes(repair_png_crcs(bytes(data)))
-
-
 CACHE_DAMAGE = {
     "truncated image": ("image", _truncate),
-    "garbled sparse pixels": ("sparse", _garble_idat),
-    "8-bit depth": (
-        "depth",
-        lambda p: Image.fromarray(np.zeros((CARLA_H, CARLA_W), np.uint8)).save(p),
-    ),
+    "garbage sparse": ("sparse", lambda p: p.write_bytes(np.random.default_rng(0).bytes(500))),
+    "float depth": ("depth", lambda p: np.save(p, np.zeros((CARLA_H, CARLA_W), np.float32))),
     "sparse of another size": (
         "sparse",
-        lambda p: write_depth_png(p, np.ones((CARLA_H - 1, CARLA_W))),
+        lambda p: np.save(p, np.ones((CARLA_H - 1, CARLA_W), np.uint16)),
     ),
 }
 
@@ -852,7 +838,7 @@ def test_a_damaged_cached_frame_reaches_the_main_process_as_a_named_error(
     main process (same type, message naming the file) instead of dying or timing out."""
     which, apply = CACHE_DAMAGE[damage]
     train = _carla(recording, tmp_path)
-    bad = train.split_dir / f"000002.{which}.png"
+    bad = train.split_dir / f"000002.{which}.npy"
     apply(bad)
     batches, error = _drain(train)
     assert len(batches) == 2  # the frames before the damaged one came through

@@ -268,3 +268,17 @@ def test_a_stored_study_continues_to_its_total_and_runs_an_interrupted_trial_aga
     assert trials[2].state == TrialState.FAIL and trials[2].user_attrs == {INTERRUPTED: True}
     assert trials[3].state == TrialState.WAITING
     assert trials[3].system_attrs["fixed_params"] == {"optimizer.lr": lr}
+
+
+def test_a_study_whose_trials_all_fail_ends_in_one_line(tmp_path) -> None:
+    # Every trial fails the config checks: the sweeper's request for the best trial then
+    # fails inside Optuna, which the user reads as one line, not Optuna's traceback.
+    sweep_dir = tmp_path / "search"
+    done = run_module(
+        _search_args(sweep_dir, 2, "model.net.sparse_encoding=bogus"), cwd=tmp_path, timeout=600
+    )
+    assert done.returncode == 1
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert "hparams_search: no trial of the study completed" in done.stderr
+    assert len(list(sweep_dir.glob("*/failure.json"))) == 2
+    assert all(t.state == TrialState.FAIL for t in _study(sweep_dir).trials)

@@ -19,6 +19,7 @@ from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.carla import CarlaDepth
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.depth_io import DataFileError
+from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.procedural import ProceduralDepth
 from fusion_depth.data.radar_points import (
@@ -155,8 +156,10 @@ def _datamodule(root: Path, **options) -> DepthDataModule:
 def test_a_batch_carries_the_points(procedural_root) -> None:
     batch = next(iter(_datamodule(procedural_root, max_radar_points=16).train_dataloader()))
     assert batch["radar_points"].shape == (4, 16, NUM_FIELDS)
-    assert batch["radar_points"].dtype == torch.float32
+    assert batch["radar_points"].dtype == torch.float32  # points cross the loader as floats
     assert batch["sparse"].shape == (4, 1, H, W) and batch["index"].shape == (4,)
+    assert batch["sparse"].dtype == torch.uint16  # maps in 1/256 m, decoded on the device
+    batch = decode_sample(batch)
     for points, sparse in zip(batch["radar_points"], batch["sparse"], strict=True):
         assert (points[:, VALID] == 1).any() and (sparse > 0).any()
     lidar = next(iter(_datamodule(procedural_root, sparse="lidar").val_dataloader()))
@@ -254,7 +257,7 @@ def test_datasets_without_radar_have_no_points_and_mixed_splits_are_refused(tmp_
         return frame
 
     plain = prepare_split(tmp_path / "plain", "val", ["a", "b"], lidar_frame, {})
-    assert "radar_points" not in PreparedSplit(plain)[0] and not list(plain.glob("*.npy"))
+    assert "radar_points" not in PreparedSplit(plain)[0] and not list(plain.glob("*.radar.npy"))
     mixed = prepare_split(
         tmp_path / "mixed",
         "val",

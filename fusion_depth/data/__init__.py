@@ -28,9 +28,23 @@ CONDITIONS: tuple[str, ...] = ("day", "night", "fog", "rain", "cloudy")
 RADAR_POINT_FIELDS: tuple[str, ...] = ("u", "v", "depth", "rcs", "velocity", "valid")
 
 
-class Sample(TypedDict):
-    """One frame as every dataset serves it, and as the datamodule batches it (a batch adds a
-    leading batch dimension ``B`` to each tensor and makes ``condition`` a list).
+class _SampleKeys(TypedDict):
+    """The keys of :class:`Sample` and :class:`EncodedSample` (see those for the dtypes)."""
+
+    image: Tensor
+    sparse: Tensor
+    depth: Tensor
+    condition: str
+    frame_box: NotRequired[Tensor]
+    radar_points: NotRequired[Tensor]
+
+
+class Sample(_SampleKeys):
+    """One frame as every dataset serves it (``dataset[i]``), and as models, losses and metrics
+    see a batch (a batch adds a leading batch dimension ``B`` to each tensor and makes
+    ``condition`` a list). The datamodule's loaders carry the same keys in the
+    :class:`EncodedSample` form, which :func:`fusion_depth.data.encoding.decode_sample` turns
+    into this one on the device.
 
     Shape:
         - image: (3, H, W) float32 RGB in [0, 1].
@@ -53,12 +67,21 @@ class Sample(TypedDict):
           that pixel.
     """
 
-    image: Tensor
-    sparse: Tensor
-    depth: Tensor
-    condition: str
-    frame_box: NotRequired[Tensor]
-    radar_points: NotRequired[Tensor]
+
+class EncodedSample(_SampleKeys):
+    """A :class:`Sample` as it crosses the DataLoader's process boundary: the stored integers,
+    converted to the float form only on the device
+    (:mod:`fusion_depth.data.encoding`). A reader that stores frames this way (the prepared
+    caches, the built-in dataset) serves it from ``encoded_sample(index)``, and the datamodule's
+    loaders use that method where a reader has it.
+
+    Shape:
+        - image: (3, H, W) uint8 RGB (the float form is ``image / 255``).
+        - sparse, depth: (1, H, W) uint16, metres × 256 (KITTI's convention,
+          :data:`fusion_depth.data.depth_io.DEPTH_PNG_SCALE`: 3.9 mm steps, at most 255.996 m),
+          0 = no value (the float form is ``value / 256``, exactly).
+        - condition, frame_box, radar_points: as in :class:`Sample`.
+    """
 
 
 # The package's own table of dataset readers, by the name a dataset config and a checkpoint

@@ -14,6 +14,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from fusion_depth.data import SPLITS
+from fusion_depth.data.encoding import decode_sample
 from fusion_depth.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -106,8 +107,13 @@ class ResumableLoader(DataLoader):
 
 
 class IndexedDataset(Dataset):
-    """Adds ``"index"`` (the sample's position in its split) to every sample, so evaluation can
-    record per-image results that line up across models scored on the same split."""
+    """What the loaders read: each sample of ``dataset`` in the form that crosses the process
+    boundary, the :class:`~fusion_depth.data.EncodedSample` from ``dataset.encoded_sample(i)``
+    where the reader has that method (else ``dataset[i]`` as it is), plus ``"index"`` (the
+    sample's position in its split), so evaluation can record per-image results that line up
+    across models scored on the same split. The float form comes from
+    :func:`~fusion_depth.data.encoding.decode_sample`, on the device
+    (``DepthModule.on_after_batch_transfer``)."""
 
     def __init__(self, dataset: Dataset) -> None:
         self.dataset = dataset
@@ -116,7 +122,8 @@ class IndexedDataset(Dataset):
         return len(self.dataset)
 
     def __getitem__(self, index: int) -> dict:
-        return {**self.dataset[index], "index": index}
+        read = getattr(self.dataset, "encoded_sample", None)
+        return {**(read(index) if read is not None else self.dataset[index]), "index": index}
 
 
 def resolve_num_workers(num_workers: int | str) -> int:
@@ -139,7 +146,9 @@ class DepthDataModule(L.LightningDataModule):
     ``"frame_box"``, see :func:`fusion_depth.metrics.crop_mask`, and, from a radar dataset,
     ``"radar_points"`` (P, K), which batch to (B, P, K): P is fixed per dataset config), so the
     model never knows which dataset it trains on; the datamodule adds ``"index"``. Every sample
-    of a split has the same keys, as the default collate needs.
+    of a split has the same keys, as the default collate needs. Loaders carry the encoded form
+    where a reader has one (uint8 image, uint16 depth maps: see :class:`IndexedDataset`), which
+    the module decodes on the device.
     """
 
     def __init__(
@@ -309,7 +318,7 @@ def check_scorable(
         count = min(len(data), seen * batch)
         shape = None
         for index in range(count):
-            sample = data[index]
+            sample = decode_sample(data[index])
             depth = torch.as_tensor(sample["depth"])[None]
             shape = tuple(depth.shape[-2:])
             box = sample.get("frame_box")

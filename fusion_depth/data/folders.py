@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
+from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH
 
 # The prepared cache stores uint16 depth × 256, so nothing beyond this fits.
-CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE
+CACHE_MAX_DEPTH = MAX_ENCODED_DEPTH
 
 
 def check_max_range(max_range: float) -> float:

@@ -100,7 +100,7 @@ from PIL import Image
 
 from fusion_depth.data import SPLITS
 from fusion_depth.data.base import PreparedDataset, check_conditions
-from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, read_rgb
+from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.prepared import (
     OnError,
@@ -146,7 +146,7 @@ NUSCENES_CONDITIONS = ("day", "night", "rain")  # of CONDITIONS: nuScenes' scene
 RADAR_FILTERS = ("default", "off", "custom")
 # The state values each RadarPointCloud filter can take (what disable_filters() allows).
 RADAR_STATE_RANGES = {"invalid_states": 18, "dynprop_states": 8, "ambig_states": 5}
-CACHE_MAX_DEPTH = np.iinfo(np.uint16).max / DEPTH_PNG_SCALE  # 255.99 m, the cache's ceiling
+CACHE_MAX_DEPTH = MAX_ENCODED_DEPTH  # 255.99 m, the cache's ceiling
 LIDAR_POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring index
 # Rows of the devkit's RadarPointCloud.points (its FIELDS order): rcs, the velocities, and the
 # row this module's radar class (_radar_class) overwrites with the radial velocity. Row 6 is

@@ -24,6 +24,10 @@ files that ``__getitem__`` memory-maps:
   simulation draws no cross-section).
 * ``conditions.json`` the condition of every frame
 
+The DataLoader's workers pass frames on in this stored form
+(:meth:`ProceduralDepth.encoded_sample`), converted to floats on the device
+(:mod:`fusion_depth.data.encoding`); ``dataset[i]`` gives the float form.
+
 ``<hash>`` covers every parameter and ``GENERATOR_VERSION``, so a change renders into a new
 folder and leaves the old one alone; ``root/<hash>/meta.json`` records the parameters. Only the
 requested split is rendered. It is written into a temporary sibling folder and renamed into place
@@ -52,22 +56,18 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from fusion_depth.data import CONDITIONS, RADAR_POINT_FIELDS, SPLITS, Sample
+from fusion_depth.data import CONDITIONS, RADAR_POINT_FIELDS, SPLITS, EncodedSample, Sample
 from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
 from fusion_depth.data._procedural_sensors import lidar_map, radar_returns
 from fusion_depth.data.base import check_conditions, check_size, check_split
-from fusion_depth.data.depth_io import DataFileError
-from fusion_depth.data.radar_points import (
-    check_max_points,
-    pad_points,
-    point_rows,
-    short_reason,
-)
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, DataFileError, short_reason
+from fusion_depth.data.encoding import decode_sample, encode_sample
+from fusion_depth.data.radar_points import check_max_points, pad_points, point_rows
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SENSORS = ("radar", "lidar")
-DEPTH_SCALE = 256.0  # cache stores uint16 depth * 256
+DEPTH_SCALE = DEPTH_PNG_SCALE  # cache stores uint16 depth * 256, as the prepared caches
 _ARRAYS = ("image", "depth", "sparse")  # every split's; a radar split adds RADAR_ARRAY
 RADAR_ARRAY = "radar_points"
 DEFAULT_MAX_RADAR_POINTS = 64  # the simulated radar has tens of returns in view
@@ -353,19 +353,29 @@ class ProceduralDepth(Dataset):
         return self._length
 
     def __getitem__(self, index: int) -> Sample:
+        """Frame ``index`` in the float form (:func:`~fusion_depth.data.encoding.decode_sample`
+        of :meth:`encoded_sample`)."""
+        return decode_sample(self.encoded_sample(index))  # type: ignore[return-value]
+
+    def encoded_sample(self, index: int) -> EncodedSample:
+        """Frame ``index`` as stored: image uint8 (3, H, W), ``sparse`` and ``depth`` uint16
+        (1, H, W) in 1/256 m (copies, not the memory maps), and ``radar_points`` for the radar.
+        What the datamodule's loaders pass to the device.
+
+        Raises:
+            IndexError: ``index`` outside ``[-len, len)``.
+            DataFileError: a generated array is damaged, naming it.
+        """
         if not -self._length <= index < self._length:
             raise IndexError(f"index {index} out of range for {self._length} frames")
         index %= self._length
         arrays = self._open()
-        image = torch.from_numpy(np.ascontiguousarray(arrays["image"][index].transpose(2, 0, 1)))
-        depth = torch.from_numpy(arrays["depth"][index].astype(np.float32))
-        sparse = torch.from_numpy(arrays["sparse"][index].astype(np.float32))
-        sample: Sample = {
-            "image": image.float().div_(255.0),
-            "sparse": sparse.div_(DEPTH_SCALE).unsqueeze(0),
-            "depth": depth.div_(DEPTH_SCALE).unsqueeze(0),
-            "condition": self.conditions[index],
-        }
+        sample = encode_sample(
+            arrays["image"][index],
+            np.array(arrays["sparse"][index]),
+            np.array(arrays["depth"][index]),
+            self.conditions[index],
+        )
         if RADAR_ARRAY in arrays:
             sample["radar_points"] = torch.from_numpy(np.array(arrays[RADAR_ARRAY][index]))
         return sample

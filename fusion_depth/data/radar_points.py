@@ -17,27 +17,17 @@ from __future__ import annotations
 
 import numbers
 import os
-from pathlib import Path
 
 import numpy as np
 
 from fusion_depth.data import RADAR_POINT_FIELDS
-from fusion_depth.data.depth_io import DataFileError
-from fusion_depth.runs import write_atomic
+from fusion_depth.data.depth_io import DataFileError, read_npy, write_npy
 
 NUM_FIELDS = len(RADAR_POINT_FIELDS)
 U, V, DEPTH, RCS, VELOCITY, VALID = (RADAR_POINT_FIELDS.index(name) for name in RADAR_POINT_FIELDS)
 # ``dataset.max_radar_points`` of a reader built without it (a real radar's frame: tens to a few
 # hundred returns in view).
 DEFAULT_MAX_RADAR_POINTS = 128
-
-
-def short_reason(err: BaseException, limit: int = 80) -> str:
-    """``Type: first line of the message``, cut to ``limit`` characters: what numpy said about
-    a bad file, without the bytes it may quote."""
-    lines = str(err).strip().splitlines()
-    text = f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__
-    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def check_max_points(value: int, key: str = "dataset.max_radar_points") -> int:
@@ -120,12 +110,7 @@ def write_points(path: str | os.PathLike, rows: np.ndarray) -> None:
     rows = np.ascontiguousarray(rows, dtype=np.float32)
     if rows.ndim != 2 or rows.shape[1] != NUM_FIELDS:
         raise ValueError(f"radar points {rows.shape}: expected (M, {NUM_FIELDS}) rows")
-
-    def save(tmp: Path) -> None:
-        with tmp.open("wb") as f:
-            np.save(f, rows, allow_pickle=False)
-
-    write_atomic(path, save, suffix=".npy")
+    write_npy(path, rows)
 
 
 def read_points(path: str | os.PathLike) -> np.ndarray:
@@ -136,31 +121,15 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         DataFileError: naming the file, when it is truncated or garbled, holds another dtype or
             shape than float32 (M, K), a pickled object, non-finite values, or a ``valid``
             column other than 1. The header is checked against the file's size before any data
-            is read, so a header promising more than the file holds allocates nothing.
+            is read, so a header promising more than the file holds allocates nothing
+            (:func:`~fusion_depth.data.depth_io.read_npy`).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing radar points file")
-    expected = (
-        f"float32 (M, {NUM_FIELDS}) rows {','.join(RADAR_POINT_FIELDS)}; delete the cache "
-        "folder to prepare it again"
-    )
-    try:
-        header = np.load(path, mmap_mode="r", allow_pickle=False)
-        if not isinstance(header, np.ndarray):  # an .npz archive under this name
-            header.close()
-            raise DataFileError(path, f"a {type(header).__name__}, expected {expected}")
-        shape, dtype = header.shape, header.dtype
-        del header
-        if dtype != np.float32 or len(shape) != 2 or shape[1] != NUM_FIELDS:
-            raise DataFileError(path, f"{dtype} {shape}, expected {expected}")
-        rows = np.load(path, allow_pickle=False)
-    except DataFileError:
-        raise
-    except Exception as err:  # numpy raises ValueError, OSError, EOFError, ... for bad bytes
-        raise DataFileError(
-            path, f"unreadable radar points ({short_reason(err)}); expected {expected}"
-        ) from err
+    hint = f"columns {','.join(RADAR_POINT_FIELDS)}; delete the cache folder to prepare it again"
+    rows = read_npy(path, np.float32, (None, NUM_FIELDS), "radar points file", hint)
     if not np.isfinite(rows).all() or not (rows[:, VALID] == 1).all():
-        raise DataFileError(path, f"non-finite values or a valid column other than 1; {expected}")
+        raise DataFileError(
+            path,
+            f"non-finite values or a valid column other than 1; expected float32 "
+            f"(M, {NUM_FIELDS}) rows {hint}",
+        )
     return rows

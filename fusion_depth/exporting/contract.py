@@ -6,13 +6,16 @@ or ``add`` also ``sparse`` (B, 1, H, W) float32 metres (0 = no return), and ``de
 (B, 1, H, W) float32 metres in ``[min_depth, max_depth]``, computed by
 :func:`fusion_depth.inference.predict_depth` (the code path of ``predict`` and ``evaluate``).
 :class:`Backend` is what a format's module (:mod:`fusion_depth.exporting.onnx`,
-:mod:`fusion_depth.exporting.torchscript`) hands :func:`fusion_depth.exporting.export_model`.
+:mod:`fusion_depth.exporting.torchscript`, :mod:`fusion_depth.exporting.openvino`,
+:mod:`fusion_depth.exporting.tensorrt`) hands :func:`fusion_depth.exporting.export_model`, and
+:class:`ExportSpec` what it is asked to write.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+import importlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,6 +23,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from fusion_depth.errors import MissingDependencyError
 from fusion_depth.inference import predict_depth
 from fusion_depth.models import DepthModel
 
@@ -67,8 +71,82 @@ def example_inputs(
     return image, torch.where(returns, depth, torch.zeros_like(depth))
 
 
+def require_modules(what: str, modules: Sequence[str], extra: str) -> None:
+    """Fail with one line naming ``extra`` (the install command) when any of ``modules``
+    cannot be imported; ``what`` names who needs them (``format=onnx``).
+
+    Raises:
+        MissingDependencyError: an ImportError, shown in one line by the commands: ``<what>
+            needs <modules>, which is/are not installed: <extra>``.
+    """
+    missing = []
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            missing.append(name)
+    if missing:
+        raise MissingDependencyError(
+            f"{what} needs {', '.join(missing)}, which {'is' if len(missing) == 1 else 'are'} "
+            f"not installed: {extra}"
+        )
+
+
+def require_cuda(what: str, instead: str) -> None:
+    """Fail with one line when torch sees no CUDA GPU; ``what`` names who needs one
+    (``format=tensorrt``), ``instead`` what to use without one.
+
+    Raises:
+        MissingDependencyError: ``<what> needs a CUDA GPU, and torch finds none here ...``.
+    """
+    if not torch.cuda.is_available():
+        raise MissingDependencyError(
+            f"{what} needs a CUDA GPU, and torch finds none here (torch.cuda.is_available() "
+            f"is False); {instead}"
+        )
+
+
 def _nothing_required(verify: bool) -> None:
     """A format that needs no package beyond torch."""
+
+
+# The inference precisions a file can be meant to run in (the sidecar's "precision"): bf16 on
+# CPUs that have it (OpenVINO), fp16 on GPUs (TensorRT).
+PRECISIONS = ("fp32", "bf16", "fp16")
+# The post-training quantizations a format may offer (``quantize=``).
+QUANTIZATIONS = ("int8",)
+
+
+@dataclass(frozen=True)
+class ExportSpec:
+    """What :func:`fusion_depth.exporting.export_model` asks a back end to write.
+
+    Attributes:
+        height, width: the input size in pixels (multiples of 32), fixed in the file.
+        batch_size: None = a dynamic batch axis; N fixes it (formats with ``fixed_batch``).
+        opset: the ONNX opset, None = the exporter's default (other formats ignore it).
+        precision: the inference precision the file is meant to run in, one of
+            :data:`PRECISIONS` (resolved: never ``auto``); weights are stored in fp32, except
+            in a TensorRT engine, built for the precision it runs in.
+        quantize: None, or one of the back end's ``quantizations`` (``int8``).
+        calibration: with ``quantize``, the model inputs to calibrate on: one tuple per frame
+            of ``image`` (1, 3, H, W) float32 in [0, 1] and, for fusion, ``sparse``
+            (1, 1, H, W) float32 metres.
+    """
+
+    height: int
+    width: int
+    batch_size: int | None = None
+    opset: int | None = None
+    precision: str = "fp32"
+    quantize: str | None = None
+    calibration: Sequence[tuple[torch.Tensor, ...]] = ()
+
+    @property
+    def computes_in(self) -> str:
+        """What the file computes in: ``int8`` for a quantized file, else :attr:`precision`
+        (the key of :data:`fusion_depth.exporting.verification.TOLERANCES`)."""
+        return self.quantize or self.precision
 
 
 @dataclass(frozen=True)
@@ -80,20 +158,35 @@ class Backend:
         suffix: the model file's default suffix (``.onnx``).
         fixed_batch: whether ``batch_size=N`` can fix the file's batch axis; a format without
             it accepts any batch size, and ``batch_size`` is refused for it.
-        export: ``export(model, path, height, width, batch_size, opset)`` writes ``model`` (a
-            :class:`DepthExportModel`) to ``path`` for inputs of ``height`` × ``width`` pixels;
-            ``batch_size`` None = dynamic batch axis; ``opset`` None = the exporter's default.
-        verify: ``verify(path, model, batch, height, width, verify, tolerance)`` checks the file
-            written (raising :class:`fusion_depth.exporting.verification.ExportError` when it is
-            not usable) and, with ``verify``, compares its depth for a random batch of ``batch``
+        dynamic_batch: whether its files can have a dynamic batch axis; a format without one
+            fixes it at ``batch_size``, 1 where that is None.
+        export: ``export(model, path, spec)`` writes ``model`` (a :class:`DepthExportModel`) to
+            ``path`` as :class:`ExportSpec` ``spec`` asks, with its companion files (below).
+        verify: ``verify(path, model, spec, batch, verify, tolerance)`` checks the file written
+            (raising :class:`fusion_depth.exporting.verification.ExportError` when it is not
+            usable) and, with ``verify``, compares its depth for a random batch of ``batch``
             with ``model``'s; returns ``{"opset": int | None, "verified": dict | None}``.
+        engine: the name, in :data:`fusion_depth.exporting.runtime.ENGINES`, of the engine
+            that runs the format's files (recorded in the sidecar).
         require: ``require(verify)`` raises ImportError, naming the extra to install, when a
             package the format needs (with ``verify``, also to run the file) is missing.
+        companions: suffixes of the files written beside the model file with its stem (an
+            OpenVINO IR's ``.bin`` weights next to its ``.xml``); the model file then must end
+            in ``suffix``. They are written, checked and renamed into place with it.
+        precisions: the inference precisions (:data:`PRECISIONS`) its files can run in.
+        quantizations: the ``quantize=`` values it offers (:data:`QUANTIZATIONS`).
+        quantize_hint: what to do instead, said when a ``quantize=`` it lacks is asked for.
     """
 
     name: str
     suffix: str
     fixed_batch: bool
-    export: Callable[[DepthExportModel, Path, int, int, int | None, int | None], None]
-    verify: Callable[[Path, DepthExportModel, int, int, int, bool, float], dict[str, Any]]
+    export: Callable[[DepthExportModel, Path, ExportSpec], None]
+    verify: Callable[[Path, DepthExportModel, ExportSpec, int, bool, float], dict[str, Any]]
+    engine: str
     require: Callable[[bool], None] = _nothing_required
+    companions: tuple[str, ...] = ()
+    precisions: tuple[str, ...] = ("fp32",)
+    quantizations: tuple[str, ...] = ()
+    dynamic_batch: bool = True
+    quantize_hint: str = ""

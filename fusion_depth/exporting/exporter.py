@@ -2,33 +2,51 @@
 
 :func:`export_model` checks the options (the input size, a multiple of 32, defaults to the
 checkpoint's training resolution; the batch axis is dynamic unless ``batch_size`` fixes it in a
-format that can), wraps the network in a :class:`DepthExportModel`, has the format's
-:class:`Backend` (:data:`BACKENDS`) write the file under a temporary name in its folder, check and
-verify it, and renames it into place only then, so a failed export leaves any earlier file
-untouched. Next to it, ``<output>.json`` (:mod:`fusion_depth.exporting.sidecar`) records what
-deployment code must feed and gets back.
+format that can; the precision and quantization the format offers), wraps the network in a
+:class:`DepthExportModel`, reads calibration frames for ``quantize=int8``
+(:mod:`fusion_depth.exporting.data`), has the format's :class:`Backend` (:data:`BACKENDS`)
+write the file and its companions under temporary names in its folder, check and verify them
+(within the precision's tolerance, :data:`TOLERANCES`), measures the accuracy it costs where
+asked (refusing it above ``max_rmse_increase``), and renames them into place only then, so a
+failed export leaves any earlier file untouched. Next to it, ``<output>.json``
+(:mod:`fusion_depth.exporting.sidecar`) records what deployment code must feed and gets back.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from fusion_depth.checkpoint import LoadedModel
-from fusion_depth.exporting.contract import Backend, DepthExportModel
+from fusion_depth.exporting.contract import PRECISIONS, Backend, DepthExportModel, ExportSpec
+from fusion_depth.exporting.data import calibration_inputs, compare_accuracy, export_data
 from fusion_depth.exporting.onnx import ONNX
+from fusion_depth.exporting.openvino import OPENVINO, require_nncf
+from fusion_depth.exporting.runtime import ModelInfo, cpu_has_bf16, open_exported
 from fusion_depth.exporting.sidecar import sidecar_contents, sidecar_path
+from fusion_depth.exporting.tensorrt import TENSORRT
 from fusion_depth.exporting.torchscript import TORCHSCRIPT
-from fusion_depth.exporting.verification import TOLERANCE
+from fusion_depth.exporting.verification import TOLERANCES, ExportError
 from fusion_depth.models import DepthModel
 from fusion_depth.runs import write_atomic, write_text_atomic
 
+log = logging.getLogger(__name__)
+
 # The formats, by their format= value; a new back end is a module with a Backend and a line here.
-BACKENDS: dict[str, Backend] = {backend.name: backend for backend in (ONNX, TORCHSCRIPT)}
+BACKENDS: dict[str, Backend] = {
+    backend.name: backend for backend in (ONNX, TORCHSCRIPT, OPENVINO, TENSORRT)
+}
 FORMATS = {name: backend.suffix for name, backend in BACKENDS.items()}
 SIZE_MULTIPLE = 32
+PRECISION_CHOICES = ("auto", *PRECISIONS)
+MEASURE_CHOICES = ("auto", True, False)
+CALIBRATION_FRAMES = 300  # NNCF's default subset size
 
 
 def check_format(fmt: Any) -> str:
@@ -107,12 +125,95 @@ def check_batch_size(batch_size: Any, fmt: str) -> int | None:
     return batch_size
 
 
-def check_export_options(fmt: Any, height: Any, width: Any, batch_size: Any, verify: bool) -> str:
+def resolve_export_precision(precision: Any, fmt: str) -> str:
+    """``precision`` (``auto``, ``fp32``, ``bf16``, ``fp16``) of a ``fmt`` file, resolved:
+    ``auto`` is fp16 for a GPU format (TensorRT: every GPU it runs on computes fp16), bf16
+    where the format can run in it and this CPU computes it natively (OpenVINO's
+    ``OPTIMIZATION_CAPABILITIES``), else fp32.
+
+    Raises:
+        ValueError: not a choice, or a precision the format cannot run in.
+    """
+    if precision not in PRECISION_CHOICES:
+        raise ValueError(f"precision={precision}: expected one of {list(PRECISION_CHOICES)}")
+    backend = BACKENDS[fmt]
+    if precision == "auto":
+        if "fp16" in backend.precisions:
+            return "fp16"
+        return "bf16" if "bf16" in backend.precisions and cpu_has_bf16() else "fp32"
+    if precision not in backend.precisions:
+        can = [name for name, b in BACKENDS.items() if precision in b.precisions]
+        raise ValueError(
+            f"precision={precision}: format={fmt} runs in {', '.join(backend.precisions)} only; "
+            f"precision={precision} is for format={' or '.join(can)}"
+        )
+    return precision
+
+
+def check_quantize(quantize: Any, fmt: str) -> str | None:
+    """``quantize``: None, or a quantization ``fmt`` offers (``int8`` for OpenVINO).
+
+    Raises:
+        ValueError: it is neither.
+        ImportError: the package it needs (NNCF) is missing.
+    """
+    if quantize is None:
+        return None
+    backend = BACKENDS[fmt]
+    if quantize not in backend.quantizations:
+        offer = [name for name, b in BACKENDS.items() if quantize in b.quantizations]
+        known = sorted({q for b in BACKENDS.values() for q in b.quantizations})
+        instead = backend.quantize_hint or f"use format={' or '.join(offer)}"
+        raise ValueError(
+            f"quantize={quantize}: format={fmt} offers no quantization; {instead}"
+            if offer
+            else f"quantize={quantize}: expected null or one of {known}"
+        )
+    require_nncf()
+    return quantize
+
+
+def check_accuracy_options(measure: Any, max_rmse_increase: Any, quantize: str | None) -> bool:
+    """Whether to measure the accuracy the export costs: ``measure`` true/false, or ``auto``
+    (on for a quantized export); ``max_rmse_increase`` (metres, or None) needs it measured.
+
+    Raises:
+        ValueError: ``measure`` is not a choice, ``max_rmse_increase`` is not a number, or
+            it is given with ``measure_accuracy=false``.
+    """
+    if measure not in MEASURE_CHOICES or (measure in (0, 1) and not isinstance(measure, bool)):
+        raise ValueError(f"measure_accuracy={measure}: expected auto, true or false")
+    if max_rmse_increase is not None and (
+        isinstance(max_rmse_increase, bool) or not isinstance(max_rmse_increase, int | float)
+    ):
+        raise ValueError(f"max_rmse_increase={max_rmse_increase}: expected metres or null")
+    if max_rmse_increase is not None and measure is False:
+        raise ValueError(
+            f"max_rmse_increase={max_rmse_increase} needs the accuracy measured; drop "
+            "measure_accuracy=false"
+        )
+    return measure is True or (
+        measure == "auto" and (quantize is not None or max_rmse_increase is not None)
+    )
+
+
+def check_export_options(
+    fmt: Any,
+    height: Any,
+    width: Any,
+    batch_size: Any,
+    verify: bool,
+    precision: Any = "auto",
+    quantize: Any = None,
+    measure_accuracy: Any = "auto",
+    max_rmse_increase: Any = None,
+) -> str:
     """The options :func:`export_model` checks that need no checkpoint, so they fail before a
     (slow) checkpoint load; returns the format.
 
     Raises:
-        ValueError: the format, a size (None = the checkpoint's) or the batch size is invalid.
+        ValueError: the format, a size (None = the checkpoint's), the batch size, precision,
+            quantization or accuracy options are invalid.
         ImportError: a package the format needs (with ``verify``, to run it) is missing.
     """
     fmt = check_format(fmt)
@@ -121,7 +222,53 @@ def check_export_options(fmt: Any, height: Any, width: Any, batch_size: Any, ver
             check_size(key, value)
     check_batch_size(batch_size, fmt)
     BACKENDS[fmt].require(verify)
+    resolve_export_precision(precision, fmt)
+    quantize = check_quantize(quantize, fmt)
+    check_accuracy_options(measure_accuracy, max_rmse_increase, quantize)
     return fmt
+
+
+def check_tolerance(tolerance: Any, computes_in: str) -> float:
+    """``tolerance`` (relative), or the default of the precision the file computes in
+    (:data:`TOLERANCES`) where None.
+
+    Raises:
+        ValueError: not a number ≥ 0.
+    """
+    if tolerance is None:
+        return TOLERANCES[computes_in]
+    if not isinstance(tolerance, int | float) or isinstance(tolerance, bool) or tolerance < 0:
+        raise ValueError(f"tolerance={tolerance}: expected a number ≥ 0 (or null: the default)")
+    return float(tolerance)
+
+
+def check_calibration(
+    calibration: Sequence[tuple[torch.Tensor, ...]],
+    quantize: str | None,
+    model: DepthExportModel,
+    height: int,
+    width: int,
+) -> list[tuple[torch.Tensor, ...]]:
+    """Calibration frames given to :func:`export_model`, checked: ``quantize`` is set, and each
+    frame holds ``model``'s inputs, batch 1, at ``height`` × ``width``.
+
+    Raises:
+        ValueError: naming what is wrong.
+    """
+    if quantize is None:
+        raise ValueError("calibration frames were given without quantize=int8; drop them")
+    frames = [tuple(frame) for frame in calibration]
+    expected = [(1, 3, height, width), (1, 1, height, width)][: len(model.input_names)]
+    if not frames:
+        raise ValueError(f"quantize={quantize}: no calibration frames")
+    for i, frame in enumerate(frames):
+        shapes = [tuple(x.shape) for x in frame]
+        if shapes != expected:
+            raise ValueError(
+                f"quantize={quantize}: calibration frame {i} has shapes {shapes}; the model "
+                f"takes {model.input_names} of shapes {expected}"
+            )
+    return frames
 
 
 def export_model(
@@ -134,58 +281,137 @@ def export_model(
     batch_size: int | None = None,
     opset: int | None = None,
     verify: bool = True,
-    tolerance: float = TOLERANCE,
+    tolerance: float | None = None,
     sidecar: bool = True,
+    precision: str = "auto",
+    quantize: str | None = None,
+    calibration_frames: int = CALIBRATION_FRAMES,
+    measure_accuracy: bool | str = "auto",
+    max_rmse_increase: float | None = None,
+    dataset: Mapping[str, Any] | None = None,
+    eval_batch_size: int = 4,
+    calibration: Sequence[tuple[torch.Tensor, ...]] | None = None,
 ) -> Path:
     """Export ``model`` (a checkpoint's :class:`LoadedModel`, or a bare :class:`DepthModel`, which
     then needs ``height``/``width``) to ``output``; returns ``output``.
 
-    ``fmt``: ``onnx`` or ``torchscript``. ``height``/``width``: the input size (multiples of 32),
-    default the checkpoint's training resolution. ``batch_size``: None = dynamic batch axis;
-    N fixes it (ONNX only). ``opset``: the ONNX opset, None = the exporter's default.
-    ``verify``: compare the exported model's depth with PyTorch's on a random input (batch 1,
-    so a dynamic batch is exercised at another size than the one traced) and fail above
-    ``tolerance`` (relative). ``sidecar``: also write ``<output>.json``. Nothing is written
-    unless the export, the ONNX checker and the verification all succeed.
+    ``fmt``: ``onnx``, ``torchscript``, ``openvino`` (``output`` then ends in ``.xml``; its
+    weights go to the ``.bin`` beside it) or ``tensorrt`` (``.pt2``; needs a CUDA GPU).
+    ``height``/``width``: the input size (multiples of 32), default the checkpoint's training
+    resolution. ``batch_size``: None = dynamic batch axis (TensorRT: 1); N fixes it (ONNX,
+    OpenVINO, TensorRT). ``opset``: the ONNX opset, None = the exporter's default.
+    ``precision``: what the file runs in, ``auto`` (TensorRT: fp16; else bf16 where the format
+    and this CPU can, else fp32), ``fp32``, ``bf16`` (OpenVINO) or ``fp16`` (TensorRT).
+    ``quantize``: None or ``int8`` (OpenVINO, NNCF), calibrated on ``calibration_frames``
+    frames of the training split (all of them when it has fewer), or on ``calibration`` where
+    given: the frames themselves, each a tuple of the model's inputs (``image`` (1, 3, H, W)
+    in [0, 1] and, for fusion, ``sparse`` (1, 1, H, W) metres); the sidecar then records no
+    dataset. ``verify``: compare the exported model's depth with PyTorch's on a random input
+    (batch 1, so a dynamic batch is exercised at another size than the one traced) and fail
+    above ``tolerance`` (relative; None = the precision's, :data:`TOLERANCES`).
+    ``measure_accuracy``: score the exported file and the PyTorch fp32 network on the
+    validation split and record the paired per-image differences of RMSE and δ1 with 95 %
+    bootstrap intervals in the sidecar (``auto``: when quantizing or with
+    ``max_rmse_increase``). ``max_rmse_increase`` (metres): refuse the export when the mean
+    per-image RMSE increase (the point estimate) exceeds it. ``dataset``: the dataset block to
+    calibrate and measure on (a resolved ``dataset=`` choice), None = the checkpoint's.
+    ``eval_batch_size``: the batch size of the accuracy measurement. ``sidecar``: also write
+    ``<output>.json``. Nothing is written unless the export, the checks, the verification and
+    the accuracy bound all pass.
 
     Raises:
-        ValueError: an option is invalid, or ``output`` is a folder or the checkpoint itself.
+        ValueError: an option is invalid, or ``output`` is a folder, the checkpoint itself, or
+            (for a format with companion files) does not end in the format's suffix.
         ImportError: a package the format needs is missing.
-        ExportError: the file fails its checker or its depth is not within ``tolerance``.
+        ExportError: the file fails its checker, its depth is not within ``tolerance``, or it
+            costs more than ``max_rmse_increase`` of RMSE.
         OSError: writing the file failed (any earlier file is left untouched).
     """
     fmt = check_format(fmt)
     height, width = resolve_size(model, height, width)
     batch_size = check_batch_size(batch_size, fmt)
-    if not isinstance(tolerance, int | float) or isinstance(tolerance, bool) or tolerance < 0:
-        raise ValueError(f"tolerance={tolerance}: expected a number ≥ 0")
     backend = BACKENDS[fmt]
     backend.require(verify)
+    if batch_size is None and not backend.dynamic_batch:
+        batch_size = 1  # its files fix the batch axis; model_file= runs any batch in chunks
+    precision = resolve_export_precision(precision, fmt)
+    quantize = check_quantize(quantize, fmt)
+    measuring = check_accuracy_options(measure_accuracy, max_rmse_increase, quantize)
+    spec = ExportSpec(height, width, batch_size, opset, precision, quantize)
+    tolerance = check_tolerance(tolerance, spec.computes_in)
     output = Path(output).expanduser()
     loaded = model if isinstance(model, LoadedModel) else None
     if loaded is not None and output.resolve() == loaded.path.resolve():
         raise ValueError(f"output={output}: that is ckpt_path; choose another file")
     if output.is_dir():
         raise ValueError(f"output={output}: is a folder; expected a file path")
+    if backend.companions and output.suffix != backend.suffix:
+        raise ValueError(
+            f"output={output}: a format={fmt} model file ends in {backend.suffix} (its "
+            f"{', '.join(backend.companions)} goes beside it), e.g. "
+            f"output={output.with_suffix(backend.suffix)}"
+        )
     wrapper = DepthExportModel(loaded.net if loaded is not None else model)
+    if calibration is not None:
+        calibration = check_calibration(calibration, quantize, wrapper, height, width)
     verify_batch = batch_size or 1
+    extra: dict[str, Any] = {}
+    data = None
+    if (quantize is not None and calibration is None) or measuring:
+        data = export_data(model, dataset, eval_batch_size)
+    if quantize is not None:
+        if calibration is not None:
+            frames, source = calibration, {"dataset": None, "split": None}
+        else:
+            frames, _ = calibration_inputs(
+                data, calibration_frames, height, width, wrapper.uses_sparse
+            )
+            source = {"dataset": data.name, "split": "train"}
+        spec = ExportSpec(height, width, batch_size, opset, precision, quantize, frames)
+        extra["quantization"] = {
+            "mode": quantize,
+            "calibration": {**source, "frames": len(frames)},
+        }
+        log.info(
+            "quantize=%s: calibrating on %d %s frames",
+            quantize,
+            len(frames),
+            f"{data.name} train" if calibration is None else "given",
+        )
 
     def write(tmp: Path) -> None:
-        backend.export(wrapper, tmp, height, width, batch_size, opset)
+        backend.export(wrapper, tmp, spec)
 
     def check(tmp: Path) -> dict:
-        return backend.verify(tmp, wrapper, verify_batch, height, width, verify, tolerance)
+        result = {**backend.verify(tmp, wrapper, spec, verify_batch, verify, tolerance), **extra}
+        if measuring:
+            contents = sidecar_contents(wrapper, loaded, backend, output, spec, result)
+            exported = open_exported(ModelInfo.from_sidecar(contents, tmp, sidecar_path(output)))
+            result["accuracy"] = accuracy = compare_accuracy(wrapper.net, exported, data)
+            accuracy["max_rmse_increase"] = max_rmse_increase
+            increase = accuracy["rmse"]["diff"]
+            if max_rmse_increase is not None and not increase["mean"] <= max_rmse_increase:
+                raise ExportError(
+                    f"max_rmse_increase={max_rmse_increase:g}: the export raises RMSE by "
+                    f"{increase['mean']:+.3g} m per {accuracy['split']} image "
+                    f"(95 % CI {increase['low']:+.3g} to {increase['high']:+.3g}, "
+                    f"{accuracy['images']} images of {accuracy['dataset']}); refused, nothing "
+                    "was written"
+                )
+        return result
 
-    result = write_atomic(output, write, check)
+    result = write_atomic(
+        output, write, check, suffix=backend.suffix, companions=backend.companions
+    )
     if sidecar:
         text = json.dumps(
-            sidecar_contents(wrapper, loaded, fmt, output, height, width, batch_size, result),
-            indent=2,
+            sidecar_contents(wrapper, loaded, backend, output, spec, result), indent=2
         )
         write_text_atomic(sidecar_path(output), text + "\n")
     return output
 
 
 def default_output(ckpt_path: str | os.PathLike, fmt: str, output_dir: str | os.PathLike) -> Path:
-    """``<output_dir>/<checkpoint stem>.onnx`` (or ``.pt``)."""
+    """``<output_dir>/<checkpoint stem><the format's suffix>`` (``.onnx``, ``.pt``, ``.xml``,
+    ``.pt2``)."""
     return Path(output_dir) / f"{Path(ckpt_path).stem}{FORMATS[check_format(fmt)]}"

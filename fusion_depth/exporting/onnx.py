@@ -9,7 +9,6 @@ TorchScript-based one is deprecated). The batch axis is dynamic (named ``batch``
 from __future__ import annotations
 
 import contextlib
-import importlib
 import logging
 import warnings
 from collections.abc import Iterator
@@ -18,7 +17,13 @@ from typing import Any
 
 import torch
 
-from fusion_depth.exporting.contract import Backend, DepthExportModel, example_inputs
+from fusion_depth.exporting.contract import (
+    Backend,
+    DepthExportModel,
+    ExportSpec,
+    example_inputs,
+    require_modules,
+)
 from fusion_depth.exporting.verification import ExportError, compare_depth
 
 ONNX_EXTRA = 'pip install -e ".[onnx]"'
@@ -32,17 +37,7 @@ def require_onnx(verify: bool = True) -> None:
             be imported.
     """
     modules = ["onnx", "onnxscript"] + (["onnxruntime"] if verify else [])
-    missing = []
-    for name in modules:
-        try:
-            importlib.import_module(name)
-        except ImportError:
-            missing.append(name)
-    if missing:
-        raise ImportError(
-            f"format=onnx needs {', '.join(missing)}, which {'is' if len(missing) == 1 else 'are'} "
-            f"not installed: {ONNX_EXTRA}"
-        )
+    require_modules("format=onnx", modules, ONNX_EXTRA)
 
 
 @contextlib.contextmanager
@@ -59,17 +54,11 @@ def _quiet_onnx_passes() -> Iterator[None]:
             logger.setLevel(level)
 
 
-def export_onnx(
-    model: DepthExportModel,
-    path: Path,
-    height: int,
-    width: int,
-    batch_size: int | None,
-    opset: int | None,
-) -> None:
-    """Write ``model`` to ``path`` as one ONNX file (no external data) for ``height`` ×
-    ``width`` inputs; ``batch_size`` None = a dynamic batch axis named ``batch``; ``opset``
-    None = the exporter's default."""
+def export_onnx(model: DepthExportModel, path: Path, spec: ExportSpec) -> None:
+    """Write ``model`` to ``path`` as one ONNX file (no external data) for ``spec.height`` ×
+    ``spec.width`` inputs; ``spec.batch_size`` None = a dynamic batch axis named ``batch``;
+    ``spec.opset`` None = the exporter's default. The file computes in fp32."""
+    height, width, batch_size, opset = spec.height, spec.width, spec.batch_size, spec.opset
     # An example batch of 2: torch.export specialises dimensions of size 0 and 1.
     example = example_inputs(model, batch_size or 2, height, width, seed=1)
     dynamic_shapes = None
@@ -96,9 +85,8 @@ def export_onnx(
 def verify_onnx(
     path: Path,
     model: DepthExportModel,
+    spec: ExportSpec,
     batch: int,
-    height: int,
-    width: int,
     verify: bool,
     tolerance: float,
 ) -> dict[str, Any]:
@@ -131,7 +119,7 @@ def verify_onnx(
         import onnxruntime as ort
 
         session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-        inputs = example_inputs(model, batch, height, width, seed=2)
+        inputs = example_inputs(model, batch, spec.height, spec.width, seed=2)
         feeds = {name: x.numpy() for name, x in zip(model.input_names, inputs, strict=True)}
         (depth,) = session.run(["depth"], feeds)
         reference = model(*inputs)
@@ -149,5 +137,6 @@ ONNX = Backend(
     fixed_batch=True,
     export=export_onnx,
     verify=verify_onnx,
+    engine="onnxruntime",
     require=require_onnx,
 )

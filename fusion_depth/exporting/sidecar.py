@@ -1,8 +1,11 @@
 """``<model file>.json``: what deployment code feeds an exported model and gets back.
 
 It records the input and output names, shapes, dtypes and units, the depth range, the fusion
-mode, backbone, dataset and sensor, the checkpoint, format and opset, and how the file was
-verified.
+mode, model, backbone, dataset and sensor, the checkpoint, format, engine, precision,
+quantization and opset, how the file was verified and, where measured, the accuracy it costs
+(:func:`fusion_depth.exporting.data.compare_accuracy`). For ``evaluate``/``predict
+model_file=`` it also holds the checkpoint's dataset block (``dataset_config``) and the training
+run's identity (``run``), as plain data; :mod:`fusion_depth.exporting.runtime` reads it back.
 """
 
 from __future__ import annotations
@@ -14,7 +17,9 @@ from typing import Any
 import torch
 
 from fusion_depth.checkpoint import LoadedModel
-from fusion_depth.exporting.contract import DepthExportModel
+from fusion_depth.exporting.contract import Backend, DepthExportModel, ExportSpec
+from fusion_depth.models import DEFAULT_MODEL
+from fusion_depth.run_record import training_identity
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
@@ -26,20 +31,21 @@ def sidecar_path(path: str | os.PathLike) -> Path:
 def sidecar_contents(
     model: DepthExportModel,
     loaded: LoadedModel | None,
-    fmt: str,
+    backend: Backend,
     output: Path,
-    height: int,
-    width: int,
-    batch_size: int | None,
+    spec: ExportSpec,
     result: dict[str, Any],
 ) -> dict[str, Any]:
     """The sidecar JSON: everything deployment code needs to feed the model and read it.
 
-    ``loaded``: the checkpoint exported (None for a bare network); ``batch_size`` None = a
-    dynamic batch axis; ``result``: the back end's ``verify`` result (opset, verification).
+    ``loaded``: the checkpoint exported (None for a bare network); ``spec``: what was exported
+    (size, batch axis, precision, quantization); ``result``: the back end's ``verify`` result
+    (opset, verification), with the exporter's ``quantization`` and ``accuracy`` blocks where
+    it made them.
     """
     net = model.net
-    batch: int | str = batch_size or "batch"
+    batch: int | str = spec.batch_size or "batch"
+    height, width = spec.height, spec.width
     inputs = [
         {
             "name": "image",
@@ -59,11 +65,16 @@ def sidecar_contents(
             }
         )
     dataset = (loaded.config.get("dataset") or {}) if loaded is not None else {}
+    block = (
+        {k: v for k, v in dataset.items() if k != "requires"} if isinstance(dataset, dict) else {}
+    )
+    net_config = ((loaded.config.get("model") or {}).get("net") or {}) if loaded else {}
     return {
-        "format": fmt,
+        "format": backend.name,
         "file": output.name,
         "checkpoint": str(loaded.path.resolve()) if loaded is not None else None,
         "fusion": net.fusion.mode,
+        "model": net_config.get("name", DEFAULT_MODEL) if loaded is not None else None,
         # The run config's encoder; a bare network's own (not every model has one ``encoder``).
         "backbone": (
             loaded.backbone
@@ -84,8 +95,17 @@ def sidecar_contents(
         ],
         "min_depth": net.min_depth,
         "max_depth": net.max_depth,
-        "dynamic_batch": batch_size is None,
+        "dynamic_batch": spec.batch_size is None,
+        "engine": backend.engine,
+        "precision": spec.precision,
+        "quantization": result.get("quantization"),
         "opset": result["opset"],
         "verified": result["verified"],
+        "accuracy": result.get("accuracy"),
         "torch": torch.__version__,
+        # What evaluate/predict model_file= need: the dataset and the run, as plain data.
+        "dataset_config": block or None,
+        "run": (
+            training_identity(loaded.run, loaded.config).to_json() if loaded is not None else None
+        ),
     }

@@ -14,12 +14,12 @@ from typing import Any
 
 import torch
 
-from fusion_depth.exporting.contract import Backend, DepthExportModel, example_inputs
+from fusion_depth.exporting.contract import Backend, DepthExportModel, ExportSpec, example_inputs
 from fusion_depth.exporting.verification import compare_depth
 
 
 @contextlib.contextmanager
-def _quiet_jit() -> Iterator[None]:
+def quiet_jit() -> Iterator[None]:
     """Hide torch.jit's deprecation notices and the tracer's notes on predict_depth's Python
     branches: they depend on H and W only, which are fixed in the exported model."""
     with warnings.catch_warnings():
@@ -28,21 +28,14 @@ def _quiet_jit() -> Iterator[None]:
         yield
 
 
-def export_torchscript(
-    model: DepthExportModel,
-    path: Path,
-    height: int,
-    width: int,
-    batch_size: int | None = None,
-    opset: int | None = None,
-) -> None:
-    """Write ``torch.jit.trace`` of ``model`` at ``height`` × ``width`` to ``path``.
+def export_torchscript(model: DepthExportModel, path: Path, spec: ExportSpec) -> None:
+    """Write ``torch.jit.trace`` of ``model`` at ``spec.height`` × ``spec.width`` to ``path``.
 
-    ``batch_size`` and ``opset`` are not used: the traced model takes any batch size, and
-    TorchScript has no opset.
+    ``spec.batch_size`` and ``spec.opset`` are not used: the traced model takes any batch
+    size, and TorchScript has no opset. The file computes in fp32.
     """
-    example = example_inputs(model, 2, height, width, seed=1)
-    with _quiet_jit():
+    example = example_inputs(model, 2, spec.height, spec.width, seed=1)
+    with quiet_jit():
         traced = torch.jit.trace(model, example, check_trace=False)
         torch.jit.save(traced, str(path))
 
@@ -50,9 +43,8 @@ def export_torchscript(
 def verify_torchscript(
     path: Path,
     model: DepthExportModel,
+    spec: ExportSpec,
     batch: int,
-    height: int,
-    width: int,
     verify: bool,
     tolerance: float,
 ) -> dict[str, Any]:
@@ -65,11 +57,11 @@ def verify_torchscript(
     Raises:
         ExportError: its depth is not within ``tolerance`` of PyTorch's.
     """
-    with _quiet_jit():
+    with quiet_jit():
         loaded = torch.jit.load(str(path), map_location="cpu")  # also checks the file reads back
         if not verify:
             return {"opset": None, "verified": None}
-        inputs = example_inputs(model, batch, height, width, seed=2)
+        inputs = example_inputs(model, batch, spec.height, spec.width, seed=2)
         with torch.no_grad():
             depth = loaded(*inputs).numpy()
     reference = model(*inputs)
@@ -89,4 +81,5 @@ TORCHSCRIPT = Backend(
     fixed_batch=False,
     export=export_torchscript,
     verify=verify_torchscript,
+    engine="torchscript",
 )

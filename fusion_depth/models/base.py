@@ -46,6 +46,14 @@ class DepthModel(nn.Module):
     takes_points: ClassVar[bool] = False
     fusion: nn.Module
 
+    @property
+    def partial_output(self) -> bool:
+        """Whether a depth of 0 in the output means "no prediction here", so that only the
+        pixels it fills are scored (RadarNet's association stage). A network that predicts
+        every pixel clips to ``min_depth`` > 0 and leaves this False: its 0 would be a bug, and
+        scoring it keeps the bug visible."""
+        return False
+
     def __init__(self, min_depth: float, max_depth: float, depth_scale: float) -> None:
         super().__init__()
         if not 0 < min_depth < max_depth:

@@ -410,6 +410,11 @@ class RadarNet(DepthModel):
         if stage == "fusion":
             self.association.requires_grad_(False)
 
+    @property
+    def partial_output(self) -> bool:
+        """The association stage outputs the quasi-dense map, 0 where no point claims a pixel."""
+        return self.stage == "association"
+
     # -- stage 1 weights --------------------------------------------------------------------
 
     def load_association(self, path: str | Path) -> None:

@@ -21,10 +21,12 @@ Options:
   --metric KEY                   the metric of --by, --compare and a --by plot (default rmse;
                                  any key of the metrics: abs_rel, delta1, mae, ...).
   --compare KEY=VALUE[,...]      e.g. ``fusion=rgb``: every group that differs from a VALUE group
-                                 only in KEY (fusion, loss, backbone or model) is compared with
-                                 it image by image: mean of the per-image differences (other −
-                                 baseline, so negative is better for errors) with a paired
-                                 bootstrap CI, pairing runs by seed. ``Significant`` says whether
+                                 only in KEY (fusion, loss, backbone, model or engine: an
+                                 exported model's, ``engine=torch`` pairs each with its
+                                 checkpoint) is compared with it image by image: mean of
+                                 the per-image differences (other − baseline, so negative
+                                 is better for errors) with a paired bootstrap CI, pairing
+                                 runs by seed. ``Significant`` says whether
                                  the CI excludes 0 (such cells are bold). With ``--by
                                  condition``, also per condition. Several pairs
                                  (``model=densedepth,fusion=rgb``): the baseline has them all, and

@@ -35,9 +35,9 @@ from fusion_depth.tables import format_table
 
 # --- Paired comparisons: --compare KEY=VALUE[,KEY=VALUE...] -----------------------------------
 
-COMPARE_KEYS = ("fusion", "loss", "backbone", "model")
+COMPARE_KEYS = ("fusion", "loss", "backbone", "model", "engine")
 # Every identity field of a group, in the tables' order (a comparison holds all but its keys).
-_GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting")
+_GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting", "engine")
 # What a model brings with it (conf/backbone/for_<model>.yaml, conf/loss/for_<model>.yaml).
 _MODEL_PARTS = ("backbone", "loss")
 # Protocol fields that change how per-image results are aggregated, not the results themselves.
@@ -360,17 +360,21 @@ def compare_to_baseline(
 
 
 def _group_name(group: dict) -> str:
-    parts = [group[k] for k in ("dataset", "model", "backbone", "loss", "fusion", "setting")]
+    parts = [
+        group[k] for k in ("dataset", "model", "backbone", "loss", "fusion", "setting", "engine")
+    ]
     return "/".join(str(p) for p in parts if p)
 
 
 def comparison_identity_columns(
     comparisons: Sequence[Comparison], show: Collection[str] = ()
 ) -> list[tuple[str, str]]:
-    """The identity columns naming compared groups: those that vary, those in ``show``, and a
-    compared model with its encoder (as Modality and Loss are always named)."""
+    """The identity columns naming compared groups: those that vary, those in ``show``, a
+    compared model with its encoder and a compared engine (as Modality and Loss are always
+    named)."""
     models = [k for c in comparisons if "model" in c.keys for k in _varying_keys(c.keys)]
-    return identity_columns([c.group for c in comparisons], {*show, *models})
+    engines = ["engine" for c in comparisons if "engine" in c.keys]
+    return identity_columns([c.group for c in comparisons], {*show, *models, *engines})
 
 
 def csv_cells(result: BootstrapResult | None) -> list[str]:

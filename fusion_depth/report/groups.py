@@ -1,8 +1,10 @@
 """Runs grouped by their setting (seeds averaged, mean ± sample std) and the tables of a
 sweep: the paper-style table, and one metric per condition, distance bin or depth cap.
 
-A group is the runs that share dataset, sensor, model, backbone, loss, fusion mode and other
-overrides (``setting``); the tables name a model by its label in the model table
+A group is the runs that share dataset, sensor, model, backbone, loss, fusion mode, other
+overrides (``setting``) and the engine that ran the network (``engine``: ``torch`` for
+checkpoints and training runs, an exported model's engine such as ``openvino-int8``, recorded
+by ``evaluate model_file=``); the tables name a model by its label in the model table
 (:data:`fusion_depth.models.MODELS`), and runs recorded before models had names
 (``model`` None) are :data:`~fusion_depth.models.DEFAULT_MODEL`'s.
 """
@@ -27,6 +29,8 @@ COLUMNS = tuple(
 # Overrides that already have a column or are averaged over (``model=`` chooses the network,
 # as does ``model.net.name=``; other ``model.*`` keys are settings).
 _IDENTITY_KEYS = {"dataset", "model", "model.net.name", "backbone", "fusion", "loss", "seed"}
+# The engine of runs that record none: training runs and checkpoints run by PyTorch.
+DEFAULT_ENGINE = "torch"
 
 
 def key_label(key: str, value: str) -> str:
@@ -57,8 +61,8 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     """Groups of runs (:func:`fusion_depth.run_record.load_runs`) that differ only in seed, in
     the paper's order (models in the model table's order, then loss, then modality). Each
     group: its identity (``dataset``, ``sensor``, ``model``, ``backbone``, ``loss``,
-    ``fusion``, ``setting``), ``n``, ``seeds``, ``stats`` (metric → mean, std over seeds) and
-    its ``runs``. A run recorded without a model (before models had names) is
+    ``fusion``, ``setting``, ``engine``), ``n``, ``seeds``, ``stats`` (metric → mean, std over
+    seeds) and its ``runs``. A run recorded without a model (before models had names) is
     :data:`~fusion_depth.models.DEFAULT_MODEL`'s."""
     groups: dict[tuple, list[RunRecord]] = {}
     for run in runs:
@@ -71,11 +75,12 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
             r.loss,
             r.fusion,
             _setting(run),
+            r.engine or DEFAULT_ENGINE,
         )
         groups.setdefault(key, []).append(run)
 
     def order(key: tuple) -> tuple:
-        dataset, sensor, model, backbone, loss, fusion, setting = key
+        dataset, sensor, model, backbone, loss, fusion, setting, engine = key
         return (
             dataset,
             sensor,
@@ -84,6 +89,8 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
             _rank(loss, PIXEL_LOSS_LABELS),
             _rank(fusion, FUSION_LABELS),
             setting,
+            engine != DEFAULT_ENGINE,
+            engine,
         )
 
     result = []
@@ -96,7 +103,7 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
                 statistics.fmean(values),
                 statistics.stdev(values) if len(values) > 1 else None,
             )
-        dataset, sensor, model, backbone, loss, fusion, setting = key
+        dataset, sensor, model, backbone, loss, fusion, setting, engine = key
         result.append(
             {
                 "dataset": dataset,
@@ -106,6 +113,7 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
                 "loss": loss,
                 "fusion": fusion,
                 "setting": setting,
+                "engine": engine,
                 "n": len(members),
                 "seeds": sorted(m.run.seed for m in members),
                 "stats": stats,
@@ -126,6 +134,7 @@ def identity_columns(groups: Sequence[dict], show: Collection[str] = ()) -> list
             ("Model", "model"),
             ("Backbone", "backbone"),
             ("Setting", "setting"),
+            ("Engine", "engine"),
         )
         if key in show or len({g[key] for g in groups}) > 1
     ]
