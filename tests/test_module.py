@@ -153,3 +153,24 @@ def test_bad_nonfinite_options_are_refused_naming_the_key() -> None:
         DepthModule(net, on_nonfinite_loss="ignore")
     with pytest.raises(ValueError, match="model.max_nonfinite_skips=-1"):
         DepthModule(net, max_nonfinite_skips=-1)
+
+
+def test_a_zero_prediction_is_scored_unless_the_network_declares_partial_output(
+    monkeypatch,
+) -> None:
+    # Only a network whose 0 means "no prediction" (RadarNet's association stage) has those
+    # pixels left out; any other network's 0 is an error the metrics must show.
+    net = DepthNet("resnet18", "concat", pretrained=False)
+    module = DepthModule(net, loss=DepthLoss())
+    depth = torch.full((1, 1, 4, 4), 10.0)
+    pred = depth.clone()
+    pred[..., :2, :] = 0.0
+    batch = {"depth": depth, "condition": ["day"]}
+    module._update(module.val_metrics, pred, batch)
+    scored = module.val_metrics.compute()
+    module.val_metrics.reset()
+    monkeypatch.setattr(type(net), "partial_output", property(lambda self: True))
+    module._update(module.val_metrics, pred, batch)
+    filled_only = module.val_metrics.compute()
+    assert scored["rmse"] > 5.0
+    assert filled_only["rmse"] == pytest.approx(0.0, abs=1e-6)
