@@ -10,42 +10,42 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
-import numpy as np
 from lightning.pytorch.callbacks import Checkpoint
 from lightning.pytorch.loggers import WandbLogger
-from PIL import Image
 
 from fusion_depth.progress import format_duration
 from fusion_depth.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
+from fusion_depth.visualize import PANEL_CAPTION, panel_figure, write_panel_figure
 
 log = logging.getLogger(__name__)
 
 
 class ValidationPanels(L.Callback):
-    """Each validation epoch, show a few predictions beside their image, sparse input and GT.
+    """Each validation epoch, draw the module's ``val_panels`` frames with
+    :func:`~fusion_depth.visualize.panel_figure`: image, sparse input, prediction, ground truth
+    and error, with labelled colour bars in metres.
 
-    With W&B the panels go to the dashboard; otherwise they are saved as PNGs under
-    ``save_dir`` so people without W&B can look at them too.
+    With W&B the figure goes to the dashboard; otherwise it is saved as
+    ``save_dir/epoch<NNN>.png`` so people without W&B can look at it too.
     """
 
     def __init__(self, save_dir: str | None = None) -> None:
         self.save_dir = Path(save_dir) if save_dir else None
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        panels = getattr(pl_module, "val_panels", [])
-        if trainer.sanity_checking or not panels or not trainer.is_global_zero:
+        frames = getattr(pl_module, "val_panels", [])
+        if trainer.sanity_checking or not frames or not trainer.is_global_zero:
             return
-        captions = ["image | sparse input | prediction | ground truth"] * len(panels)
+        net = pl_module.net
         wandb = [lg for lg in trainer.loggers if isinstance(lg, WandbLogger)]
         for logger in wandb:
+            figure = panel_figure(frames, net.min_depth, net.max_depth)
             logger.log_image(
-                "val/panels", images=list(panels), caption=captions, step=trainer.global_step
+                "val/panels", images=[figure], caption=[PANEL_CAPTION], step=trainer.global_step
             )
         if not wandb and self.save_dir is not None:
-            self.save_dir.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(np.concatenate(panels, axis=0)).save(
-                self.save_dir / f"epoch{trainer.current_epoch:03d}.png"
-            )
+            path = self.save_dir / f"epoch{trainer.current_epoch:03d}.png"
+            write_panel_figure(path, frames, net.min_depth, net.max_depth)
 
 
 def validation_follows(trainer: L.Trainer, batch_idx: int) -> bool:

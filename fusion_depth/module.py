@@ -8,7 +8,6 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import lightning as L
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -22,7 +21,7 @@ from fusion_depth.models import DepthModel
 from fusion_depth.protocol import EvalProtocol, EvaluationResult, latency_summary
 from fusion_depth.run_record import RunIdentity
 from fusion_depth.speed import speed_up
-from fusion_depth.visualize import depth_panel
+from fusion_depth.visualize import PanelFrame
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +54,17 @@ def downsample_depth(
     return torch.where(mask, total / weight.clamp_min(1e-12), torch.zeros_like(total)), mask
 
 
+def _panel_frame(batch: dict, i: int, depth: torch.Tensor, label: str = "") -> PanelFrame:
+    """Frame ``i`` of ``batch`` with its predicted ``depth`` (metres), on the CPU."""
+    return PanelFrame(
+        image=batch["image"][i].detach().float().cpu(),
+        sparse=batch["sparse"][i].detach().float().cpu(),
+        prediction=depth.detach().float().reshape(depth.shape[-2:]).cpu(),
+        target=batch["depth"][i].detach().float().reshape(batch["depth"].shape[-2:]).cpu(),
+        label=label,
+    )
+
+
 class DepthModule(L.LightningModule):
     """Trains ``net`` in its output space (the paper's DenseDepth: reciprocal depth; see
     :class:`~fusion_depth.models.DepthModel`); validates and tests in metres.
@@ -81,6 +91,7 @@ class DepthModule(L.LightningModule):
         augmentation: nn.Module | None = None,
         conditions: Sequence[str] = (),
         num_val_panels: int = 4,
+        num_test_panels: int = 5,
         evaluation: Mapping[str, Any] | None = None,
         channels_last: bool = False,
         compile: bool | str = False,
@@ -120,7 +131,10 @@ class DepthModule(L.LightningModule):
         self._test_result: EvaluationResult | None = None  # the last test stage's, see run_test
         self._latencies: list[float] = []
         self._test_input: tuple[int, tuple[int, ...]] = (0, (0, 0))  # batch size, image size
-        self.val_panels: list[np.ndarray] = []
+        # Frames drawn by panel_figure: the first validation batches' each epoch (ValidationPanels)
+        # and, in the test stage, the first test frame of each condition (the run's test panel).
+        self.val_panels: list[PanelFrame] = []
+        self.test_panels: list[PanelFrame] = []
         self.run_config: dict | None = None
         self.run_identity: RunIdentity | None = None
         self.nonfinite_skips = 0  # batches skipped for a NaN/inf loss in this run
@@ -284,16 +298,21 @@ class DepthModule(L.LightningModule):
     def _collect_panels(self, batch: dict, output: torch.Tensor) -> None:
         wanted = self.hparams.num_val_panels - len(self.val_panels)
         for i in range(min(wanted, len(batch["image"]))):
-            self.val_panels.append(
-                depth_panel(
-                    batch["image"][i],
-                    batch["sparse"][i],
-                    self.net.to_depth(output[i]),
-                    batch["depth"][i],
-                    self.net.min_depth,
-                    self.net.max_depth,
-                )
-            )
+            self.val_panels.append(_panel_frame(batch, i, self.net.to_depth(output[i])))
+
+    def _collect_test_panels(self, batch: dict, pred: torch.Tensor) -> None:
+        """The first frame of each condition not shown yet (the first frames without
+        conditions), up to ``num_test_panels``."""
+        conditions = batch.get("condition")
+        shown = {frame.label for frame in self.test_panels}
+        for i in range(len(batch["image"])):
+            if len(self.test_panels) >= self.hparams.num_test_panels:
+                return
+            label = str(conditions[i]) if conditions is not None else ""
+            if label and label in shown:
+                continue
+            shown.add(label)
+            self.test_panels.append(_panel_frame(batch, i, pred[i], label))
 
     def on_validation_epoch_start(self) -> None:
         self.val_panels = []
@@ -309,6 +328,7 @@ class DepthModule(L.LightningModule):
     def on_test_epoch_start(self) -> None:
         self._latencies = []
         self._test_result = None
+        self.test_panels = []
 
     def test_step(self, batch: dict, batch_idx: int) -> None:
         image, depth = batch["image"], batch["depth"]
@@ -328,6 +348,7 @@ class DepthModule(L.LightningModule):
             torch.cuda.synchronize(image.device)
         self._latencies.append((time.perf_counter() - start) / len(image))
         self._update(self.test_metrics, pred, batch)
+        self._collect_test_panels(batch, pred)
         if batch_idx == 0:
             self._test_input = (len(image), tuple(image.shape[-2:]))
 

@@ -51,8 +51,11 @@ from fusion_depth.run_record import (
 from fusion_depth.runs import RESOLVED_CONFIG_FILE, record_failure, write_text_atomic
 from fusion_depth.search import DEFAULT_METRIC, metric_key, objective
 from fusion_depth.speed import accelerator_device, resolve_precision
+from fusion_depth.visualize import PANEL_CAPTION, write_panel_figure
 
 log = logging.getLogger(__name__)
+
+TEST_PANELS_FILE = "test_panels.png"  # a few test frames drawn by the best checkpoint
 
 quiet_known_noise()
 
@@ -247,7 +250,15 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
             f"Test metrics ({result.overall['num_images']} images, best checkpoint "
             f"{best or 'last weights'})"
         )
+        panel = None  # written before metrics.json, whose presence means the run is complete
+        if model.test_panels:
+            net = model.net
+            panel = write_panel_figure(
+                output_dir / TEST_PANELS_FILE, model.test_panels, net.min_depth, net.max_depth
+            )
         publish_results(output_dir, record, result, trainer.loggers, title)
+        if panel is not None:
+            print(f"Test frames ({PANEL_CAPTION}): {panel}", flush=True)
     return record
 
 

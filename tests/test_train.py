@@ -6,19 +6,33 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from conftest import compose_config, run_module, run_sweep
 from omegaconf import OmegaConf
+from PIL import Image
 
 from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.train import train
+from fusion_depth.visualize import MIN_TILE_HEIGHT
 
 
-def test_one_training_run_writes_metrics_checkpoint_and_wandb(make_config, tmp_path) -> None:
+def test_one_training_run_writes_metrics_checkpoint_and_wandb(
+    make_config, tmp_path, capsys
+) -> None:
     cfg = make_config("experiment=smoke", "fusion=concat")
     results = train(cfg)
     out = Path(cfg.paths.output_dir)
+    # The run ends with a picture of test frames, one per condition, and says where it is.
+    panel = np.asarray(Image.open(out / "test_panels.png"))
+    assert str(out / "test_panels.png") in capsys.readouterr().out.splitlines()[-1]
+    tile = -(-MIN_TILE_HEIGHT // cfg.dataset.height) * cfg.dataset.height
+    assert (
+        len(cfg.dataset.conditions) * tile
+        < panel.shape[0]
+        < (len(cfg.dataset.conditions) + 1) * tile
+    )
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["test"] == results["test"]
     assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images", "num_pixels"}

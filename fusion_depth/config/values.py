@@ -272,6 +272,7 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "model.on_nonfinite_loss", *_one_of(*NONFINITE_ACTIONS))
     _require(cfg, "model.max_nonfinite_skips", nonneg_int, "an integer ≥ 0")
     _require(cfg, "model.num_val_panels", nonneg_int, "an integer ≥ 0")
+    _require(cfg, "model.num_test_panels", nonneg_int, "an integer ≥ 0")
 
     _require(cfg, "eval.crop", *_one_of(*EVAL_CROPS))
     _require(cfg, "eval.averaging", *_one_of(*AVERAGING))

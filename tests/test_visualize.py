@@ -1,0 +1,114 @@
+"""The panel figure the main job ends with (``test_panels.png``) and validation draws: shared,
+labelled colour scales in metres, an error column, one frame per condition."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from fusion_depth.visualize import (
+    MIN_TILE_HEIGHT,
+    PanelFrame,
+    colorize_depth,
+    depth_colorbar,
+    display_near,
+    error_colorbar,
+    error_scale,
+    panel_figure,
+)
+
+MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
+H, W = 32, 48
+
+
+def _frame(depth: float, predicted: float, label: str = "", target: bool = True) -> PanelFrame:
+    """A flat grey image with ground truth ``depth`` m in its lower half (0 = none above) and a
+    prediction of ``predicted`` m everywhere, at half resolution as the networks give it."""
+    gt = torch.zeros(H, W)
+    gt[H // 2 :] = depth
+    return PanelFrame(
+        image=torch.full((3, H, W), 0.6),
+        sparse=torch.zeros(1, H, W),
+        prediction=torch.full((H // 2, W // 2), predicted),
+        target=gt if target else None,
+        label=label,
+    )
+
+
+SCALE = -(-MIN_TILE_HEIGHT // H)  # tiles this small are enlarged by a whole factor
+TILE_H, TILE_W = H * SCALE, W * SCALE
+
+
+def _bars_width(height: int, near: float, max_error: float | None) -> int:
+    """Columns of the depth colour bar plus, with ``max_error``, the error colour bar."""
+    width = depth_colorbar(height, near, MAX_DEPTH).shape[1]
+    return width + (error_colorbar(height, max_error).shape[1] if max_error else 0)
+
+
+def test_error_tiles_share_one_scale_and_depth_tiles_the_depth_scale() -> None:
+    frames = [_frame(10.0, 12.0, "day"), _frame(20.0, 21.0, "night")]
+    figure = panel_figure(frames, MIN_DEPTH, MAX_DEPTH)
+    # Errors are 2 m and 1 m; the 95th percentile 2 m is a 1-2-5 value: the top of the scale.
+    assert error_scale([np.full(5, 2.0), np.full(5, 1.0)]) == 2.0
+    near = display_near([f.target.numpy() for f in frames], MIN_DEPTH, MAX_DEPTH)
+    assert near == 10.0  # the nearest ground truth shown, so 10-80 m get all the colours
+    header = figure.shape[0] - 2 * TILE_H
+    label_cols = figure.shape[1] - 5 * TILE_W - _bars_width(2 * TILE_H, near, 2.0)
+    assert header > 0 and label_cols > 0  # column titles on top, condition names at the left
+    assert figure[:header].max() > 200 and figure[header:, :label_cols].max() > 200
+
+    def pixel(row: int, column: int, y: int) -> np.ndarray:
+        """Pixel at ``y`` of tile ``column`` in figure row ``row`` (x at a quarter width)."""
+        return figure[header + row * TILE_H + y, label_cols + column * TILE_W + TILE_W // 4]
+
+    lower = TILE_H * 3 // 4  # inside the half with ground truth
+    bar = error_colorbar(2 * TILE_H, 2.0)
+    top, middle = bar[0, 2], bar[(len(bar) - 1) // 2, 2]
+    assert np.abs(pixel(0, 4, lower).astype(int) - top).max() <= 2  # 2 m: the top colour
+    assert np.abs(pixel(1, 4, lower).astype(int) - middle).max() <= 3  # 1 m: half-way up
+    assert (pixel(0, 4, 2) == 153 // 3).all()  # no ground truth: the dimmed image
+    for row, (gt, pred) in enumerate([(10.0, 12.0), (20.0, 21.0)]):
+        for column, depth in ((2, pred), (3, gt)):
+            expected = colorize_depth(np.array([[depth]], np.float32), near, MAX_DEPTH)[0, 0]
+            assert (pixel(row, column, lower) == expected).all()
+
+
+def test_frames_without_ground_truth_drop_the_ground_truth_and_error_columns() -> None:
+    with_gt = panel_figure([_frame(10.0, 12.0)], MIN_DEPTH, MAX_DEPTH)
+    without = panel_figure([_frame(10.0, 12.0, target=False)], MIN_DEPTH, MAX_DEPTH)
+    assert with_gt.shape[0] == without.shape[0]
+    # Two tiles fewer, no error colour bar, and the depth scale starts at min_depth (no GT).
+    assert without.shape[1] == with_gt.shape[1] - 2 * TILE_W - _bars_width(
+        TILE_H, 10.0, 2.0
+    ) + _bars_width(TILE_H, MIN_DEPTH, None)
+
+
+def test_bad_frames_are_refused() -> None:
+    with pytest.raises(ValueError, match="no frames"):
+        panel_figure([], MIN_DEPTH, MAX_DEPTH)
+    small = PanelFrame(torch.zeros(3, 8, 8), torch.zeros(1, 8, 8), torch.ones(4, 4), None)
+    with pytest.raises(ValueError, match="different sizes"):
+        panel_figure([_frame(10.0, 12.0), small], MIN_DEPTH, MAX_DEPTH)
+
+
+def test_test_stage_draws_the_first_frame_of_each_condition(make_config) -> None:
+    cfg = make_config("experiment=smoke", "fusion=concat", "model.num_test_panels=3")
+    module = instantiate(cfg.model, _convert_="all").eval()
+    module.on_test_epoch_start()
+    conditions = [["day", "day"], ["night", "day"], ["fog", "rain"]]
+    with torch.no_grad():
+        for batch_idx, pair in enumerate(conditions):
+            batch = {
+                "image": torch.rand(2, 3, 64, 96),
+                "sparse": torch.zeros(2, 1, 64, 96),
+                "depth": torch.full((2, 1, 64, 96), 10.0),
+                "condition": pair,
+                "index": torch.tensor([2 * batch_idx, 2 * batch_idx + 1]),
+            }
+            module.test_step(batch, batch_idx)
+    assert [f.label for f in module.test_panels] == ["day", "night", "fog"]  # at most 3
+    assert all(f.prediction.shape == (64, 96) for f in module.test_panels)
+    module.on_test_epoch_start()  # a new test stage starts a new figure
+    assert module.test_panels == []
