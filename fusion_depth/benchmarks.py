@@ -246,7 +246,7 @@ def bench_training(
     batch_size = int(cfg.data.batch_size)
     batch = synthetic_batch(cfg, batch_size, device)
     module.train()
-    optimizer = module.configure_optimizers()["optimizer"]
+    optimizer = module.build_optimizer()
     scaler = torch.amp.GradScaler(device.type, enabled=precision == "16-mixed")
 
     def step() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -52,6 +53,14 @@ def downsample_depth(
     weight = F.adaptive_avg_pool2d(weight_full, size)
     mask = weight > 0
     return torch.where(mask, total / weight.clamp_min(1e-12), torch.zeros_like(total)), mask
+
+
+def _scheduler_class(factory: Callable[..., Any]) -> Any:
+    """The class a scheduler factory (a ``functools.partial``, as Hydra's ``_partial_: true``
+    makes) builds."""
+    while isinstance(factory, functools.partial):
+        factory = factory.func
+    return factory
 
 
 def _panel_frame(batch: dict, i: int, depth: torch.Tensor, label: str = "") -> PanelFrame:
@@ -360,14 +369,30 @@ class DepthModule(L.LightningModule):
         self._test_result = EvaluationResult.from_metrics(self.protocol, self.test_metrics, latency)
         self.test_metrics.reset()
 
-    def configure_optimizers(self) -> dict:
+    def build_optimizer(self) -> torch.optim.Optimizer:
+        """The optimizer over this module's parameters (what ``bench`` steps, without a
+        Trainer or a schedule).
+
+        Raises:
+            ValueError: the module was built for evaluation only.
+        """
         if self.optimizer_factory is None:
             raise ValueError("this DepthModule was built for evaluation only (no optimizer)")
-        optimizer = self.optimizer_factory(params=self.parameters())
+        return self.optimizer_factory(params=self.parameters())
+
+    def configure_optimizers(self) -> dict:
+        optimizer = self.build_optimizer()
         if self.scheduler_factory is None:
             return {"optimizer": optimizer}
-        scheduler = self.scheduler_factory(optimizer=optimizer)
+        # A per-step schedule (fusion_depth.schedules) declares interval = "step" and is given
+        # the run's optimizer steps; torch's (the paper's StepLR) step per epoch.
+        interval = getattr(_scheduler_class(self.scheduler_factory), "interval", "epoch")
+        if interval == "step":
+            total_steps = int(self.trainer.estimated_stepping_batches)
+            scheduler = self.scheduler_factory(optimizer=optimizer, total_steps=total_steps)
+        else:
+            scheduler = self.scheduler_factory(optimizer=optimizer)
         return {
             "optimizer": optimizer,
-            "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"},
+            "lr_scheduler": {"scheduler": scheduler, "interval": interval},
         }

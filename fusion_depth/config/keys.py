@@ -39,7 +39,10 @@ PASSED_BY_CODE: dict[str, dict[str, str]] = {
         "on_error": "fusion_depth.prepare skips broken frames, training stops at the first",
     },
     "optimizer": {"params": "the module passes its parameters"},
-    "scheduler": {"optimizer": "the module passes its optimizer"},
+    "scheduler": {
+        "optimizer": "the module passes its optimizer",
+        "total_steps": "the module passes the run's optimizer steps",
+    },
 }
 # Keys fusion_depth.train reads directly although no config file may define them, so a
 # ``+key=value`` override of them is not an unknown key.

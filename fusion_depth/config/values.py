@@ -263,6 +263,18 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "optimizer.momentum", nonneg_number, "a number ≥ 0")
     _require(cfg, "scheduler.step_size", positive_int, "an integer ≥ 1 (epochs)")
     _require(cfg, "scheduler.gamma", positive_number, "a factor > 0")
+    _require(
+        cfg,
+        "scheduler.warmup_fraction",
+        lambda v: _is_number(v) and 0 <= v < 1,
+        "a share in [0, 1)",
+    )
+    _require(
+        cfg,
+        "scheduler.final_lr_ratio",
+        lambda v: _is_number(v) and 0 <= v <= 1,
+        "a ratio in [0, 1]",
+    )
     _require(cfg, "callbacks.progress_log.every_s", positive_number, "seconds > 0")
 
     _require(cfg, "model.net.sparse_encoding", *_one_of(*SPARSE_ENCODINGS))
