@@ -310,18 +310,19 @@ class DepthModule(L.LightningModule):
             self.val_panels.append(_panel_frame(batch, i, self.net.to_depth(output[i])))
 
     def _collect_test_panels(self, batch: dict, pred: torch.Tensor) -> None:
-        """The first frame of each condition not shown yet (the first frames without
-        conditions), up to ``num_test_panels``."""
+        """Up to ``num_test_panels`` frames, in test order, spread over the conditions: each
+        condition gets at most its share (``num_test_panels`` / conditions, rounded up), so the
+        built-in dataset's five conditions give one frame each and a one-condition dataset its
+        first frames."""
+        wanted = self.hparams.num_test_panels
+        share = -(-wanted // max(1, len(self.conditions or ())))
         conditions = batch.get("condition")
-        shown = {frame.label for frame in self.test_panels}
         for i in range(len(batch["image"])):
-            if len(self.test_panels) >= self.hparams.num_test_panels:
+            if len(self.test_panels) >= wanted:
                 return
             label = str(conditions[i]) if conditions is not None else ""
-            if label and label in shown:
-                continue
-            shown.add(label)
-            self.test_panels.append(_panel_frame(batch, i, pred[i], label))
+            if sum(frame.label == label for frame in self.test_panels) < share:
+                self.test_panels.append(_panel_frame(batch, i, pred[i], label))
 
     def on_validation_epoch_start(self) -> None:
         self.val_panels = []

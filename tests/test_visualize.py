@@ -93,22 +93,34 @@ def test_bad_frames_are_refused() -> None:
         panel_figure([_frame(10.0, 12.0), small], MIN_DEPTH, MAX_DEPTH)
 
 
-def test_test_stage_draws_the_first_frame_of_each_condition(make_config) -> None:
-    cfg = make_config("experiment=smoke", "fusion=concat", "model.num_test_panels=3")
-    module = instantiate(cfg.model, _convert_="all").eval()
-    module.on_test_epoch_start()
-    conditions = [["day", "day"], ["night", "day"], ["fog", "rain"]]
+def _test_stage(module, conditions: list[list[str]]) -> list[str]:
+    """Run ``module``'s test stage on batches with these conditions; the drawn frames' labels."""
+    module.eval().on_test_epoch_start()
     with torch.no_grad():
-        for batch_idx, pair in enumerate(conditions):
+        for batch_idx, names in enumerate(conditions):
+            size = len(names)
             batch = {
-                "image": torch.rand(2, 3, 64, 96),
-                "sparse": torch.zeros(2, 1, 64, 96),
-                "depth": torch.full((2, 1, 64, 96), 10.0),
-                "condition": pair,
-                "index": torch.tensor([2 * batch_idx, 2 * batch_idx + 1]),
+                "image": torch.rand(size, 3, 64, 96),
+                "sparse": torch.zeros(size, 1, 64, 96),
+                "depth": torch.full((size, 1, 64, 96), 10.0),
+                "condition": names,
+                "index": torch.arange(size) + size * batch_idx,
             }
             module.test_step(batch, batch_idx)
-    assert [f.label for f in module.test_panels] == ["day", "night", "fog"]  # at most 3
     assert all(f.prediction.shape == (64, 96) for f in module.test_panels)
+    return [f.label for f in module.test_panels]
+
+
+def test_test_stage_draws_the_first_frame_of_each_condition(make_config) -> None:
+    cfg = make_config("experiment=smoke", "fusion=concat", "model.num_test_panels=3")
+    module = instantiate(cfg.model, _convert_="all")
+    conditions = [["day", "day"], ["night", "day"], ["fog", "rain"]]
+    assert _test_stage(module, conditions) == ["day", "night", "fog"]  # at most 3
     module.on_test_epoch_start()  # a new test stage starts a new figure
     assert module.test_panels == []
+
+
+def test_a_dataset_with_one_condition_shows_its_first_test_frames(make_config) -> None:
+    cfg = make_config("experiment=smoke", "dataset.conditions=[day]", "model.num_test_panels=3")
+    module = instantiate(cfg.model, _convert_="all")
+    assert _test_stage(module, [["day", "day"]] * 3) == ["day"] * 3
