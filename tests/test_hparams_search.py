@@ -205,15 +205,44 @@ def test_a_test_or_unknown_metric_is_refused_in_one_line(name) -> None:
         metric_key(name)
 
 
-def _search_config(*overrides: str):
+def _search_config(*overrides: str, preset: str = "optuna"):
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(CONF_DIR, version_base="1.3"):
             return compose(
-                "train", overrides=["hparams_search=optuna", *overrides], return_hydra_config=True
+                "train",
+                overrides=[f"hparams_search={preset}", *overrides],
+                return_hydra_config=True,
             )
     finally:
         GlobalHydra.instance().clear()
+
+
+def test_the_built_in_recipe_search_gives_every_trial_the_same_budget() -> None:
+    """hparams_search=procedural_recipe: each corner of its space composes, passes the config
+    checks and trains with the fixed budget (so a trial's cost does not depend on its values)."""
+    params = _search_config(preset="procedural_recipe").hydra.sweeper.params
+    parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
+    fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+    searched = [o for o in parsed if o.is_sweep_override()]
+    assert {o.key_or_group for o in searched} >= {"optimizer.lr", "dataset.num_train"}
+    for corner in (0, -1):  # every searched value at its low end, then at its high end
+        values = []
+        for override in searched:
+            sweep = override.value()
+            if hasattr(sweep, "list"):  # choice(...)
+                values.append(f"{override.key_or_group}={sweep.list[corner]}")
+            else:  # interval(...), possibly tagged log
+                bound = sweep.start if corner == 0 else sweep.end
+                values.append(f"{override.key_or_group}={bound}")
+        cfg = _search_config(*fixed, *values, preset="procedural_recipe")
+        check_values(cfg)
+        for value in values:  # each value reached the run's config
+            key, _, text = value.partition("=")
+            assert float(OmegaConf.select(cfg, key)) == pytest.approx(float(text)), value
+        budget = (cfg.backbone.name, cfg.data.batch_size, cfg.trainer.max_epochs)
+        assert budget == ("resnet18", 8, 15) and cfg.trainer.limit_train_batches == 100
+        assert cfg.scheduler._target_ == "fusion_depth.schedules.WarmupCosine"
 
 
 def test_the_preset_composes_with_the_config_checks_and_a_direction_must_fit_the_metric() -> None:
