@@ -1,4 +1,5 @@
-"""Colourised depth panels for dashboards and files (no plotting library needed)."""
+"""Colourised depth panels for dashboards and files: the tiles are coloured here, and
+matplotlib's Agg canvas draws only the labels of colour bars and figures."""
 
 from __future__ import annotations
 
@@ -385,16 +386,10 @@ def panel_figure(frames: Sequence[PanelFrame], min_depth: float, max_depth: floa
     font = int(np.clip(tile_height / 6, 8, 14))
     labels = [f.label for f in frames]
     label_width = max((_text_width(t, font) for t in labels if t), default=0)
-    left = (
-        _text_image(
-            [(2, (i + 0.5) * tile_height, t) for i, t in enumerate(labels) if t],
-            body.shape[0],
-            label_width + 4 if label_width else 0,
-            font,
-        )
-        if label_width
-        else np.zeros((body.shape[0], 0, 3), np.uint8)
-    )
+    left = np.zeros((body.shape[0], 0, 3), np.uint8)  # no row labels: no column for them
+    if label_width:
+        row_labels = [(2, (i + 0.5) * tile_height, t) for i, t in enumerate(labels) if t]
+        left = _text_image(row_labels, body.shape[0], label_width + 4, font)
     figure = np.concatenate([left, body, *bars], axis=1)
     columns = PANEL_COLUMNS if with_error else PANEL_COLUMNS[:3]
     heads = [(left.shape[1] + i * tile_width + 2, c) for i, c in enumerate(columns)]
