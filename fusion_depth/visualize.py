@@ -43,6 +43,13 @@ def colorize_depth(depth: np.ndarray, min_depth: float, max_depth: float) -> np.
     return (rgb * 255).round().astype(np.uint8)
 
 
+def _image_rgb(image: torch.Tensor) -> np.ndarray:
+    """(3, H, W) RGB in [0, 1] → uint8 (H, W, 3)."""
+    return (image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).astype(
+        np.uint8
+    )
+
+
 def depth_panel(
     image: torch.Tensor,
     sparse: torch.Tensor,
@@ -57,7 +64,7 @@ def depth_panel(
     image with nearest neighbour so no colour is invented.
     """
     height, width = image.shape[-2:]
-    rgb = (image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).astype(np.uint8)
+    rgb = _image_rgb(image)
     sparse = sparse.detach().float().view(1, 1, *sparse.shape[-2:])
     # Max-pool over 1/depth so the nearer return wins where dilated points overlap.
     inv = torch.where(sparse > 0, 1.0 / sparse.clamp_min(1e-6), torch.zeros_like(sparse))
@@ -309,13 +316,13 @@ def _error_colours(values: np.ndarray) -> np.ndarray:
     return table.astype(np.uint8)[np.clip(np.round(values * 255), 0, 255).astype(int)]
 
 
-def _error_tile(frame: PanelFrame, max_error: float) -> np.ndarray:
-    error, valid = _frame_error(frame)
-    rgb = (frame.image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).astype(
-        np.uint8
-    )
+def _error_tile(
+    frame: PanelFrame, error: np.ndarray, valid: np.ndarray, max_error: float
+) -> np.ndarray:
+    """``frame``'s error tile from its :func:`_frame_error` (``error``, ``valid``)."""
     # Where there is no ground truth the tile shows the dimmed image, as the sparse tile does.
-    return np.where(valid[..., None], _error_colours(error / max_error), rgb // 3)
+    colours = _error_colours(error / max_error)
+    return np.where(valid[..., None], colours, _image_rgb(frame.image) // 3)
 
 
 def error_colorbar(height: int, max_error: float) -> np.ndarray:
@@ -357,10 +364,10 @@ def panel_figure(frames: Sequence[PanelFrame], min_depth: float, max_depth: floa
     if with_error:
         targets = [f.target.detach().float().cpu().numpy() for f in frames if f.target is not None]
         min_depth = display_near(targets, min_depth, max_depth)
-        errors = [error[valid] for error, valid in map(_frame_error, frames)]
-        max_error = error_scale(errors)
+        frame_errors = [_frame_error(frame) for frame in frames]  # once per frame
+        max_error = error_scale([error[valid] for error, valid in frame_errors])
     rows = []
-    for frame in frames:
+    for i, frame in enumerate(frames):
         tiles = [
             depth_panel(
                 frame.image,
@@ -372,7 +379,7 @@ def panel_figure(frames: Sequence[PanelFrame], min_depth: float, max_depth: floa
             )
         ]
         if with_error:
-            tiles.append(_error_tile(frame, max_error))
+            tiles.append(_error_tile(frame, *frame_errors[i], max_error))
         rows.append(np.concatenate(tiles, axis=1))
     tile_height, tile_width = next(iter(sizes))
     scale = -(-MIN_TILE_HEIGHT // tile_height)  # ceil; 1 for tiles at least that tall
