@@ -30,6 +30,7 @@ PAPER_RECIPE = {
     "scheduler.gamma": 0.2,
     "data.batch_size": 2,
     "trainer.max_epochs": 20,
+    "trainer.limit_train_batches": None,
     "trainer.accumulate_grad_batches": 1,
     "trainer.gradient_clip_val": None,
     "backbone.name": "densenet169",
@@ -51,8 +52,9 @@ PAPER_RECIPE = {
 }
 
 
-def _flat(cfg) -> dict:
-    """Every leaf of ``cfg`` (interpolations resolved) as ``{"a.b.c": value}``."""
+def _flat(cfg, resolve: bool = True) -> dict:
+    """Every leaf of ``cfg`` (interpolations resolved unless ``resolve=False``) as
+    ``{"a.b.c": value}``."""
     out = {}
 
     def walk(node, prefix: str) -> None:
@@ -62,7 +64,7 @@ def _flat(cfg) -> dict:
         else:
             out[prefix[:-1]] = node
 
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    walk(OmegaConf.to_container(cfg, resolve=resolve), "")
     return out
 
 
@@ -71,11 +73,51 @@ def test_experiment_paper_is_the_papers_recipe_key_by_key(make_config) -> None:
     for key, value in PAPER_RECIPE.items():
         assert paper[key] == value, key
     assert paper["backbone.pretrained"] is False  # built-in dataset: no ImageNet download
-    # Every key the built-in dataset's own recipe changes is one the paper preset sets back.
+    assert not any(key.startswith("recipe.") for key in paper)
+    # Every key the built-in dataset's own recipe changes is one the paper's recipe pins.
     builtin = _flat(make_config())
     changed = {k for k in paper.keys() | builtin.keys() if paper.get(k) != builtin.get(k)}
     changed -= {"paths.output_dir"}  # named after the overrides
+    changed = {k for k in changed if not k.startswith("recipe.")}  # read by the keys below
+    raw = _flat(make_config(), resolve=False)
+
+    def copied(key: str) -> bool:  # the key, or a node above it, interpolates another key
+        parts = key.split(".")
+        return any(
+            str(raw.get(".".join(parts[:n]), "")).startswith("${") for n in range(1, len(parts) + 1)
+        )
+
+    changed = {k for k in changed if not copied(k)}
     assert changed <= set(PAPER_RECIPE), sorted(changed - set(PAPER_RECIPE))
+
+
+def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) -> None:
+    cfg = _flat(make_config())
+    assert cfg["backbone.name"] == "resnet10t"
+    assert (cfg["optimizer.lr"], cfg["data.batch_size"]) == (1.5e-3, 8)
+    assert (cfg["trainer.max_epochs"], cfg["trainer.limit_train_batches"]) == (18, 125)
+    assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (6, 0.2)
+    assert (cfg["loss.w_ssim"], cfg["loss.w_edge"], cfg["loss.w_pixel"]) == (1.87, 1.14, 0.43)
+    assert cfg["dataset.num_train"] == 6400
+    # Instantiated, the recipe is the network and schedule the config names.
+    model = instantiate(make_config().model, _convert_="all")
+    assert model.net.encoder.name == "resnet10t"
+
+
+def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:
+    """The recipe adjusts only the default choices: an explicit backbone=, loss= or scheduler=
+    gets that config's own values, not the recipe's."""
+    cfg = _flat(make_config("backbone=densenet169", "loss=l1", "scheduler=step"))
+    assert cfg["backbone.name"] == "densenet169"
+    assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (7, 0.2)
+    assert (cfg["loss.w_ssim"], cfg["loss.w_edge"], cfg["loss.w_pixel"]) == (1.0, 1.0, 1.0)
+    cosine = _flat(make_config("scheduler=cosine"))
+    assert cosine["scheduler._target_"] == "fusion_depth.schedules.WarmupCosine"
+    assert "scheduler.step_size" not in cosine
+    # Other models on the built-in dataset keep their own published setup.
+    radarnet = _flat(make_config("model=radarnet", "fusion=concat"))
+    assert (radarnet["optimizer.lr"], radarnet["data.batch_size"]) == (1e-4, 2)
+    assert "recipe.backbone" not in radarnet
 
 
 def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
@@ -112,7 +154,7 @@ def test_model_and_loss_instantiate_from_config(make_config) -> None:
     assert model.net.fusion.mode == "add" and model.loss.pixel == "berhu"
     assert model.loss.max_val == pytest.approx(cfg.dataset.depth_scale / cfg.dataset.min_depth)
     optimizer = model.configure_optimizers()["optimizer"]
-    assert optimizer.defaults["lr"] == 1e-4
+    assert optimizer.defaults["lr"] == cfg.optimizer.lr
 
 
 def test_wrong_choice_names_group_and_options(make_config) -> None:

@@ -107,7 +107,8 @@ def test_it_predicts_metres_and_trains_in_metres() -> None:
 
 def test_the_default_encoder_and_loss_follow_the_model(make_config) -> None:
     """Each model brings its published encoder and loss; backbone=/loss= still choose."""
-    s2d, paper = make_config("model=sparse_to_dense"), make_config("model=densedepth")
+    s2d = make_config("model=sparse_to_dense")
+    paper = make_config("model=densedepth", "experiment=paper")  # not the built-in recipe's
     assert (s2d.backbone.name, s2d.loss.name, s2d.loss.w_ssim) == ("resnet18", "l1_only", 0.0)
     assert (paper.backbone.name, paper.loss.pixel, paper.loss.w_ssim) == ("densenet169", "l1", 1.0)
     assert make_config("model=sparse_to_dense", "loss=berhu").loss.pixel == "berhu"
