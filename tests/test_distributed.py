@@ -69,8 +69,8 @@ def test_several_nodes_need_a_cluster_launcher(tmp_path, monkeypatch) -> None:
 
 
 def test_the_trainer_groups_compose(tmp_path) -> None:
-    gpu = compose_config(["trainer=gpu"], tmp_path).trainer
-    assert (gpu.accelerator, gpu.devices, gpu.max_epochs) == ("gpu", 1, 20)
+    gpu = compose_config(["trainer=gpu", "experiment=paper"], tmp_path).trainer
+    assert (gpu.accelerator, gpu.devices, gpu.max_epochs) == ("gpu", 1, 20)  # the paper's 20
     ddp = compose_config(["trainer=ddp"], tmp_path).trainer
     GlobalHydra.instance().clear()
     assert (ddp.strategy, ddp.devices, ddp.sync_batchnorm) == ("ddp", "auto", False)
