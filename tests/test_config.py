@@ -75,11 +75,11 @@ def test_experiment_paper_is_the_papers_recipe_key_by_key(make_config) -> None:
     assert paper["backbone.pretrained"] is False  # built-in dataset: no ImageNet download
     assert not any(key.startswith("recipe.") for key in paper)
     # Every key the built-in dataset's own recipe changes is one the paper's recipe pins.
-    builtin = _flat(make_config())
+    default = make_config()
+    builtin, raw = _flat(default), _flat(default, resolve=False)
     changed = {k for k in paper.keys() | builtin.keys() if paper.get(k) != builtin.get(k)}
     changed -= {"paths.output_dir"}  # named after the overrides
     changed = {k for k in changed if not k.startswith("recipe.")}  # read by the keys below
-    raw = _flat(make_config(), resolve=False)
 
     def copied(key: str) -> bool:  # the key, or a node above it, interpolates another key
         parts = key.split(".")
@@ -92,7 +92,8 @@ def test_experiment_paper_is_the_papers_recipe_key_by_key(make_config) -> None:
 
 
 def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) -> None:
-    cfg = _flat(make_config())
+    default = make_config()
+    cfg = _flat(default)
     assert cfg["backbone.name"] == "resnet10t"
     assert (cfg["optimizer.lr"], cfg["data.batch_size"]) == (1.5e-3, 8)
     assert (cfg["trainer.max_epochs"], cfg["trainer.limit_train_batches"]) == (18, 125)
@@ -100,7 +101,7 @@ def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) 
     assert (cfg["loss.w_ssim"], cfg["loss.w_edge"], cfg["loss.w_pixel"]) == (1.87, 1.14, 0.43)
     assert cfg["dataset.num_train"] == 6400
     # Instantiated, the recipe is the network and schedule the config names.
-    model = instantiate(make_config().model, _convert_="all")
+    model = instantiate(default.model, _convert_="all")
     assert model.net.encoder.name == "resnet10t"
 
 
