@@ -16,6 +16,8 @@ the training step and returns every term so that each one can be logged.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from kornia.filters import spatial_gradient
 from kornia.losses import ssim_loss
@@ -29,13 +31,14 @@ __all__ = [
     "DepthLoss",
     "berhu_loss",
     "edge_loss",
+    "log_l1_loss",
     "masked_ssim_loss",
     "pixel_loss",
 ]
 
-PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu")
+PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu", "log_l1")
 """Allowed values of ``pixel_loss(kind=...)`` and ``DepthLoss(pixel=...)``."""
-PIXEL_LOSS_LABELS: dict[str, str] = {"l1": "L1", "l2": "L2", "berhu": "BerHu"}
+PIXEL_LOSS_LABELS: dict[str, str] = {"l1": "L1", "l2": "L2", "berhu": "BerHu", "log_l1": "log-L1"}
 """How tables and plots name each pixel loss."""
 NONFINITE_ACTIONS: tuple[str, ...] = ("stop", "skip")
 """What training does with a batch whose loss is NaN or infinite (``model.on_nonfinite_loss``)."""
@@ -93,17 +96,58 @@ def berhu_loss(
     return _masked_mean(per_pixel, mask)
 
 
+LOG_FLOOR = 1e-2
+"""Reciprocal depth below which :func:`log_l1_loss` extends the log linearly (a prediction of
+``depth_scale / 100`` m: far beyond any dataset's ``max_depth``)."""
+
+
+def log_l1_loss(
+    pred: Tensor, target: Tensor, mask: Tensor | None = None, floor: float = LOG_FLOOR
+) -> Tensor:
+    """Mean ``|log pred − log target|`` over valid pixels: L1 on log depth.
+
+    ``log(s / d̂) − log(s / d) = log d − log d̂``, so on reciprocal depth this is exactly the L1
+    error of log depth, whatever ``depth_scale`` is: a 10 % error costs the same at 5 m and at
+    50 m, where L1 on reciprocal depth weighs the 50 m pixel ten times less. δ1 and abs_rel are
+    relative errors, and this is the pixel term that matches them. Not in the paper; log-space
+    losses are the usual choice for monocular depth (Eigen et al., 2014, whose scale-invariant
+    loss with λ = 0 is L2 on log depth).
+
+    The network's reciprocal output is not constrained to be positive, so below ``floor`` the log
+    is continued by its tangent, ``log floor + (pred − floor) / floor``: a prediction ≤ 0 keeps a
+    finite loss and a gradient back towards the target. Targets must be > 0 at valid pixels.
+
+    Args:
+        pred: predicted reciprocal depth ``(B, 1, h, w)``.
+        target: true reciprocal depth, same shape; any value where ``mask`` is False.
+        mask: bool, same shape, True where ``target`` is valid (all True when None).
+        floor: reciprocal depth (> 0) where the tangent takes over.
+
+    Returns:
+        A scalar; 0 when no pixel is valid.
+    """
+    mask = _check_inputs(pred, target, mask)
+    # clamp_min keeps the unused branch finite, so that torch.where passes no NaN gradient.
+    tangent = (pred - floor) / floor + math.log(floor)
+    log_pred = torch.where(pred > floor, pred.clamp_min(floor).log(), tangent)
+    log_target = torch.where(mask, target, torch.ones_like(target)).clamp_min(floor).log()
+    return _masked_mean((log_pred - log_target).abs(), mask)
+
+
 def pixel_loss(
     pred: Tensor, target: Tensor, mask: Tensor | None = None, kind: str = "l1"
 ) -> Tensor:
-    """Point-wise loss over valid pixels: ``"l1"`` (mean |x|), ``"l2"`` (mean x²) or ``"berhu"``.
+    """Point-wise loss over valid pixels: ``"l1"`` (mean |x|), ``"l2"`` (mean x²), ``"berhu"`` or
+    ``"log_l1"`` (:func:`log_l1_loss`).
 
-    The paper compares the three as its ``L_pixel`` term; the default BerHu threshold (0.2) is used
-    for ``"berhu"`` (call :func:`berhu_loss` directly to change it).
+    The paper compares the first three as its ``L_pixel`` term; the default BerHu threshold (0.2)
+    is used for ``"berhu"`` (call :func:`berhu_loss` directly to change it).
     """
     _check_kind(kind)
     if kind == "berhu":
         return berhu_loss(pred, target, mask)
+    if kind == "log_l1":
+        return log_l1_loss(pred, target, mask)
     mask = _check_inputs(pred, target, mask)
     diff = torch.where(mask, pred - target, torch.zeros_like(pred))
     per_pixel = diff.abs() if kind == "l1" else diff * diff
@@ -154,7 +198,8 @@ def masked_ssim_loss(
 class DepthLoss(nn.Module):
     """``w_ssim * L_ssim + w_edge * L_edge + w_pixel * L_pixel`` on reciprocal depth.
 
-    The paper uses weights 1, 1, 1 and compares ``pixel`` in {"l1", "l2", "berhu"}. ``forward``
+    The paper uses weights 1, 1, 1 and compares ``pixel`` in {"l1", "l2", "berhu"}; "log_l1"
+    (:func:`log_l1_loss`) is this platform's addition. ``forward``
     returns a dict with the weighted total under ``"loss"`` (to backpropagate) and the unweighted
     terms under ``"ssim"``, ``"edge"`` and ``"pixel"`` (to log).
     """

@@ -19,6 +19,14 @@ from fusion_depth.config import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Under pytest-xdist (pyproject's addopts) every worker trains at once: each gets its share of
+# the cores, and the runs it starts as subprocesses inherit that share, so that the workers do
+# not oversubscribe the CPU (which slows everything several times over).
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
+    _threads = max(1, len(os.sched_getaffinity(0)) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    os.environ["OMP_NUM_THREADS"] = str(_threads)
+    torch.set_num_threads(_threads)
+
 
 @pytest.fixture(scope="session", autouse=True)
 def isolated_environment(tmp_path_factory: pytest.TempPathFactory) -> Path:

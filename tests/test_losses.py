@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from fusion_depth.losses import (
+    PIXEL_LOSSES,
     DepthLoss,
     berhu_loss,
     edge_loss,
+    log_l1_loss,
     masked_ssim_loss,
     pixel_loss,
 )
@@ -60,6 +64,33 @@ def test_l1_l2_by_hand() -> None:
     assert pixel_loss(PRED, TARGET, kind="berhu").item() == pytest.approx(1.815625, rel=1e-6)
 
 
+def test_log_l1_by_hand_weighs_relative_error_alike_at_every_depth() -> None:
+    # Reciprocal depth 2 vs 1 and 0.2 vs 0.1: both a factor of 2 (5 m vs 10 m, 50 m vs 100 m at
+    # depth_scale 10), both cost log 2; L1 on reciprocal depth weighs the far pixel 10× less.
+    pred = torch.tensor([[[[2.0, 0.2]]]])
+    target = torch.tensor([[[[1.0, 0.1]]]])
+    assert log_l1_loss(pred, target).item() == pytest.approx(math.log(2), rel=1e-6)
+    assert pixel_loss(pred, target, kind="log_l1").item() == pytest.approx(math.log(2), rel=1e-6)
+    assert pixel_loss(pred, target, kind="l1").item() == pytest.approx(1.1 / 2, rel=1e-6)
+    # On the 2x2 case with the last pixel masked out: log 1.1, log 1.5, log 2 averaged.
+    expected = (math.log(1.1) + math.log(1.5) + math.log(2.0)) / 3
+    assert log_l1_loss(PRED, TARGET, MASK_LAST_OUT).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_log_l1_continues_by_the_tangent_below_the_floor() -> None:
+    # At and below the floor the log becomes log(floor) + (p - floor) / floor: continuous, and a
+    # prediction <= 0 keeps a finite loss and a gradient of -1/floor (towards the target).
+    target = torch.ones(1, 1, 1, 3)
+    pred = torch.tensor([[[[0.01, 0.0, -0.5]]]], requires_grad=True)
+    per_pixel = [log_l1_loss(pred[..., i : i + 1], target[..., :1]) for i in range(3)]
+    log_floor = math.log(0.01)
+    assert per_pixel[0].item() == pytest.approx(-log_floor, rel=1e-6)
+    assert per_pixel[1].item() == pytest.approx(1.0 - log_floor, rel=1e-6)
+    assert per_pixel[2].item() == pytest.approx(51.0 - log_floor, rel=1e-6)
+    log_l1_loss(pred, target).backward()
+    torch.testing.assert_close(pred.grad, torch.full_like(pred, -100.0 / 3))
+
+
 def test_edge_loss_by_hand_with_eroded_mask() -> None:
     # Target is an x-ramp of slope 2, pred is flat. Column 0 is invalid (and holds junk), so the
     # eroded mask keeps columns 2..4 only. Normalised Sobel dx of the target: 2 inside, 1 on the
@@ -73,7 +104,7 @@ def test_edge_loss_by_hand_with_eroded_mask() -> None:
     assert edge_loss(target, target).item() == pytest.approx(0.0, abs=1e-7)
 
 
-@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+@pytest.mark.parametrize("kind", PIXEL_LOSSES)
 def test_masked_target_pixels_do_not_affect_any_term(kind: str) -> None:
     pred, target, mask = _random_case(seed=1)
     crit = DepthLoss(pixel=kind)
@@ -92,7 +123,7 @@ def test_masked_target_pixels_do_not_affect_any_term(kind: str) -> None:
     torch.testing.assert_close(pred_a.grad, pred_b.grad)
 
 
-@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+@pytest.mark.parametrize("kind", PIXEL_LOSSES)
 def test_empty_mask_is_finite_zero(kind: str) -> None:
     pred, target, _ = _random_case(seed=2)
     pred.requires_grad_(True)
@@ -104,7 +135,7 @@ def test_empty_mask_is_finite_zero(kind: str) -> None:
     assert torch.isfinite(pred.grad).all()
 
 
-@pytest.mark.parametrize("kind", ["l1", "l2", "berhu"])
+@pytest.mark.parametrize("kind", PIXEL_LOSSES)
 def test_gradients_flow_to_pred(kind: str) -> None:
     pred, target, mask = _random_case(seed=3)
     pred.requires_grad_(True)
@@ -129,7 +160,7 @@ def test_total_is_weighted_sum() -> None:
 
 
 def test_unknown_kind_raises() -> None:
-    with pytest.raises(ValueError, match=r"'huber'.*l1.*l2.*berhu"):
+    with pytest.raises(ValueError, match=r"'huber'.*l1.*l2.*berhu.*log_l1"):
         pixel_loss(PRED, TARGET, kind="huber")
     with pytest.raises(ValueError, match=r"'huber'.*l1.*l2.*berhu"):
         DepthLoss(pixel="huber")

@@ -193,7 +193,7 @@ def test_the_methods_sweep_runs_each_model_with_its_own_encoder_and_loss(tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     runs = load_runs(tmp_path / "sweep")
     assert sorted((r.run.model, r.run.backbone, r.run.loss) for r in runs) == [
-        ("densedepth", "densenet169", "l1"),
+        ("densedepth", "resnet10t", "l1"),  # experiment=smoke's encoder for DenseDepth
         ("radarnet", "resnet18", "l1_only"),
         ("sparse_to_dense", "resnet18", "l1_only"),
     ]

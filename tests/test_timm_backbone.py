@@ -142,7 +142,7 @@ def test_config_composes_and_names_the_taps(make_config) -> None:
     cfg = make_config("experiment=smoke", "backbone=timm", "backbone.name=convnext_atto")
     validate_config(cfg)
     assert (cfg.model.net.backbone, cfg.model.net.backbone_taps) == ("convnext_atto", "pyramid")
-    cfg = make_config("experiment=smoke")
+    cfg = make_config("experiment=paper")
     validate_config(cfg)
     assert (cfg.model.net.backbone, cfg.model.net.backbone_taps) == ("densenet169", "paper")
 

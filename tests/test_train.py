@@ -54,7 +54,7 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(
         "dataset": "procedural",
         "sensor": "radar",
         "model": "densedepth",
-        "backbone": "densenet169",
+        "backbone": "resnet10t",  # experiment=smoke's encoder for DenseDepth
         "fusion": "concat",
         "loss": "l1",
         "seed": 42,
