@@ -27,6 +27,27 @@ if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
     os.environ["OMP_NUM_THREADS"] = str(_threads)
     torch.set_num_threads(_threads)
 
+# The files that take longest (training in subprocesses: kills, resumes, sweeps), longest first,
+# from `pytest --durations`. pytest-xdist hands each worker whole files in collection order, so
+# these go first: a long file started last would keep one worker busy while the others idle.
+LONGEST_FILES = (
+    "test_kills.py",
+    "test_resume.py",
+    "test_train.py",
+    "test_export.py",
+    "test_cli.py",
+    "test_launchers.py",
+    "test_hostile_checkpoints.py",
+    "test_sparse_to_dense.py",
+    "test_hparams_search.py",
+    "test_radarnet.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file
+
 
 @pytest.fixture(scope="session", autouse=True)
 def isolated_environment(tmp_path_factory: pytest.TempPathFactory) -> Path:
