@@ -97,8 +97,8 @@ def berhu_loss(
 
 
 LOG_FLOOR = 1e-2
-"""Reciprocal depth below which :func:`log_l1_loss` extends the log linearly (a prediction of
-``depth_scale / 100`` m: far beyond any dataset's ``max_depth``)."""
+"""Reciprocal depth below which :func:`log_l1_loss` extends the log linearly: a depth of
+``100 × depth_scale`` metres (1 km at the built-in dataset's 10), far beyond any ``max_depth``."""
 
 
 def log_l1_loss(
@@ -199,9 +199,9 @@ class DepthLoss(nn.Module):
     """``w_ssim * L_ssim + w_edge * L_edge + w_pixel * L_pixel`` on reciprocal depth.
 
     The paper uses weights 1, 1, 1 and compares ``pixel`` in {"l1", "l2", "berhu"}; "log_l1"
-    (:func:`log_l1_loss`) is this platform's addition. ``forward``
-    returns a dict with the weighted total under ``"loss"`` (to backpropagate) and the unweighted
-    terms under ``"ssim"``, ``"edge"`` and ``"pixel"`` (to log).
+    (:func:`log_l1_loss`) is this platform's addition. ``forward`` returns a dict with the
+    weighted total under ``"loss"`` (to backpropagate) and the unweighted terms under ``"ssim"``,
+    ``"edge"`` and ``"pixel"`` (to log).
     """
 
     def __init__(
