@@ -121,6 +121,25 @@ def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:
     assert "recipe.backbone" not in radarnet
 
 
+def test_a_recipe_can_name_the_pixel_term_and_smoke_its_encoder(make_config) -> None:
+    """recipe.pixel_loss reaches the default loss (an explicit loss= still wins), and
+    experiment=smoke trains DenseDepth on ResNet-10-T unless backbone= says otherwise."""
+    assert _flat(make_config("++recipe.pixel_loss=log_l1"))["loss.pixel"] == "log_l1"
+    assert _flat(make_config("++recipe.pixel_loss=log_l1", "loss=l2"))["loss.pixel"] == "l2"
+    assert _flat(make_config("experiment=smoke"))["backbone.name"] == "resnet10t"
+    smoke = _flat(make_config("experiment=smoke", "backbone=densenet169"))
+    assert smoke["backbone.name"] == "densenet169"
+
+
+def test_top_view_trains_the_papers_30_epochs_unless_smoke_or_asked(make_config) -> None:
+    topview = ("dataset=topview", "dataset.root=/t")
+    assert _flat(make_config(*topview))["trainer.max_epochs"] == 30
+    assert _flat(make_config(*topview, "experiment=paper"))["trainer.max_epochs"] == 30
+    assert _flat(make_config(*topview, "experiment=smoke"))["trainer.max_epochs"] == 2
+    assert _flat(make_config(*topview, "trainer.max_epochs=5"))["trainer.max_epochs"] == 5
+    assert _flat(make_config("experiment=paper"))["trainer.max_epochs"] == 20
+
+
 def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
     cfg = _flat(make_config("dataset=kitti", "dataset.root=/k", "dataset.raw_root=/r"))
     for key, value in PAPER_RECIPE.items():
