@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -21,6 +20,7 @@ from fusion_depth.metrics import DepthMetrics
 from fusion_depth.models import DepthModel
 from fusion_depth.protocol import EvalProtocol, EvaluationResult, latency_summary
 from fusion_depth.run_record import RunIdentity
+from fusion_depth.schedules import schedule_interval
 from fusion_depth.speed import speed_up
 from fusion_depth.visualize import PanelFrame
 
@@ -53,14 +53,6 @@ def downsample_depth(
     weight = F.adaptive_avg_pool2d(weight_full, size)
     mask = weight > 0
     return torch.where(mask, total / weight.clamp_min(1e-12), torch.zeros_like(total)), mask
-
-
-def _scheduler_class(factory: Callable[..., Any]) -> Any:
-    """The class a scheduler factory (a ``functools.partial``, as Hydra's ``_partial_: true``
-    makes) builds."""
-    while isinstance(factory, functools.partial):
-        factory = factory.func
-    return factory
 
 
 def _panel_frame(batch: dict, i: int, depth: torch.Tensor, label: str = "") -> PanelFrame:
@@ -387,7 +379,7 @@ class DepthModule(L.LightningModule):
             return {"optimizer": optimizer}
         # A per-step schedule (fusion_depth.schedules) declares interval = "step" and is given
         # the run's optimizer steps; torch's (the paper's StepLR) step per epoch.
-        interval = getattr(_scheduler_class(self.scheduler_factory), "interval", "epoch")
+        interval = schedule_interval(self.scheduler_factory)
         if interval == "step":
             total_steps = int(self.trainer.estimated_stepping_batches)
             scheduler = self.scheduler_factory(optimizer=optimizer, total_steps=total_steps)

@@ -1,17 +1,22 @@
-"""Learning-rate schedules stepped per optimizer step (``scheduler=cosine``).
+"""Learning-rate schedules: the paper's per-epoch ``StepLR`` (``scheduler=step``), the per-step
+:class:`WarmupCosine` (``scheduler=cosine``), and :func:`create_schedule`, which builds either by
+name (``scheduler=for_densedepth``, so that a dataset's recipe can name its schedule).
 
-The paper's schedule, ``scheduler=step`` (torch's ``StepLR``), is stepped per epoch. A schedule
-here declares ``interval = "step"`` and takes ``total_steps``, which the module passes: the
-run's optimizer steps (``trainer.estimated_stepping_batches``), so it follows ``max_epochs``,
-``limit_train_batches`` and gradient accumulation without being told.
+A schedule here declares ``interval = "step"`` and takes ``total_steps``, which the module
+passes: the run's optimizer steps (``trainer.estimated_stepping_batches``), so it follows
+``max_epochs``, ``limit_train_batches`` and gradient accumulation without being told.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import torch
-from torch.optim.lr_scheduler import LambdaLR
+from torch.optim.lr_scheduler import LambdaLR, LRScheduler, StepLR
 
 
 class WarmupCosine(LambdaLR):
@@ -61,3 +66,101 @@ class WarmupCosine(LambdaLR):
         progress = min(1.0, (step - self.warmup_steps) / span)
         cosine = 0.5 * (1 + math.cos(math.pi * progress))
         return self.final_lr_ratio + (1 - self.final_lr_ratio) * cosine
+
+
+# The schedules a config may name (create_schedule's ``name``): the paper's StepLR, stepped per
+# epoch, and the warm-up + cosine one, stepped per optimizer step.
+SCHEDULES: dict[str, type[LRScheduler]] = {"step": StepLR, "cosine": WarmupCosine}
+# Arguments the module passes itself, never a config's.
+_PASSED_BY_MODULE = ("self", "optimizer", "total_steps", "last_epoch")
+# Every schedule's config arguments, which create_schedule takes (None: unset).
+SCHEDULE_ARGUMENTS = ("step_size", "gamma", "warmup_fraction", "final_lr_ratio")
+
+
+def schedule_class(name: str) -> type[LRScheduler]:
+    """The schedule called ``name`` in :data:`SCHEDULES`.
+
+    Raises:
+        ValueError: an unknown name, listing the known ones.
+    """
+    if name not in SCHEDULES:
+        raise ValueError(
+            f"scheduler.name={name!r}: unknown schedule; expected one of {', '.join(SCHEDULES)}"
+        )
+    return SCHEDULES[name]
+
+
+def schedule_arguments(name: str) -> list[str]:
+    """The arguments a config may give schedule ``name`` (those the module passes left out)."""
+    params = inspect.signature(schedule_class(name)).parameters
+    return [p for p in params if p not in _PASSED_BY_MODULE]
+
+
+def check_schedule_arguments(name: str, arguments: Mapping[str, Any]) -> None:
+    """``arguments`` that are set (not None) must be schedule ``name``'s own.
+
+    Raises:
+        ValueError: an unknown name, or a set argument the schedule does not take, naming it.
+    """
+    allowed = schedule_arguments(name)
+    for key, value in arguments.items():
+        if value is not None and key not in allowed:
+            raise ValueError(
+                f"scheduler.{key}={value!r}: the {name} schedule takes no {key} "
+                f"(its arguments: {', '.join(allowed)}); set it to null"
+            )
+
+
+def create_schedule(
+    optimizer: torch.optim.Optimizer,
+    name: str = "step",
+    total_steps: int | None = None,
+    step_size: int | None = None,
+    gamma: float | None = None,
+    warmup_fraction: float | None = None,
+    final_lr_ratio: float | None = None,
+) -> LRScheduler:
+    """Schedule ``name`` (:data:`SCHEDULES`) over ``optimizer``, built with the arguments that
+    are set; the others must be None.
+
+    How model=densedepth's default schedule follows a dataset's recipe
+    (``conf/scheduler/for_densedepth.yaml`` reads ``recipe.schedule``): Hydra does not let a
+    preset that the defaults select by interpolation switch the scheduler group, so the recipe
+    names the schedule instead, and the name is looked up here, never imported.
+
+    Args:
+        optimizer: the run's optimizer; its ``lr`` is the peak.
+        name: ``step`` (torch's StepLR, per epoch) or ``cosine`` (:class:`WarmupCosine`, per
+            optimizer step).
+        total_steps: the run's optimizer steps (the module passes it to a per-step schedule).
+        step_size, gamma: StepLR's: lr × ``gamma`` every ``step_size`` epochs.
+        warmup_fraction, final_lr_ratio: :class:`WarmupCosine`'s (None: its defaults).
+
+    Raises:
+        ValueError: an unknown name, or a set argument the named schedule does not take.
+    """
+    arguments = {
+        "step_size": step_size,
+        "gamma": gamma,
+        "warmup_fraction": warmup_fraction,
+        "final_lr_ratio": final_lr_ratio,
+    }
+    check_schedule_arguments(name, arguments)
+    cls = schedule_class(name)
+    given = {key: value for key, value in arguments.items() if value is not None}
+    if getattr(cls, "interval", "epoch") == "step":
+        given["total_steps"] = total_steps
+    return cls(optimizer, **given)
+
+
+def schedule_interval(factory: Callable[..., Any]) -> str:
+    """``"step"`` or ``"epoch"``: how often the schedule a factory builds (a class, or a
+    ``functools.partial`` as Hydra's ``_partial_: true`` makes, also of :func:`create_schedule`)
+    is stepped, so that the module knows whether to pass ``total_steps``."""
+    keywords: dict[str, Any] = {}
+    while isinstance(factory, functools.partial):
+        keywords = {**factory.keywords, **keywords}
+        factory = factory.func
+    if factory is create_schedule:
+        factory = schedule_class(keywords.get("name", "step"))
+    return getattr(factory, "interval", "epoch")

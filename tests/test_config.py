@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from hydra.errors import ConfigCompositionException, MissingConfigException
@@ -14,6 +15,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from fusion_depth.config import validate_config
+from fusion_depth.schedules import WarmupCosine
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -97,12 +99,19 @@ def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) 
     assert cfg["backbone.name"] == "resnet10t"
     assert (cfg["optimizer.lr"], cfg["data.batch_size"]) == (1.5e-3, 8)
     assert (cfg["trainer.max_epochs"], cfg["trainer.limit_train_batches"]) == (18, 125)
-    assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (6, 0.2)
+    assert cfg["scheduler.name"] == "cosine"
+    assert (cfg["scheduler.warmup_fraction"], cfg["scheduler.final_lr_ratio"]) == (0.02, 0.01)
+    assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (None, None)
     assert (cfg["loss.w_ssim"], cfg["loss.w_edge"], cfg["loss.w_pixel"]) == (1.87, 1.14, 0.43)
     assert cfg["dataset.num_train"] == 6400
     # Instantiated, the recipe is the network and schedule the config names.
     model = instantiate(default.model, _convert_="all")
     assert model.net.encoder.name == "resnet10t"
+    model._trainer = SimpleNamespace(estimated_stepping_batches=18 * 125)  # Lightning's count
+    schedule = model.configure_optimizers()["lr_scheduler"]
+    assert schedule["interval"] == "step"
+    assert isinstance(schedule["scheduler"], WarmupCosine)
+    assert (schedule["scheduler"].total_steps, schedule["scheduler"].warmup_steps) == (2250, 45)
 
 
 def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:
@@ -143,8 +152,17 @@ def test_top_view_trains_the_papers_30_epochs_unless_smoke_or_asked(make_config)
 def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
     cfg = _flat(make_config("dataset=kitti", "dataset.root=/k", "dataset.raw_root=/r"))
     for key, value in PAPER_RECIPE.items():
-        if not key.startswith("dataset."):
+        if not key.startswith(("dataset.", "scheduler.")):
             assert cfg[key] == value, key
+    # model=densedepth's default schedule names the paper's StepLR (create_schedule, so that the
+    # built-in dataset's recipe can name another).
+    assert cfg["scheduler._target_"] == "fusion_depth.schedules.create_schedule"
+    assert (cfg["scheduler.name"], cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (
+        "step",
+        PAPER_RECIPE["scheduler.step_size"],
+        PAPER_RECIPE["scheduler.gamma"],
+    )
+    assert (cfg["scheduler.warmup_fraction"], cfg["scheduler.final_lr_ratio"]) == (None, None)
     assert cfg["backbone.pretrained"] is True  # ImageNet weights, as the paper
 
 
@@ -173,6 +191,7 @@ def test_model_and_loss_instantiate_from_config(make_config) -> None:
     model = instantiate(cfg.model, _convert_="all")
     assert model.net.fusion.mode == "add" and model.loss.pixel == "berhu"
     assert model.loss.max_val == pytest.approx(cfg.dataset.depth_scale / cfg.dataset.min_depth)
+    model._trainer = SimpleNamespace(estimated_stepping_batches=100)  # the recipe's per-step lr
     optimizer = model.configure_optimizers()["optimizer"]
     assert optimizer.defaults["lr"] == cfg.optimizer.lr
 

@@ -1,8 +1,11 @@
 """``scheduler=cosine``: linear warm-up then cosine decay, stepped per optimizer step over the
-run's steps; the paper's ``scheduler=step`` stays per epoch."""
+run's steps; the paper's ``scheduler=step`` stays per epoch; ``create_schedule`` builds either by
+name (model=densedepth's default, which follows a dataset's recipe)."""
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from types import SimpleNamespace
 
@@ -12,7 +15,14 @@ from hydra.utils import instantiate
 
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.schedules import WarmupCosine
+from fusion_depth.schedules import (
+    SCHEDULE_ARGUMENTS,
+    SCHEDULES,
+    WarmupCosine,
+    create_schedule,
+    schedule_arguments,
+    schedule_interval,
+)
 
 
 def _lrs(scheduler: torch.optim.lr_scheduler.LRScheduler, steps: int) -> list[float]:
@@ -71,3 +81,77 @@ def test_the_module_steps_it_per_optimizer_step_over_the_runs_steps(make_config)
 def test_out_of_range_settings_fail_at_config_time(make_config) -> None:
     with pytest.raises(ConfigError, match=r"scheduler.warmup_fraction=1.5: expected a share"):
         validate_config(make_config("scheduler=cosine", "scheduler.warmup_fraction=1.5"))
+
+
+def _optimizer() -> torch.optim.Optimizer:
+    return torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+
+
+def test_create_schedule_builds_the_named_schedule_with_its_own_arguments() -> None:
+    step = create_schedule(_optimizer(), "step", step_size=2, gamma=0.5)
+    assert isinstance(step, torch.optim.lr_scheduler.StepLR)
+    lrs = []
+    for _ in range(5):  # per epoch
+        lrs.append(step.optimizer.param_groups[0]["lr"])
+        step.optimizer.step()
+        step.step()
+    assert lrs == pytest.approx([1.0, 1.0, 0.5, 0.5, 0.25])
+    cosine = create_schedule(_optimizer(), "cosine", total_steps=10, warmup_fraction=0.2)
+    assert isinstance(cosine, WarmupCosine)
+    assert (cosine.total_steps, cosine.warmup_steps, cosine.final_lr_ratio) == (10, 2, 0.01)
+    assert set(SCHEDULES) == {"step", "cosine"}
+
+
+@pytest.mark.parametrize(
+    "name,kwargs,match",
+    [
+        ("onecycle", {}, r"scheduler.name='onecycle': unknown schedule; expected one of step"),
+        ("cosine", {"total_steps": 5, "step_size": 3}, r"the cosine schedule takes no step_size"),
+        ("step", {"step_size": 3, "warmup_fraction": 0.1}, r"step schedule takes no warmup_f"),
+    ],
+)
+def test_create_schedule_refuses_an_unknown_name_or_the_other_schedules_argument(
+    name, kwargs, match
+) -> None:
+    with pytest.raises(ValueError, match=match):
+        create_schedule(_optimizer(), name, **kwargs)
+
+
+def test_the_interval_follows_the_name_a_partial_gives() -> None:
+    assert schedule_interval(functools.partial(create_schedule, name="cosine")) == "step"
+    assert schedule_interval(functools.partial(create_schedule, name="step")) == "epoch"
+    assert schedule_interval(functools.partial(WarmupCosine, warmup_fraction=0.1)) == "step"
+    assert schedule_interval(torch.optim.lr_scheduler.StepLR) == "epoch"
+
+
+def test_the_recipe_names_its_schedule_and_the_command_line_adjusts_it(make_config) -> None:
+    """model=densedepth's default schedule is the recipe's (cosine) on the built-in dataset and
+    the paper's StepLR elsewhere; either takes its own arguments from the command line, and an
+    argument of the other schedule fails at config time, naming it."""
+    tuned = make_config("scheduler.warmup_fraction=0.1")
+    assert (tuned.scheduler.name, tuned.scheduler.warmup_fraction) == ("cosine", 0.1)
+    validate_config(tuned)
+    smoke = make_config("experiment=smoke", "scheduler.step_size=3")  # no recipe: the paper's
+    assert (smoke.scheduler.name, smoke.scheduler.step_size, smoke.scheduler.gamma) == (
+        "step",
+        3,
+        0.2,
+    )
+    validate_config(smoke)
+    module = instantiate(smoke.model, _convert_="all")
+    scheduler = module.configure_optimizers()["lr_scheduler"]["scheduler"]
+    assert isinstance(scheduler, torch.optim.lr_scheduler.StepLR) and scheduler.step_size == 3
+    with pytest.raises(ConfigError, match=r"scheduler.step_size=3: the cosine schedule takes no"):
+        validate_config(make_config("scheduler.step_size=3"))
+    with pytest.raises(ConfigError, match=r"scheduler.name='bogus': unknown schedule"):
+        validate_config(make_config("recipe.schedule.name=bogus"))
+    with pytest.raises(ConfigError, match=r"scheduler.warmup_fraction=1.5: expected a share"):
+        validate_config(make_config("recipe.schedule.warmup_fraction=1.5"))
+
+
+def test_create_schedule_takes_every_named_schedules_arguments() -> None:
+    """A schedule added to the table without its arguments in create_schedule would fail here
+    rather than in a config."""
+    takes = set(inspect.signature(create_schedule).parameters)
+    for name in SCHEDULES:
+        assert set(schedule_arguments(name)) <= set(SCHEDULE_ARGUMENTS) <= takes, name

@@ -11,6 +11,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from fusion_depth.config.show import show
 from fusion_depth.errors import ConfigError, MissingDependencyError
+from fusion_depth.schedules import SCHEDULE_ARGUMENTS, check_schedule_arguments
 
 _ABSENT = object()
 
@@ -261,20 +262,35 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "optimizer.eps", positive_number, "a number > 0")
     _require(cfg, "optimizer.weight_decay", nonneg_number, "a number ≥ 0")
     _require(cfg, "optimizer.momentum", nonneg_number, "a number ≥ 0")
-    _require(cfg, "scheduler.step_size", positive_int, "an integer ≥ 1 (epochs)")
-    _require(cfg, "scheduler.gamma", positive_number, "a factor > 0")
+
+    # A schedule's arguments; with fusion_depth.schedules.create_schedule (scheduler=
+    # for_densedepth) only those of the schedule it names may be set, the others are null.
+    def unset_or(ok: Callable[[Any], bool]) -> Callable[[Any], bool]:
+        return lambda v: v is None or ok(v)
+
+    _require(cfg, "scheduler.step_size", unset_or(positive_int), "an integer ≥ 1 (epochs)")
+    _require(cfg, "scheduler.gamma", unset_or(positive_number), "a factor > 0")
     _require(
         cfg,
         "scheduler.warmup_fraction",
-        lambda v: _is_number(v) and 0 <= v < 1,
+        unset_or(lambda v: _is_number(v) and 0 <= v < 1),
         "a share in [0, 1)",
     )
     _require(
         cfg,
         "scheduler.final_lr_ratio",
-        lambda v: _is_number(v) and 0 <= v <= 1,
+        unset_or(lambda v: _is_number(v) and 0 <= v <= 1),
         "a ratio in [0, 1]",
     )
+    if _get(cfg, "scheduler._target_") == "fusion_depth.schedules.create_schedule":
+        scheduler = OmegaConf.to_container(cfg.scheduler, resolve=True)
+        try:  # a key that is no schedule's argument is check_known_keys' to name
+            check_schedule_arguments(
+                scheduler.get("name", "step"),
+                {k: v for k, v in scheduler.items() if k in SCHEDULE_ARGUMENTS},
+            )
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     _require(cfg, "callbacks.progress_log.every_s", positive_number, "seconds > 0")
 
     _require(cfg, "model.net.sparse_encoding", *_one_of(*SPARSE_ENCODINGS))
