@@ -97,10 +97,12 @@ def schedule_arguments(name: str) -> list[str]:
 
 
 def check_schedule_arguments(name: str, arguments: Mapping[str, Any]) -> None:
-    """``arguments`` that are set (not None) must be schedule ``name``'s own.
+    """``arguments`` that are set (not None) must be schedule ``name``'s own, and those it
+    requires must be set.
 
     Raises:
-        ValueError: an unknown name, or a set argument the schedule does not take, naming it.
+        ValueError: an unknown name, a set argument the schedule does not take, or a required
+            one unset, naming it.
     """
     allowed = schedule_arguments(name)
     for key, value in arguments.items():
@@ -109,6 +111,10 @@ def check_schedule_arguments(name: str, arguments: Mapping[str, Any]) -> None:
                 f"scheduler.{key}={value!r}: the {name} schedule takes no {key} "
                 f"(its arguments: {', '.join(allowed)}); set it to null"
             )
+    params = inspect.signature(schedule_class(name)).parameters
+    for key in allowed:
+        if params[key].default is inspect.Parameter.empty and arguments.get(key) is None:
+            raise ValueError(f"scheduler.{key}: the {name} schedule needs it; it is null")
 
 
 def create_schedule(

@@ -108,6 +108,7 @@ def test_create_schedule_builds_the_named_schedule_with_its_own_arguments() -> N
         ("onecycle", {}, r"scheduler.name='onecycle': unknown schedule; expected one of step"),
         ("cosine", {"total_steps": 5, "step_size": 3}, r"the cosine schedule takes no step_size"),
         ("step", {"step_size": 3, "warmup_fraction": 0.1}, r"step schedule takes no warmup_f"),
+        ("step", {"gamma": 0.5}, r"scheduler.step_size: the step schedule needs it; it is null"),
     ],
 )
 def test_create_schedule_refuses_an_unknown_name_or_the_other_schedules_argument(
@@ -147,6 +148,11 @@ def test_the_recipe_names_its_schedule_and_the_command_line_adjusts_it(make_conf
         validate_config(make_config("recipe.schedule.name=bogus"))
     with pytest.raises(ConfigError, match=r"scheduler.warmup_fraction=1.5: expected a share"):
         validate_config(make_config("recipe.schedule.warmup_fraction=1.5"))
+    with pytest.raises(ConfigError, match=r"scheduler.step_size: the step schedule needs it"):
+        validate_config(make_config("experiment=smoke", "scheduler.step_size=null"))
+    # A schedule chosen by group keeps its own arguments required.
+    with pytest.raises(ConfigError, match=r"scheduler.step_size=null: expected an integer ≥ 1"):
+        validate_config(make_config("scheduler=step", "scheduler.step_size=null"))
 
 
 def test_create_schedule_takes_every_named_schedules_arguments() -> None:

@@ -264,9 +264,11 @@ def check_values(cfg: DictConfig) -> None:
     _require(cfg, "optimizer.momentum", nonneg_number, "a number ≥ 0")
 
     # A schedule's arguments; with fusion_depth.schedules.create_schedule (scheduler=
-    # for_densedepth) only those of the schedule it names may be set, the others are null.
+    # for_densedepth) only those of the schedule it names are set, the others are null.
+    by_name = _get(cfg, "scheduler._target_") == "fusion_depth.schedules.create_schedule"
+
     def unset_or(ok: Callable[[Any], bool]) -> Callable[[Any], bool]:
-        return lambda v: v is None or ok(v)
+        return (lambda v: v is None or ok(v)) if by_name else ok
 
     _require(cfg, "scheduler.step_size", unset_or(positive_int), "an integer ≥ 1 (epochs)")
     _require(cfg, "scheduler.gamma", unset_or(positive_number), "a factor > 0")
@@ -282,7 +284,7 @@ def check_values(cfg: DictConfig) -> None:
         unset_or(lambda v: _is_number(v) and 0 <= v <= 1),
         "a ratio in [0, 1]",
     )
-    if _get(cfg, "scheduler._target_") == "fusion_depth.schedules.create_schedule":
+    if by_name:
         scheduler = OmegaConf.to_container(cfg.scheduler, resolve=True)
         try:  # a key that is no schedule's argument is check_known_keys' to name
             check_schedule_arguments(
