@@ -161,3 +161,19 @@ def test_create_schedule_takes_every_named_schedules_arguments() -> None:
     takes = set(inspect.signature(create_schedule).parameters)
     for name in SCHEDULES:
         assert set(schedule_arguments(name)) <= set(SCHEDULE_ARGUMENTS) <= takes, name
+
+
+def test_a_cosine_schedule_saved_mid_run_resumes_on_the_same_learning_rates(tmp_path) -> None:
+    """The recipe's per-step schedule goes into last.ckpt as plain data (loaded with
+    weights_only=True, as checkpoints are) and continues exactly where it stopped."""
+    first = create_schedule(_optimizer(), "cosine", total_steps=12, warmup_fraction=0.25)
+    before = _lrs(first, 5)
+    torch.save(first.state_dict(), tmp_path / "schedule.pt")
+    second = create_schedule(_optimizer(), "cosine", total_steps=12, warmup_fraction=0.25)
+    second.load_state_dict(torch.load(tmp_path / "schedule.pt", weights_only=True))
+    second.optimizer.param_groups[0]["lr"] = second.get_last_lr()[0]  # as Lightning restores it
+    after = _lrs(second, 7)
+    reference = _lrs(
+        create_schedule(_optimizer(), "cosine", total_steps=12, warmup_fraction=0.25), 12
+    )
+    assert before[:5] + after == pytest.approx(reference)
