@@ -16,7 +16,7 @@ from lightning.pytorch.callbacks import Checkpoint
 
 
 class Probe(L.Callback):
-    """Appends ``{"pid", "epoch", "batch", "step"}`` per trained batch and ``{"pid",
+    """Appends ``{"pid", "epoch", "batch", "step", "lr"}`` per trained batch and ``{"pid",
     "val_epoch"}`` per validation epoch to ``log``.
 
     Breaks the run once per break point, each while its marker file does not exist (it is
@@ -54,7 +54,8 @@ class Probe(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = trainer.global_step
-        self._write({"epoch": trainer.current_epoch, "batch": batch_idx, "step": step})
+        lr = trainer.optimizers[0].param_groups[0]["lr"]  # the rate the next step will use
+        self._write({"epoch": trainer.current_epoch, "batch": batch_idx, "step": step, "lr": lr})
         armed = self.only_fusion in (None, pl_module.net.fusion.mode)
         if armed and self.at_step is not None and step == self.at_step:
             self._break_once(self.marker, self.action, f"step {self.at_step}")

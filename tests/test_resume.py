@@ -64,6 +64,11 @@ def probe_records(tmp_path: Path) -> list[dict]:
     return [r for r in map(json.loads, lines) if "batch" in r]
 
 
+# The built-in recipe's per-step schedule (warm-up + cosine), so that a learning rate restored
+# one step off would change the resumed run's metrics (test_kills covers the per-epoch StepLR).
+PER_STEP_SCHEDULE = ["scheduler=cosine", "scheduler.warmup_fraction=0.2"]
+
+
 def test_a_killed_run_resumes_mid_epoch_and_ends_like_an_uninterrupted_one(tmp_path) -> None:
     run_dir = tmp_path / "run"
     command = [
@@ -71,6 +76,7 @@ def test_a_killed_run_resumes_mid_epoch_and_ends_like_an_uninterrupted_one(tmp_p
         "-m",
         "fusion_depth.train",
         *RESUMABLE,
+        *PER_STEP_SCHEDULE,
         PROBE,
         f"hydra.run.dir={run_dir}",
     ]
@@ -105,12 +111,17 @@ def test_a_killed_run_resumes_mid_epoch_and_ends_like_an_uninterrupted_one(tmp_p
     assert before == [(0, 0, 1), (0, 1, 2), (0, 2, 3), (1, 0, 4), (1, 1, 5)]
     # Continued from step 4's checkpoint: step 5 again (its update was lost), no epoch twice.
     assert after == [(1, 1, 5), (1, 2, 6), (2, 0, 7), (2, 1, 8), (2, 2, 9)]
+    # ... on the learning rate the killed run had reached, not a restarted warm-up.
+    lr_at_5 = [r["lr"] for r in records if r.get("step") == 5]
+    assert len(lr_at_5) == 2 and lr_at_5[0] == pytest.approx(lr_at_5[1], rel=1e-9), lr_at_5
     resumed = json.loads((run_dir / "metrics.json").read_text())
     assert resumed["resumed_from"] == str(run_dir / "checkpoints" / "last.ckpt")
     assert resumed["global_step"] == 9 and resumed["epochs"] == 3
 
     # The same run without the kill: the same metrics, to the printed precision.
-    uninterrupted = train(compose_config(RESUMABLE, tmp_path / "uninterrupted"))
+    uninterrupted = train(
+        compose_config([*RESUMABLE, *PER_STEP_SCHEDULE], tmp_path / "uninterrupted")
+    )
     assert uninterrupted["resumed_from"] is None
     for key in METRIC_KEYS:
         assert f"{resumed['test'][key]:.3f}" == f"{uninterrupted['test'][key]:.3f}", key
