@@ -145,7 +145,8 @@ PLACEHOLDERS = {
     "<name>": "topview",
 }
 HYDRA_COMMANDS = {"train": "train", "prepare": "train", "evaluate": "evaluate",
-                  "predict": "predict", "export": "export"}  # fmt: skip
+                  "predict": "predict", "export": "export",
+                  "score_sparse": "score_sparse"}  # fmt: skip
 
 
 def readme_commands() -> list[str]:

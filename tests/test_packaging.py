@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from conftest import REPO
 
-COMMANDS = ("train", "evaluate", "predict", "export", "prepare", "report", "bench")
+COMMANDS = ("train", "evaluate", "predict", "export", "prepare", "report", "bench", "score_sparse")
 
 
 def _run(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -55,7 +55,8 @@ def test_the_wheel_carries_every_config_sweep_and_module(wheel: Path) -> None:
     (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
     for command in COMMANDS:
-        assert f"fusion-depth-{command} = fusion_depth.{command}:main" in text
+        script = f"fusion-depth-{command.replace('_', '-')}"
+        assert f"{script} = fusion_depth.{command}:main" in text
 
 
 def test_the_installed_package_runs_a_smoke_sweep_from_any_folder(wheel, tmp_path) -> None:
