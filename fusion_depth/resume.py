@@ -3,7 +3,9 @@
 Run directories are named after the run's overrides (``conf/hydra/default.yaml``), so the same
 command finds the same directory again: after a kill, a pre-emption or a failed sweep job it
 continues from ``checkpoints/last.ckpt`` (``resume=auto``), and a finished run is not trained
-again (``sweep.skip_done=true``).
+again (``sweep.skip_done=true``). The folder must hold the same run: the same overrides, and the
+same resolved config, so a default or config file changed since (a new package version, an edited
+``conf/``) never continues, or passes off as finished, a run of the old configuration.
 """
 
 from __future__ import annotations
@@ -14,16 +16,23 @@ import os
 import socket
 import time
 import uuid
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
 from hydra.errors import CompactHydraException
 
-from fusion_depth.checkpoint import RUN_KEY, CheckpointError, load_weights_only
+from fusion_depth.checkpoint import (
+    CONFIG_KEY,
+    RUN_KEY,
+    CheckpointError,
+    load_weights_only,
+    plain_config,
+)
 from fusion_depth.run_record import METRICS_FILE, RunIdentity, read_finished
-from fusion_depth.runs import FAILURE_FILE, PER_IMAGE_FILE, TRACEBACK_FILE
+from fusion_depth.runs import FAILURE_FILE, PER_IMAGE_FILE, RESOLVED_CONFIG_FILE, TRACEBACK_FILE
 
 log = logging.getLogger(__name__)
 
@@ -154,8 +163,66 @@ def finished_results(output_dir: Path) -> dict | None:
     return record.to_json() if record is not None else None
 
 
+# Where a run's folder and the dataset cache are: not part of what it computes, so a run folder
+# that was moved, or a cache that moved, still resumes.
+_PLACES = {"output_dir": "<run folder>", "cache_dir": "<cache>"}
+_MAX_CHANGES_SHOWN = 4
+
+
+def _leaves(tree: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def _comparable(config: Mapping[str, Any], excluded: Collection[str]) -> dict[str, Any]:
+    paths = config.get("paths") if isinstance(config.get("paths"), Mapping) else {}
+    places = [(str(paths[k]), v) for k, v in _PLACES.items() if isinstance(paths.get(k), str)]
+    places.sort(key=lambda place: -len(place[0]))  # the run folder may lie inside the cache
+    skipped = (*excluded, "paths")
+    out = {}
+    for key, value in _leaves(config):
+        if any(key == e or key.startswith(f"{e}.") for e in skipped):
+            continue
+        for where, placeholder in places:
+            if isinstance(value, str) and where and where in value:
+                value = value.replace(where, placeholder)
+        out[key] = value
+    return out
+
+
+def config_changes(
+    stored: Mapping[str, Any], current: Mapping[str, Any], excluded: Collection[str] = ()
+) -> list[str]:
+    """What differs between a run config a run folder recorded and this run's, as
+    ``key: stored → current`` (``absent`` for a missing key), sorted by key.
+
+    Keys that do not change what a run computes are left out: ``excluded`` ones (the override
+    keys of ``hydra.job.config.override_dirname.exclude_keys``, with everything below them) and
+    ``paths``; the run folder and the dataset cache, wherever a value names them, count as the
+    same place (each config's own ``paths.output_dir`` and ``paths.cache_dir``). Both are
+    compared as checkpoints store them (:func:`~fusion_depth.checkpoint.plain_config`)."""
+    old = _comparable(plain_config(dict(stored)), excluded)
+    new = _comparable(plain_config(dict(current)), excluded)
+    absent = object()
+    changes = []
+    for key in sorted(old.keys() | new.keys()):
+        before, after = old.get(key, absent), new.get(key, absent)
+        if before != after:
+            shown = ["absent" if v is absent else repr(v) for v in (before, after)]
+            changes.append(f"{key}: {shown[0]} → {shown[1]}")
+    return changes
+
+
 def _check_same_run(
-    where: Path, stored: Any, overrides: list[str], excluded: Collection[str]
+    where: Path,
+    stored: Any,
+    overrides: list[str],
+    excluded: Collection[str],
+    stored_config: Any = None,
+    config: Mapping[str, Any] | None = None,
 ) -> None:
     stored = identity_overrides(stored or [], excluded) if isinstance(stored, list) else None
     if stored is not None and stored != overrides:
@@ -164,6 +231,30 @@ def _check_same_run(
             f"this one ({' '.join(overrides) or '(none)'}): give this run its own "
             "hydra.run.dir, or resume=never to replace that run"
         )
+    if config is None or not isinstance(stored_config, Mapping):
+        return  # a folder from before run configs were recorded: the overrides decide
+    changes = config_changes(stored_config, config, excluded)
+    if changes:
+        more = len(changes) - _MAX_CHANGES_SHOWN
+        shown = "; ".join(changes[:_MAX_CHANGES_SHOWN]) + (f"; and {more} more" if more > 0 else "")
+        raise OtherRunError(
+            f"{where} holds a run of the same command with another configuration ({shown}): "
+            "the defaults or config files changed since it ran. resume=never replaces it; "
+            "another hydra.run.dir keeps it"
+        )
+
+
+def _recorded_config(output_dir: Path) -> Any:
+    """The run config a finished run wrote (``config_resolved.yaml``, read as plain data), or
+    None when there is none or it cannot be read (then its overrides alone decide)."""
+    path = output_dir / RESOLVED_CONFIG_FILE
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        log.warning("%s: not readable (%s); comparing the run's overrides only", path, err)
+        return None
 
 
 def _clear_previous(output_dir: Path, checkpoint_dir: Path) -> None:
@@ -188,27 +279,32 @@ def plan_start(
     skip_done: bool,
     overrides: list[str],
     excluded: Collection[str] = (),
+    config: Mapping[str, Any] | None = None,
 ) -> RunStart:
     """Decide how the run in ``output_dir`` starts.
 
-    - ``skip_done`` and a finished ``metrics.json`` there: nothing to do (its results).
+    - ``skip_done`` and a finished ``metrics.json`` there (unless ``resume=never``): nothing to
+      do (its results).
     - ``resume=auto`` and ``checkpoint_dir/last.ckpt``: continue from it, in its W&B run.
     - otherwise from scratch; ``resume=never`` first removes a previous run's results and
       checkpoints, so nothing stale is mistaken for this run's.
 
     ``overrides`` (already filtered by :func:`identity_overrides`) must match those recorded in
     the results or checkpoint found, so a shared ``hydra.run.dir`` never resumes another
-    configuration. A failure record from an earlier attempt is removed either way, and so are
-    the leftovers of an interrupted attempt (:func:`remove_leftovers`): call it holding the
-    run's :class:`RunLock`.
+    configuration; so must ``config`` (this run's resolved config, secrets redacted as it is
+    written) match the one recorded there (``config_resolved.yaml`` beside a finished
+    ``metrics.json``, the checkpoint's run config), by :func:`config_changes`. A failure record
+    from an earlier attempt is removed either way, and so are the leftovers of an interrupted
+    attempt (:func:`remove_leftovers`): call it holding the run's :class:`RunLock`.
     """
     if resume not in RESUME_MODES:
         raise ValueError(f"resume={resume!r}: expected one of {list(RESUME_MODES)}")
     fresh = RunStart(wandb_id=uuid.uuid4().hex[:8])
-    if skip_done and (finished := read_finished(output_dir)) is not None:
+    if skip_done and resume != "never" and (finished := read_finished(output_dir)) is not None:
         where = output_dir / METRICS_FILE
         stored = finished.run.overrides if finished.run is not None else None
-        _check_same_run(where, stored, overrides, excluded)
+        stored_config = _recorded_config(output_dir) if config is not None else None
+        _check_same_run(where, stored, overrides, excluded, stored_config, config)
         return RunStart(finished=finished.to_json())
     for name in (FAILURE_FILE, TRACEBACK_FILE):
         (output_dir / name).unlink(missing_ok=True)
@@ -230,7 +326,9 @@ def plan_start(
         raise CheckpointError(f"{err}; resume=never starts this run over") from err
     check_resume_state(checkpoint, last)
     identity = RunIdentity.from_json(checkpoint.get(RUN_KEY) or {})
-    _check_same_run(last, identity.overrides, overrides, excluded)
+    _check_same_run(
+        last, identity.overrides, overrides, excluded, checkpoint.get(CONFIG_KEY), config
+    )
     remove_leftovers(output_dir, checkpoint_dir, keep=[last, *known_checkpoints(checkpoint)])
     state = checkpoint["callbacks"].get(LAST_CHECKPOINT_STATE) or {}
     return RunStart(

@@ -104,6 +104,7 @@ def train_record(cfg: DictConfig) -> RunRecord | None:
 
 def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> RunRecord | None:
     last_checkpoint = cfg.callbacks.get("last_checkpoint")
+    run_config = redact_secrets(run_config)  # what gets written anywhere from here on
     start = plan_start(
         output_dir,
         Path(last_checkpoint.dirpath) if last_checkpoint else None,
@@ -111,6 +112,7 @@ def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> RunRec
         cfg.sweep.skip_done,
         run_overrides(),
         not_identity_keys(),
+        config=run_config,
     )
     if start.finished is not None:
         finished = RunRecord.from_json(start.finished, output_dir / METRICS_FILE)
@@ -123,7 +125,6 @@ def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> RunRec
         return finished
     if start.checkpoint is not None:
         log.info("resuming from %s", start.checkpoint)
-    run_config = redact_secrets(run_config)  # what gets written anywhere from here on
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(run_config))
     identity = run_identity(cfg, run_overrides(), wandb_id=start.wandb_id)
     job = RankJob(cfg, run_config, identity, start)

@@ -14,9 +14,11 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from conftest import compose_config, run_module
 
 from fusion_depth.checkpoint import (
+    CONFIG_KEY,
     RUN_KEY,
     AtomicCheckpointIO,
     CheckpointError,
@@ -24,7 +26,7 @@ from fusion_depth.checkpoint import (
 )
 from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
 from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.resume import plan_start
+from fusion_depth.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.runs import run_dirname
 from fusion_depth.train import train
 
@@ -206,6 +208,77 @@ def test_plan_start_resumes_skips_refuses_and_starts_over(tmp_path) -> None:
     assert not list(ckpts.glob("*.ckpt")) and not (run / "metrics.json").exists()
     with pytest.raises(ValueError, match="resume='sometimes'.*auto"):
         plan_start(run, ckpts, "sometimes", True, ours)
+
+
+def test_config_changes_ignore_where_the_run_and_the_cache_are_and_excluded_keys() -> None:
+    stored = {
+        "paths": {"output_dir": "/old/runs/a", "cache_dir": "/old/cache"},
+        "trainer": {"default_root_dir": "/old/runs/a", "max_epochs": 18},
+        "dataset": {"reader": {"_target_": "x.Reader", "root": "/old/cache/procedural"}},
+        "optimizer": {"lr": 1.5e-3},
+        "logger": {"save_dir": "/old/runs/a", "project": "p"},
+        "data": {"num_workers": 2},
+    }
+    moved = {
+        "paths": {"output_dir": "/new/b", "cache_dir": "/home/u/.cache/fd"},
+        "trainer": {"default_root_dir": "/new/b", "max_epochs": 18},
+        "dataset": {"reader": {"_target_": "x.Reader", "root": "/home/u/.cache/fd/procedural"}},
+        "optimizer": {"lr": 1.5e-3},
+        "logger": {"save_dir": "/new/b", "project": "other"},
+        "data": {"num_workers": 0},
+    }
+    excluded = ["logger", "data.num_workers"]
+    assert config_changes(stored, moved, excluded) == []
+    moved["optimizer"]["lr"] = 1e-4
+    moved["trainer"]["max_epochs"] = 20
+    moved["trainer"]["precision"] = "32-true"
+    del moved["dataset"]["reader"]["root"]
+    assert config_changes(stored, moved, excluded) == [
+        "dataset.reader.root: '<cache>/procedural' → absent",
+        "optimizer.lr: 0.0015 → 0.0001",
+        "trainer.max_epochs: 18 → 20",
+        "trainer.precision: absent → '32-true'",
+    ]
+    assert config_changes(stored, moved, []) != config_changes(stored, moved, excluded)
+
+
+def test_a_run_folder_of_another_configuration_is_neither_skipped_nor_resumed(tmp_path) -> None:
+    run, ckpts = tmp_path / "run", tmp_path / "run" / "checkpoints"
+    ours = ["experiment=smoke"]
+    config = {"paths": {"output_dir": str(run)}, "optimizer": {"lr": 1.5e-3}, "seed": 42}
+    older = {"paths": {"output_dir": "/elsewhere"}, "optimizer": {"lr": 1e-4}, "seed": 42}
+    # A checkpoint whose run config differs is refused, naming the difference; the same
+    # config recorded in a folder that has moved since resumes.
+    ckpts.mkdir(parents=True)
+    torch.save(
+        {"state_dict": {}, RUN_KEY: {"overrides": ours}, CONFIG_KEY: older}, ckpts / "last.ckpt"
+    )
+    with pytest.raises(
+        OtherRunError, match=r"another configuration \(optimizer.lr: 0.0001 → 0.0015\)"
+    ):
+        plan_start(run, ckpts, "auto", True, ours, config=config)
+    same = {**config, "paths": {"output_dir": "/elsewhere"}}
+    torch.save(
+        {"state_dict": {}, RUN_KEY: {"overrides": ours}, CONFIG_KEY: same}, ckpts / "last.ckpt"
+    )
+    assert (
+        plan_start(run, ckpts, "auto", True, ours, config=config).checkpoint == ckpts / "last.ckpt"
+    )
+    # A finished run is compared with the config it wrote beside its metrics.
+    metrics = {"status": "ok", "run": {"overrides": ours}, "test": {"rmse": 1.5}, "global_step": 3}
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    (run / "config_resolved.yaml").write_text(yaml.safe_dump(older))
+    with pytest.raises(OtherRunError, match=r"metrics\.json holds a run .*resume=never replaces"):
+        plan_start(run, ckpts, "auto", True, ours, config=config)
+    (run / "config_resolved.yaml").write_text(yaml.safe_dump(same))
+    assert plan_start(run, ckpts, "auto", True, ours, config=config).finished == metrics
+    # A recorded config that cannot be read leaves the decision to the overrides.
+    (run / "config_resolved.yaml").write_text("optimizer: [unclosed")
+    assert plan_start(run, ckpts, "auto", True, ours, config=config).finished == metrics
+    # resume=never starts a finished run over, as it says, also with sweep.skip_done=true.
+    start = plan_start(run, ckpts, "never", True, ours, config=config)
+    assert start.finished is None and start.checkpoint is None
+    assert not (run / "metrics.json").exists() and not list(ckpts.glob("*.ckpt"))
 
 
 class _FullDisk:
@@ -458,7 +531,21 @@ def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
     # The killed holder's lock is taken over by the next command, which resumes the run.
     again = run_module(command, cwd=tmp_path, env=env)
     assert again.returncode == 0, again.stderr[-3000:]
-    assert json.loads((run_dir / "metrics.json").read_text())["global_step"] == 9
+    metrics = (run_dir / "metrics.json").read_text()
+    assert json.loads(metrics)["global_step"] == 9
+    # The same command after the defaults changed (a new version, an edited conf/) does not
+    # pass the old run off as its own: here the folder's recorded config says the run trained
+    # with another learning rate than the one this command composes. One line names what
+    # changed, and the finished run is left as it was.
+    recorded = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    recorded["optimizer"]["lr"] = recorded["model"]["optimizer"]["lr"] = 0.0123
+    (run_dir / "config_resolved.yaml").write_text(yaml.safe_dump(recorded))
+    changed = run_module(command, cwd=tmp_path, env=env)
+    assert changed.returncode == 1, changed.stderr[-3000:]
+    assert "holds a run of the same command with another configuration" in changed.stderr
+    assert "model.optimizer.lr: 0.0123 → 0.0001; optimizer.lr: 0.0123 → 0.0001" in changed.stderr
+    assert "resume=never replaces it" in changed.stderr and "Traceback" not in changed.stderr
+    assert (run_dir / "metrics.json").read_text() == metrics
 
 
 def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> None:
