@@ -252,7 +252,7 @@ def _recorded_config(output_dir: Path) -> Any:
         return yaml.safe_load(path.read_text())
     except FileNotFoundError:
         return None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+    except (OSError, UnicodeDecodeError, RecursionError, yaml.YAMLError) as err:
         log.warning("%s: not readable (%s); comparing the run's overrides only", path, err)
         return None
 
