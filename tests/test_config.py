@@ -97,8 +97,8 @@ def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) 
     default = make_config()
     cfg = _flat(default)
     assert cfg["backbone.name"] == "resnet10t"
-    assert (cfg["optimizer.lr"], cfg["data.batch_size"]) == (1.5e-3, 8)
-    assert (cfg["trainer.max_epochs"], cfg["trainer.limit_train_batches"]) == (18, 125)
+    assert (cfg["optimizer.lr"], cfg["data.batch_size"]) == (3e-3, 16)
+    assert (cfg["trainer.max_epochs"], cfg["trainer.limit_train_batches"]) == (22, 125)
     assert cfg["scheduler.name"] == "cosine"
     assert (cfg["scheduler.warmup_fraction"], cfg["scheduler.final_lr_ratio"]) == (0.02, 0.01)
     assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (None, None)
@@ -107,11 +107,11 @@ def test_the_builtin_dataset_trains_with_its_own_recipe_by_default(make_config) 
     # Instantiated, the recipe is the network and schedule the config names.
     model = instantiate(default.model, _convert_="all")
     assert model.net.encoder.name == "resnet10t"
-    model._trainer = SimpleNamespace(estimated_stepping_batches=18 * 125)  # Lightning's count
+    model._trainer = SimpleNamespace(estimated_stepping_batches=22 * 125)  # Lightning's count
     schedule = model.configure_optimizers()["lr_scheduler"]
     assert schedule["interval"] == "step"
     assert isinstance(schedule["scheduler"], WarmupCosine)
-    assert (schedule["scheduler"].total_steps, schedule["scheduler"].warmup_steps) == (2250, 45)
+    assert (schedule["scheduler"].total_steps, schedule["scheduler"].warmup_steps) == (2750, 55)
 
 
 def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:

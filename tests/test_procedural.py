@@ -222,6 +222,30 @@ def test_interrupted_generation_leaves_nothing_to_read(tmp_path, monkeypatch):
     assert len(ProceduralDepth("test", tmp_path, **SMALL)) == SMALL["num_test"]
 
 
+def test_rendering_in_several_processes_gives_the_same_arrays(tmp_path, monkeypatch):
+    serial = ProceduralDepth("train", tmp_path / "serial", **SMALL)
+    assert procedural.render_processes(SMALL["num_train"]) == 1  # a small split stays in-process
+    monkeypatch.setattr(procedural, "render_processes", lambda num_frames: 2)
+    monkeypatch.setattr(procedural, "_FRAMES_PER_TASK", 3)  # 4 tasks, the last one short
+    parallel = ProceduralDepth("train", tmp_path / "parallel", **SMALL)
+    names = ("image", "depth", "sparse", procedural.RADAR_ARRAY)
+    for name in names:
+        a, b = (np.load(ds.split_dir / f"{name}.npy") for ds in (serial, parallel))
+        assert a.shape[0] == SMALL["num_train"] and np.array_equal(a, b), name
+    assert parallel.conditions == serial.conditions
+    assert np.load(parallel.split_dir / "image.npy")[-1].any()  # the last task's frame is drawn
+
+
+def test_a_renderer_error_in_another_process_leaves_nothing_to_read(tmp_path, monkeypatch):
+    monkeypatch.setattr(procedural, "render_processes", lambda num_frames: 2)
+    monkeypatch.setattr(procedural, "_FRAMES_PER_TASK", 2)
+    monkeypatch.setattr(procedural, "render_frame", lambda *args, **kwargs: 1 / 0)
+    with pytest.raises(ZeroDivisionError):  # raised here, from the process that failed
+        ProceduralDepth("test", tmp_path, **SMALL)
+    (cache,) = tmp_path.iterdir()
+    assert [p.name for p in cache.iterdir()] == ["meta.json"]
+
+
 def test_losing_a_generation_race_is_harmless(tmp_path):
     first = ProceduralDepth("val", tmp_path, **SMALL)
     before = _arrays(first)

@@ -44,11 +44,13 @@ import argparse
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
 import shutil
 import time
 import uuid
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Literal, overload
 
@@ -259,36 +261,16 @@ class ProceduralDepth(Dataset):
                 "depth": np.lib.format.open_memmap(tmp / "depth.npy", "w+", np.uint16, (n, h, w)),
                 "sparse": np.lib.format.open_memmap(tmp / "sparse.npy", "w+", np.uint16, (n, h, w)),
             }
-            radar = p["sparse"] == "radar"
-            if radar:
+            if p["sparse"] == "radar":
                 out[RADAR_ARRAY] = np.lib.format.open_memmap(
                     tmp / f"{RADAR_ARRAY}.npy",
                     "w+",
                     np.float32,
                     (n, p["max_radar_points"], len(RADAR_POINT_FIELDS)),
                 )
+            del out  # created at full size; the renderers open them for writing
             conditions = [p["conditions"][i % len(p["conditions"])] for i in range(n)]
-            for i, condition in enumerate(conditions):
-                image, depth, sparse, points = render_frame(
-                    p["seed"],
-                    self.split,
-                    i,
-                    h,
-                    w,
-                    p["fov_deg"],
-                    condition,
-                    p["sparse"],
-                    p.get("radar_height_extension", 0.0),
-                    with_points=True,
-                )
-                out["image"][i] = image
-                out["depth"][i] = _encode_depth(depth)
-                out["sparse"][i] = _encode_depth(sparse)
-                if radar:
-                    out[RADAR_ARRAY][i] = pad_points(points, p["max_radar_points"])
-            for array in out.values():
-                array.flush()
-            del out
+            _render_into(tmp, self.array_names, p, self.split, conditions, render_processes(n))
             (tmp / "conditions.json").write_text(json.dumps(conditions))
             _publish(tmp, self.split_dir, self.array_names)
         finally:
@@ -379,6 +361,78 @@ class ProceduralDepth(Dataset):
         if RADAR_ARRAY in arrays:
             sample["radar_points"] = torch.from_numpy(np.array(arrays[RADAR_ARRAY][index]))
         return sample
+
+
+# Frames per rendering process: below about this many, starting a process costs more than it saves.
+_FRAMES_PER_PROCESS = 400
+# Frames per task handed to a process, so that a process whose parent died stops soon after.
+_FRAMES_PER_TASK = 200
+
+
+def render_processes(num_frames: int) -> int:
+    """How many processes render ``num_frames``: one per core this process may run on, and at
+    most one per ``_FRAMES_PER_PROCESS`` frames (small splits render in this process)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(cores or 1, num_frames // _FRAMES_PER_PROCESS))
+
+
+def _render_into(
+    folder: Path,
+    names: Sequence[str],
+    params: dict,
+    split: str,
+    conditions: Sequence[str],
+    processes: int,
+) -> None:
+    """Renders every frame of ``split`` into the ``<name>.npy`` arrays in ``folder``, in
+    ``processes`` processes (1: this one). Each frame is a pure function of its index
+    (:func:`render_frame`), so the arrays are the same for any number of processes."""
+    bounds = list(range(0, len(conditions), _FRAMES_PER_TASK)) + [len(conditions)]
+    tasks = [
+        (folder, tuple(names), params, split, conditions[start:stop], start)
+        for start, stop in zip(bounds[:-1], bounds[1:], strict=True)
+    ]
+    if processes <= 1:
+        for task in tasks:
+            _render_range(*task)
+        return
+    # fork where the platform has it (as DataLoader workers): no re-import in each process.
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if "fork" in methods else None)
+    with ProcessPoolExecutor(processes, mp_context=context) as pool:
+        list(pool.map(_render_range, *zip(*tasks, strict=True)))  # raises a renderer's error
+
+
+def _render_range(
+    folder: Path,
+    names: tuple[str, ...],
+    params: dict,
+    split: str,
+    conditions: Sequence[str],
+    start: int,
+) -> None:
+    """Frames ``start`` … ``start + len(conditions) - 1`` of ``split``, written into the arrays."""
+    out = {name: np.load(folder / f"{name}.npy", mmap_mode="r+") for name in names}
+    for i, condition in enumerate(conditions, start):
+        image, depth, sparse, points = render_frame(
+            params["seed"],
+            split,
+            i,
+            params["height"],
+            params["width"],
+            params["fov_deg"],
+            condition,
+            params["sparse"],
+            params.get("radar_height_extension", 0.0),
+            with_points=True,
+        )
+        out["image"][i] = image
+        out["depth"][i] = _encode_depth(depth)
+        out["sparse"][i] = _encode_depth(sparse)
+        if RADAR_ARRAY in out:
+            out[RADAR_ARRAY][i] = pad_points(points, params["max_radar_points"])
+    for array in out.values():
+        array.flush()
 
 
 def _complete(split_dir: Path, names: Sequence[str] = _ARRAYS) -> bool:
