@@ -32,7 +32,10 @@ The DataLoader's workers pass frames on in this stored form
 folder and leaves the old one alone; ``root/<hash>/meta.json`` records the parameters. Only the
 requested split is rendered. It is written into a temporary sibling folder and renamed into place
 when complete, so an interrupted run leaves nothing a later run would read, and of two processes
-rendering the same split the first rename wins (both produce identical frames).
+rendering the same split the first rename wins (both produce identical frames). A split renders in
+one process per core this process may use, at most one per ``_FRAMES_PER_PROCESS`` frames
+(:func:`render_processes`), each writing its frames into the same memory-mapped arrays; a frame is
+a pure function of its index, so the arrays are the same for any number of processes.
 
 Run ``python -m fusion_depth.data.procedural --out preview.png`` to look at one frame per
 condition.
