@@ -84,6 +84,21 @@ def test_stages_have_the_published_shapes() -> None:
     assert net.output_space == "depth"
 
 
+def test_on_a_cpu_the_association_runs_in_fp32_under_bf16_autocast() -> None:
+    """oneDNN's bf16 convolutions gave NaN at random on the window's 1-pixel-wide deepest
+    features (AMX CPUs), stopping training; on a CPU the association network is kept in fp32."""
+    torch.manual_seed(0)
+    net = RadarNet(stage="end_to_end").eval()
+    image = torch.rand(2, 3, 64, 96)
+    points = torch.cat([_points([(10, 40, 5.0), (60, 30, 12.0), (90, 20, 30.0)])] * 2)
+    with torch.no_grad():
+        reference = net.association_logits(image, points)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            logits = net.association_logits(image, points)
+    assert logits.dtype == torch.float32 and torch.isfinite(logits).all()
+    assert torch.equal(logits, reference)
+
+
 def test_the_quasi_dense_map_keeps_each_point_where_it_passes_the_threshold() -> None:
     """Two points, confidences written by hand: a pixel takes the depth of the most confident
     point at or above 0.5; nothing where neither passes."""

@@ -494,6 +494,11 @@ class RadarNet(DepthModel):
         features = torch.stack(
             [points[..., V] / h, points[..., DEPTH] / self.max_depth, points[..., U] / w], dim=-1
         ).reshape(b * p, 3)
+        if image.device.type == "cpu":
+            # In fp32 under bf16 autocast too: oneDNN's bf16 convolutions (torch 2.14, AMX)
+            # return NaN at random on the 1-pixel-wide deepest features of a 32-column window.
+            with torch.autocast("cpu", enabled=False):
+                return self.association(windows.float(), features.float()).view(b, p, h, width)
         return self.association(windows, features).view(b, p, h, width)
 
     def quasi_dense(
