@@ -174,8 +174,14 @@ def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
                     time.sleep(rng.uniform(0, 0.6))
                     break
                 time.sleep(0.02)
-            else:  # start-up, training, checkpointing or the test stage
-                time.sleep(rng.uniform(2, 11))
+            else:  # start-up, training or checkpointing: after a random delay or a few more
+                # records, whichever comes first, so that a fast machine does not finish first
+                delay = time.monotonic() + rng.uniform(2, 11)
+                records = before + rng.randint(2, 4)
+                while time.monotonic() < delay and process.poll() is None:
+                    if log.exists() and len(log.read_text().splitlines()) >= records:
+                        break
+                    time.sleep(0.02)
                 break
         if process.poll() is not None:  # finished first: nothing was interrupted
             assert process.returncode == 0, process.stderr.read().decode()[-3000:]
