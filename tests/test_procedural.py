@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import pickle
 
 import numpy as np
@@ -227,7 +228,19 @@ def test_rendering_in_several_processes_gives_the_same_arrays(tmp_path, monkeypa
     assert procedural.render_processes(SMALL["num_train"]) == 1  # a small split stays in-process
     monkeypatch.setattr(procedural, "render_processes", lambda num_frames: 2)
     monkeypatch.setattr(procedural, "_FRAMES_PER_TASK", 3)  # 4 tasks, the last one short
+    renderers = tmp_path / "renderers.txt"
+    real = procedural.render_frame
+
+    def render_and_record_the_process(*args, **kwargs):
+        with renderers.open("a") as f:  # one short append per frame: whole lines
+            f.write(f"{os.getpid()}\n")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(procedural, "render_frame", render_and_record_the_process)
     parallel = ProceduralDepth("train", tmp_path / "parallel", **SMALL)
+    pids = renderers.read_text().split()
+    assert len(pids) == SMALL["num_train"]  # every frame rendered once
+    assert str(os.getpid()) not in pids  # all by the pool's processes
     names = ("image", "depth", "sparse", procedural.RADAR_ARRAY)
     for name in names:
         a, b = (np.load(ds.split_dir / f"{name}.npy") for ds in (serial, parallel))
@@ -239,7 +252,14 @@ def test_rendering_in_several_processes_gives_the_same_arrays(tmp_path, monkeypa
 def test_a_renderer_error_in_another_process_leaves_nothing_to_read(tmp_path, monkeypatch):
     monkeypatch.setattr(procedural, "render_processes", lambda num_frames: 2)
     monkeypatch.setattr(procedural, "_FRAMES_PER_TASK", 2)
-    monkeypatch.setattr(procedural, "render_frame", lambda *args, **kwargs: 1 / 0)
+    parent = os.getpid()
+
+    def fail_in_another_process(*args, **kwargs):
+        if os.getpid() == parent:  # rendering here would not be the path under test
+            raise AssertionError("rendered in the parent process")
+        return 1 / 0
+
+    monkeypatch.setattr(procedural, "render_frame", fail_in_another_process)
     with pytest.raises(ZeroDivisionError):  # raised here, from the process that failed
         ProceduralDepth("test", tmp_path, **SMALL)
     (cache,) = tmp_path.iterdir()
