@@ -153,12 +153,20 @@ def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
     env = probe_env(tmp_path, at_step=None, action="stall")
     log = tmp_path / "probe.jsonl"
     kills: list[str] = []
+
+    def records() -> int:
+        return len(log.read_text().splitlines()) if log.exists() else 0
+
     while len(kills) < 10:
         assert len(kills) < 40
-        before = len(log.read_text().splitlines()) if log.exists() else 0
+        before = records()
         process = subprocess.Popen(command(run_dir), cwd=tmp_path, env=env, stderr=subprocess.PIPE)
         mode = ("checkpoint write", "after a record", "any time")[len(kills) % 3]
         wanted = rng.randint(1, 2)  # the how-many-th checkpoint write / new record to wait for
+        if mode == "any time":  # after a random delay or a few more records, whichever is first,
+            # so that a fast machine does not finish before the kill
+            delay = time.monotonic() + rng.uniform(2, 11)
+            enough_records = before + rng.randint(2, 4)
         writes, writing = 0, False
         deadline = time.monotonic() + 300
         while process.poll() is None and time.monotonic() < deadline:
@@ -170,19 +178,14 @@ def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
                     break
                 time.sleep(0.005)
             elif mode == "after a record":  # inside a step, validation, or between epochs
-                if log.exists() and len(log.read_text().splitlines()) >= before + wanted:
+                if records() >= before + wanted:
                     time.sleep(rng.uniform(0, 0.6))
                     break
                 time.sleep(0.02)
-            else:  # start-up, training or checkpointing: after a random delay or a few more
-                # records, whichever comes first, so that a fast machine does not finish first
-                delay = time.monotonic() + rng.uniform(2, 11)
-                records = before + rng.randint(2, 4)
-                while time.monotonic() < delay and process.poll() is None:
-                    if log.exists() and len(log.read_text().splitlines()) >= records:
-                        break
-                    time.sleep(0.02)
-                break
+            else:  # start-up, training or checkpointing
+                if time.monotonic() >= delay or records() >= enough_records:
+                    break
+                time.sleep(0.02)
         if process.poll() is not None:  # finished first: nothing was interrupted
             assert process.returncode == 0, process.stderr.read().decode()[-3000:]
             process.stderr.close()
