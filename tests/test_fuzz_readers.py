@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from PIL import Image
@@ -519,6 +519,13 @@ def test_damaged_radar_files_load_finite_detections_or_fail_naming_the_file(
     translation=st.tuples(*[st.floats(-1e300, 1e300)] * 3),
     rotation=st.tuples(*[st.floats(-1e6, 1e6)] * 3),
     max_range=st.one_of(st.just(math.inf), st.floats(1e-3, 250.0)),
+)
+# Found by this test in CI: x = cos²(2⁻²⁴) m is below 1 m in float64 but 1.0 in float32.
+@example(
+    detections=np.array([[1.0, 2.0**-24, 2.0**-24, 2.0**-24]]),
+    translation=(0.0, 0.0, 0.0),
+    rotation=(0.0, 0.0, 0.0),
+    max_range=1.0,
 )
 def test_projected_radar_is_always_a_finite_sparse_map(
     detections, translation, rotation, max_range

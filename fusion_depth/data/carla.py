@@ -303,7 +303,10 @@ def radar_image_points(
         points = detections_to_points(detections) @ radar_to_camera[:3, :3].T
         points += radar_to_camera[:3, 3]
         x, y, z = points.T
-        ahead = (x > 0) & (x < min(max_range, _FLOAT32_MAX))
+        # Tested in float32, the dtype the maps store: a forward distance just below max_range
+        # in float64 can round up to it there, and one far below 1 m down to 0 (no return).
+        stored = x.astype(np.float32)
+        ahead = (stored > 0) & (stored < min(max_range, _FLOAT32_MAX))
         x, y, z = x[ahead], y[ahead], z[ahead]
         u = width / 2.0 + fx * y / x
         v = height / 2.0 - fy * z / x
