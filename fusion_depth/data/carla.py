@@ -304,7 +304,7 @@ def radar_image_points(
         points += radar_to_camera[:3, 3]
         x, y, z = points.T
         # Tested in float32, the dtype the maps store: a forward distance just below max_range
-        # in float64 can round up to it there, and one far below 1 m down to 0 (no return).
+        # in float64 can round up to it there, and a positive one below 1e-45 m down to 0.
         stored = x.astype(np.float32)
         ahead = (stored > 0) & (stored < min(max_range, _FLOAT32_MAX))
         x, y, z = x[ahead], y[ahead], z[ahead]
