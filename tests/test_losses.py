@@ -149,6 +149,36 @@ def test_gradients_flow_to_pred(kind: str) -> None:
     assert pred.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("kind", PIXEL_LOSSES)
+def test_batch_fold_gives_the_per_image_terms_and_gradient_to_the_bit(kind: str) -> None:
+    # DepthLoss hands every term the batch as one image of B channels (a faster SSIM on CPUs);
+    # each term must still be exactly the one computed on the (B, 1, h, w) batch, and the
+    # gradient reaching the network output the same, so that training is unchanged.
+    g = torch.Generator().manual_seed(5)
+    pred = (torch.rand(5, 1, 24, 40, generator=g) * 4 + 0.1).contiguous(
+        memory_format=torch.channels_last
+    )
+    target = torch.rand(5, 1, 24, 40, generator=g) * 4 + 0.1
+    mask = torch.rand(5, 1, 24, 40, generator=g) < 0.7
+    weights = {"w_ssim": 1.87, "w_edge": 1.14, "w_pixel": 0.43}
+    folded_pred = pred.clone().requires_grad_(True)
+    out = DepthLoss(pixel=kind, max_val=20.0, **weights)(folded_pred, target, mask)
+    out["loss"].backward()
+    ref_pred = pred.clone().requires_grad_(True)
+    ssim = masked_ssim_loss(ref_pred, target, mask, max_val=20.0)
+    edge = edge_loss(ref_pred, target, mask)
+    pix = (
+        berhu_loss(ref_pred, target, mask)
+        if kind == "berhu"
+        else pixel_loss(ref_pred, target, mask, kind)
+    )
+    ref = weights["w_ssim"] * ssim + weights["w_edge"] * edge + weights["w_pixel"] * pix
+    ref.backward()
+    for key, value in {"ssim": ssim, "edge": edge, "pixel": pix, "loss": ref}.items():
+        assert torch.equal(out[key], value), key
+    assert torch.equal(folded_pred.grad, ref_pred.grad)
+
+
 def test_total_is_weighted_sum() -> None:
     pred, target, mask = _random_case(seed=4)
     out = DepthLoss(pixel="berhu", w_ssim=0.5, w_edge=2.0, w_pixel=3.0)(pred, target, mask)
