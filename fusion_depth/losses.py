@@ -228,10 +228,11 @@ class DepthLoss(nn.Module):
         """Compute every term; ``mask`` is True where the target is valid."""
         mask = _check_inputs(pred, target, mask)
         # Every term sees the batch as one image of B·C channels. Each term is per channel, so
-        # the values and gradients are the same to the bit, but Kornia's SSIM then filters with
-        # one depthwise convolution per pass instead of a single-channel one over the batch,
-        # whose backward pass is slow in oneDNN: SSIM 3.5× faster at batch 16 on a CPU (README,
-        # "Speed → The loss on a CPU").
+        # the values and gradients are the same (to the bit where oneDNN's kernels for the two
+        # forms agree, as on an AVX-512 EPYC), but Kornia's SSIM then filters with one depthwise
+        # convolution per pass instead of a single-channel one over the batch, whose backward
+        # pass oneDNN runs slowly: SSIM 3.5× faster at batch 16 on a CPU (README, "Speed → The
+        # loss on a CPU").
         pred, target, mask = (t.reshape(1, -1, *t.shape[2:]) for t in (pred, target, mask))
         ssim = masked_ssim_loss(pred, target, mask, self.max_val, self.window_size)
         edge = edge_loss(pred, target, mask)

@@ -150,10 +150,12 @@ def test_gradients_flow_to_pred(kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", PIXEL_LOSSES)
-def test_batch_fold_gives_the_per_image_terms_and_gradient_to_the_bit(kind: str) -> None:
+def test_batch_fold_gives_the_per_image_terms_and_gradient(kind: str) -> None:
     # DepthLoss hands every term the batch as one image of B channels (a faster SSIM on CPUs);
-    # each term must still be exactly the one computed on the (B, 1, h, w) batch, and the
-    # gradient reaching the network output the same, so that training is unchanged.
+    # each term must still be the one computed on the (B, 1, h, w) batch, and so must the
+    # gradient reaching the network output. Equal up to fp32 rounding: which convolution kernel
+    # oneDNN picks for each form depends on the CPU (on the AMD EPYC they agree to the bit, and a
+    # default run repeats its scores to the last digit; README, "Speed → The loss on a CPU").
     g = torch.Generator().manual_seed(5)
     pred = (torch.rand(5, 1, 24, 40, generator=g) * 4 + 0.1).contiguous(
         memory_format=torch.channels_last
@@ -175,8 +177,8 @@ def test_batch_fold_gives_the_per_image_terms_and_gradient_to_the_bit(kind: str)
     ref = weights["w_ssim"] * ssim + weights["w_edge"] * edge + weights["w_pixel"] * pix
     ref.backward()
     for key, value in {"ssim": ssim, "edge": edge, "pixel": pix, "loss": ref}.items():
-        assert torch.equal(out[key], value), key
-    assert torch.equal(folded_pred.grad, ref_pred.grad)
+        torch.testing.assert_close(out[key], value, rtol=1e-6, atol=0, msg=key)
+    torch.testing.assert_close(folded_pred.grad, ref_pred.grad, rtol=1e-5, atol=1e-9)
 
 
 def test_total_is_weighted_sum() -> None:
