@@ -224,8 +224,21 @@ class DepthLoss(nn.Module):
         self.window_size = window_size
         self.berhu_threshold = berhu_threshold
 
-    def forward(self, pred: Tensor, target: Tensor, mask: Tensor) -> dict[str, Tensor]:
-        """Compute every term; ``mask`` is True where the target is valid."""
+    def forward(
+        self, pred: Tensor, target: Tensor, mask: Tensor | None = None
+    ) -> dict[str, Tensor]:
+        """Compute every term.
+
+        Args:
+            pred, target: (B, C, h, w) reciprocal depth (``depth_scale / depth``).
+            mask: bool (B, C, h, w), True where the target is valid; None: everywhere.
+
+        Returns:
+            Scalars ``"loss"`` (the weighted total), ``"ssim"``, ``"edge"`` and ``"pixel"``.
+
+        Raises:
+            ValueError: ``pred`` is not 4-D, or ``target`` or ``mask`` has another shape.
+        """
         mask = _check_inputs(pred, target, mask)
         # Every term sees the batch as one image of B·C channels. Each term is per channel, so
         # the values and gradients are the same (to the bit where oneDNN's kernels for the two
