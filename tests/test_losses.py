@@ -181,6 +181,17 @@ def test_batch_fold_gives_the_per_image_terms_and_gradient(kind: str) -> None:
     torch.testing.assert_close(folded_pred.grad, ref_pred.grad, rtol=1e-5, atol=1e-9)
 
 
+def test_mismatched_shapes_are_refused_before_the_batch_fold() -> None:
+    # Folded, a (2, 1, h, w) prediction and a (1, 2, h, w) target (or mask) would look alike;
+    # DepthLoss must refuse them, naming both shapes, as each term does on its own.
+    pred = torch.rand(2, 1, 8, 8)
+    crit = DepthLoss()
+    with pytest.raises(ValueError, match=r"\(2, 1, 8, 8\) vs \(1, 2, 8, 8\)"):
+        crit(pred, torch.rand(1, 2, 8, 8), None)
+    with pytest.raises(ValueError, match=r"mask shape \(1, 2, 8, 8\) differs"):
+        crit(pred, torch.rand(2, 1, 8, 8), torch.ones(1, 2, 8, 8, dtype=torch.bool))
+
+
 def test_total_is_weighted_sum() -> None:
     pred, target, mask = _random_case(seed=4)
     out = DepthLoss(pixel="berhu", w_ssim=0.5, w_edge=2.0, w_pixel=3.0)(pred, target, mask)
