@@ -218,14 +218,34 @@ def _search_config(*overrides: str, preset: str = "optuna"):
         GlobalHydra.instance().clear()
 
 
-def test_the_built_in_recipe_search_gives_every_trial_the_same_budget() -> None:
-    """hparams_search=procedural_recipe: each corner of its space composes, passes the config
-    checks and trains with the fixed budget (so a trial's cost does not depend on its values)."""
-    params = _search_config(preset="procedural_recipe").hydra.sweeper.params
+# The built-in dataset's recipe searches and the budget every trial of each trains with:
+# (encoder, batch size, epochs, batches per epoch), a (key, value) of the schedule's config that
+# makes it the warm-up + cosine one, and keys that must be searched.
+RECIPE_SEARCHES = {
+    "procedural_recipe": (
+        ("resnet18", 8, 15, 100),
+        ("_target_", "fusion_depth.schedules.WarmupCosine"),
+        {"optimizer.lr", "dataset.num_train"},
+    ),
+    "procedural_recipe_no_amx": (
+        ("resnet10t", 16, 19, 125),
+        ("name", "cosine"),
+        {"optimizer.lr", "loss.w_pixel"},
+    ),
+}
+
+
+@pytest.mark.parametrize("preset", sorted(RECIPE_SEARCHES))
+def test_the_built_in_recipe_search_gives_every_trial_the_same_budget(preset: str) -> None:
+    """hparams_search=procedural_recipe(_no_amx): each corner of its space composes, passes the
+    config checks and trains with the fixed budget (so a trial's cost does not depend on its
+    values)."""
+    budget_expected, schedule, must_search = RECIPE_SEARCHES[preset]
+    params = _search_config(preset=preset).hydra.sweeper.params
     parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
     fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
     searched = [o for o in parsed if o.is_sweep_override()]
-    assert {o.key_or_group for o in searched} >= {"optimizer.lr", "dataset.num_train"}
+    assert {o.key_or_group for o in searched} >= must_search
     for corner in (0, -1):  # every searched value at its low end, then at its high end
         values = []
         for override in searched:
@@ -235,14 +255,19 @@ def test_the_built_in_recipe_search_gives_every_trial_the_same_budget() -> None:
             else:  # interval(...), possibly tagged log
                 bound = sweep.start if corner == 0 else sweep.end
                 values.append(f"{override.key_or_group}={bound}")
-        cfg = _search_config(*fixed, *values, preset="procedural_recipe")
+        cfg = _search_config(*fixed, *values, preset=preset)
         check_values(cfg)
         for value in values:  # each value reached the run's config
             key, _, text = value.partition("=")
             assert float(OmegaConf.select(cfg, key)) == pytest.approx(float(text)), value
-        budget = (cfg.backbone.name, cfg.data.batch_size, cfg.trainer.max_epochs)
-        assert budget == ("resnet18", 8, 15) and cfg.trainer.limit_train_batches == 100
-        assert cfg.scheduler._target_ == "fusion_depth.schedules.WarmupCosine"
+        budget = (
+            cfg.backbone.name,
+            cfg.data.batch_size,
+            cfg.trainer.max_epochs,
+            cfg.trainer.limit_train_batches,
+        )
+        assert budget == budget_expected
+        assert cfg.scheduler[schedule[0]] == schedule[1]
 
 
 def test_the_preset_composes_with_the_config_checks_and_a_direction_must_fit_the_metric() -> None:
