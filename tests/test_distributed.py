@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import compose_config, run_module
+from helpers import compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.distributed import local_world_size

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import compose_config, save_untrained_checkpoint
+from helpers import compose_config, save_untrained_checkpoint
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
 

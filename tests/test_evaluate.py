@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import REPO, compose_config
+from helpers import REPO, compose_config
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 

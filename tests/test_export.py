@@ -17,7 +17,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
-from conftest import REPO, compose_config, run_module
+from helpers import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
 import fusion_depth.exporting.torchscript as export_module

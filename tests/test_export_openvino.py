@@ -15,7 +15,7 @@ import numpy as np
 import openvino as ov
 import pytest
 import torch
-from conftest import save_untrained_checkpoint
+from helpers import save_untrained_checkpoint
 
 from fusion_depth.checkpoint import load_model
 from fusion_depth.cli import user_message

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_config
+from helpers import compose_config
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.errors import MissingDependencyError

@@ -31,14 +31,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.carla import H as CARLA_H
+from helpers.carla import W as CARLA_W
+from helpers.carla import record_fixture, recorder
+from helpers.topview import write_folder
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from PIL import Image
-from test_carla import H as CARLA_H
-from test_carla import W as CARLA_W
-from test_carla import record_fixture, recorder
-from test_topview import write_folder
 from torch.utils.data import DataLoader
 
 from fusion_depth.data.carla import (

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_config, run_module
+from helpers import compose_config, run_module
 
 from fusion_depth.checkpoint import (
     CONFIG_KEY,

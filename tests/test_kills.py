@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_config
-from test_resume import PROBE, RESUMABLE, probe_env
+from helpers import compose_config
+from helpers.probe import PROBE, RESUMABLE, probe_env
 
 from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.train import train

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import submitit
-from conftest import run_module
+from helpers import run_module
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate

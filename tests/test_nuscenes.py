@@ -693,7 +693,7 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
 
 
 def test_the_nuscenes_sweep_runs_under_the_smoke_experiment(nusc_root, tmp_path) -> None:
-    from conftest import run_sweep
+    from helpers import run_sweep
 
     root, _ = nusc_root
     sweep = tmp_path / "sweep"

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, run_module
+from helpers import REPO, run_module
 
 from fusion_depth.data.depth_io import write_depth_png, write_rgb_png
 

@@ -14,7 +14,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from helpers import REPO
 
 COMMANDS = ("train", "evaluate", "predict", "export", "prepare", "report", "bench", "score_sparse")
 

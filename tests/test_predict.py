@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import REPO, compose_config, run_module
+from helpers import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.checkpoint import load_model

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_carla import H as CARLA_H
-from test_carla import W as CARLA_W
-from test_carla import record_fixture
+from helpers.carla import H as CARLA_H
+from helpers.carla import W as CARLA_W
+from helpers.carla import record_fixture
 
 from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.carla import CarlaDepth

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import REPO, run_module
+from helpers import REPO, run_module
 
 from fusion_depth.checkpoint import CheckpointError, load_model, plain_config
 from fusion_depth.config import validate_config

@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from conftest import compose_config, run_module
+from helpers import compose_config, run_module
+from helpers.probe import PROBE, RESUMABLE, probe_env, probe_records
 
 from fusion_depth.checkpoint import (
     CONFIG_KEY,
@@ -29,42 +30,6 @@ from fusion_depth.metrics import METRIC_KEYS
 from fusion_depth.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.runs import run_dirname
 from fusion_depth.train import train
-
-TESTS = Path(__file__).resolve().parent
-# Three epochs of three batches; last.ckpt after every optimizer step and epoch.
-RESUMABLE = [
-    "experiment=smoke",
-    "logger=none",
-    "trainer.max_epochs=3",
-    "callbacks.last_checkpoint.every_n_epochs=1",
-    "callbacks.last_checkpoint.every_n_train_steps=1",
-]
-
-
-PROBE = "+callbacks.probe._target_=resume_probe.Probe"  # tests/resume_probe.py
-
-
-def probe_env(tmp_path: Path, at_step: int, action: str, **extra: str) -> dict[str, str]:
-    """The environment of a training command with PROBE: tests/ importable, and the probe's
-    settings (it breaks the run at ``at_step`` once: ``stall`` or ``fail``)."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(TESTS), env.get("PYTHONPATH")]))
-    settings = {
-        "log": str(tmp_path / "probe.jsonl"),
-        "marker": str(tmp_path / "probe.marker"),
-        "at_step": at_step,
-        "action": action,
-        **extra,
-    }
-    env["FUSION_DEPTH_TEST_PROBE"] = json.dumps(settings)
-    return env
-
-
-def probe_records(tmp_path: Path) -> list[dict]:
-    """The trained batches the probe recorded (its validation records left out)."""
-    lines = (tmp_path / "probe.jsonl").read_text().splitlines()
-    return [r for r in map(json.loads, lines) if "batch" in r]
-
 
 # The built-in recipe's per-step schedule (warm-up + cosine), so that a learning rate restored
 # one step off would change the resumed run's metrics (test_kills covers the per-epoch StepLR).

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import compose_config
+from helpers import compose_config
 
 from fusion_depth.protocol import EvalProtocol
 from fusion_depth.score_sparse import score_sparse, score_sparse_input

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import REPO, run_module, run_sweep
+from helpers import REPO, run_module, run_sweep
 
 from fusion_depth.checkpoint import load_model, plain_config
 from fusion_depth.config import validate_config

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import compose_config, run_module, run_sweep
+from helpers import compose_config, run_module, run_sweep
 from omegaconf import OmegaConf
 from PIL import Image
 
