@@ -35,7 +35,7 @@ import numpy as np
 
 from fusion_depth.data.carla import RADAR_COLUMNS, SENSOR_DIRS, relative_transform
 from fusion_depth.data.depth_io import write_rgb_png
-from fusion_depth.runs import write_json_atomic, write_text_atomic
+from fusion_depth.utils.files import write_json_atomic, write_text_atomic
 
 log = logging.getLogger("record_carla")
 
@@ -251,13 +251,8 @@ def _next_of(q: queue.Queue, frame: int, what: str, timeout: float = 10.0) -> An
             raise RuntimeError(f"{what}: got frame {data.frame} while waiting for {frame}")
 
 
-def record(args: argparse.Namespace) -> int:
-    """Drives the simulator and writes ``args.frames`` frames; returns how many were written."""
-    carla = import_carla()
-    random.seed(args.seed)
-    client = carla.Client(args.host, args.port)
-    client.set_timeout(30.0)
-    world = client.load_world(args.town) if args.town else client.get_world()
+def _enter_synchronous_mode(client: Any, world: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+    """Fixes the world's step and syncs the traffic manager; returns original settings, manager."""
     original = world.get_settings()
     settings = world.get_settings()
     settings.synchronous_mode = True
@@ -266,80 +261,117 @@ def record(args: argparse.Namespace) -> int:
     traffic = client.get_trafficmanager(args.tm_port)
     traffic.set_synchronous_mode(True)
     traffic.set_random_device_seed(args.seed)
+    return original, traffic
+
+
+def _spawn_ego(
+    world: Any, library: Any, traffic: Any, args: argparse.Namespace, actors: list[Any]
+) -> Any:
+    """Spawns the ego vehicle at the first free spawn point, on autopilot, and returns it."""
+    spawn_points = world.get_map().get_spawn_points()
+    random.shuffle(spawn_points)
+    blueprint = library.find(args.vehicle)
+    vehicle = next(
+        (v for p in spawn_points if (v := world.try_spawn_actor(blueprint, p)) is not None),
+        None,
+    )
+    if vehicle is None:
+        raise RuntimeError("could not spawn the ego vehicle at any spawn point")
+    actors.append(vehicle)  # listed at once, so that it is destroyed whatever fails next
+    vehicle.set_autopilot(True, traffic.get_port())
+    return vehicle
+
+
+def _spawn_sensors(
+    carla: Any, world: Any, library: Any, vehicle: Any, args: argparse.Namespace, actors: list[Any]
+) -> dict[str, Any]:
+    """Attaches the RGB camera, the depth camera and the radar to the vehicle, by name."""
+    sensors: dict[str, Any] = {}
+    for name, blueprint, pose in (
+        ("rgb", "sensor.camera.rgb", CAMERA_POSE),
+        ("depth", "sensor.camera.depth", CAMERA_POSE),
+        ("radar", "sensor.other.radar", RADAR_POSE),
+    ):
+        bp = library.find(blueprint)
+        if name == "radar":
+            bp.set_attribute("horizontal_fov", str(args.fov))
+            bp.set_attribute("vertical_fov", str(args.radar_vertical_fov))
+            bp.set_attribute("range", str(args.radar_range))
+            bp.set_attribute("points_per_second", str(args.radar_points))
+        else:
+            bp.set_attribute("image_size_x", str(args.width))
+            bp.set_attribute("image_size_y", str(args.height))
+            bp.set_attribute("fov", str(args.fov))
+        sensor = world.spawn_actor(bp, _carla_transform(carla, pose), attach_to=vehicle)
+        actors.append(sensor)  # destroyed even if a later sensor fails to spawn
+        sensors[name] = sensor
+    return sensors
+
+
+def _record_frames(
+    carla: Any, world: Any, queues: dict[str, queue.Queue], args: argparse.Namespace
+) -> int:
+    """Steps the world, cycling the weather, and writes every ``args.every``-th step's frame."""
+    radar_to_camera = relative_transform(CAMERA_POSE, RADAR_POSE)
+    written = 0
+    condition = None
+    weather = ""
+    for i in range(args.frames):
+        wanted = args.conditions[(i // args.frames_per_weather) % len(args.conditions)]
+        if wanted != condition:
+            condition, weather = wanted, _set_weather(carla, world, wanted)
+            log.info("weather %s (%s) from frame %d", weather, condition, i)
+        for _ in range(args.every - 1):
+            world.tick()
+        frame = world.tick()
+        data = {name: _next_of(q, frame, name) for name, q in queues.items()}
+        write_frame(
+            args.out,
+            args.split,
+            frame,
+            data["rgb"],
+            data["depth"],
+            data["radar"],
+            radar_to_camera,
+            weather,
+            town=world.get_map().name,
+            radar_range=args.radar_range,
+        )
+        written += 1
+        if written % 100 == 0:
+            log.info("%d / %d frames written to %s", written, args.frames, args.out)
+    return written
+
+
+def _tear_down(world: Any, traffic: Any, original: Any, actors: list[Any]) -> None:
+    """Destroys the actors, newest first, and gives the world back its asynchronous settings."""
+    for actor in reversed(actors):
+        if hasattr(actor, "stop"):
+            actor.stop()
+        actor.destroy()
+    traffic.set_synchronous_mode(False)
+    world.apply_settings(original)
+
+
+def record(args: argparse.Namespace) -> int:
+    """Drives the simulator and writes ``args.frames`` frames; returns how many were written."""
+    carla = import_carla()
+    random.seed(args.seed)
+    client = carla.Client(args.host, args.port)
+    client.set_timeout(30.0)
+    world = client.load_world(args.town) if args.town else client.get_world()
+    original, traffic = _enter_synchronous_mode(client, world, args)
     actors: list[Any] = []
     try:
         library = world.get_blueprint_library()
-        spawn_points = world.get_map().get_spawn_points()
-        random.shuffle(spawn_points)
-        blueprint = library.find(args.vehicle)
-        vehicle = next(
-            (v for p in spawn_points if (v := world.try_spawn_actor(blueprint, p)) is not None),
-            None,
-        )
-        if vehicle is None:
-            raise RuntimeError("could not spawn the ego vehicle at any spawn point")
-        actors.append(vehicle)
-        vehicle.set_autopilot(True, traffic.get_port())
-
-        sensors: dict[str, Any] = {}
-        for name, blueprint, pose in (
-            ("rgb", "sensor.camera.rgb", CAMERA_POSE),
-            ("depth", "sensor.camera.depth", CAMERA_POSE),
-            ("radar", "sensor.other.radar", RADAR_POSE),
-        ):
-            bp = library.find(blueprint)
-            if name == "radar":
-                bp.set_attribute("horizontal_fov", str(args.fov))
-                bp.set_attribute("vertical_fov", str(args.radar_vertical_fov))
-                bp.set_attribute("range", str(args.radar_range))
-                bp.set_attribute("points_per_second", str(args.radar_points))
-            else:
-                bp.set_attribute("image_size_x", str(args.width))
-                bp.set_attribute("image_size_y", str(args.height))
-                bp.set_attribute("fov", str(args.fov))
-            sensor = world.spawn_actor(bp, _carla_transform(carla, pose), attach_to=vehicle)
-            actors.append(sensor)
-            sensors[name] = sensor
-        queues = {name: queue.Queue() for name in sensors}
+        vehicle = _spawn_ego(world, library, traffic, args, actors)
+        sensors = _spawn_sensors(carla, world, library, vehicle, args, actors)
+        queues: dict[str, queue.Queue] = {name: queue.Queue() for name in sensors}
         for name, sensor in sensors.items():
             sensor.listen(queues[name].put)
-        radar_to_camera = relative_transform(CAMERA_POSE, RADAR_POSE)
-
-        written = 0
-        condition = None
-        weather = ""
-        for i in range(args.frames):
-            wanted = args.conditions[(i // args.frames_per_weather) % len(args.conditions)]
-            if wanted != condition:
-                condition, weather = wanted, _set_weather(carla, world, wanted)
-                log.info("weather %s (%s) from frame %d", weather, condition, i)
-            for _ in range(args.every - 1):
-                world.tick()
-            frame = world.tick()
-            data = {name: _next_of(q, frame, name) for name, q in queues.items()}
-            write_frame(
-                args.out,
-                args.split,
-                frame,
-                data["rgb"],
-                data["depth"],
-                data["radar"],
-                radar_to_camera,
-                weather,
-                town=world.get_map().name,
-                radar_range=args.radar_range,
-            )
-            written += 1
-            if written % 100 == 0:
-                log.info("%d / %d frames written to %s", written, args.frames, args.out)
-        return written
+        return _record_frames(carla, world, queues, args)
     finally:
-        for actor in reversed(actors):
-            if hasattr(actor, "stop"):
-                actor.stop()
-            actor.destroy()
-        traffic.set_synchronous_mode(False)
-        world.apply_settings(original)
+        _tear_down(world, traffic, original, actors)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

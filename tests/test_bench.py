@@ -12,7 +12,8 @@ import pytest
 import torch
 from torch import nn
 
-from fusion_depth import bench, benchmarks
+from fusion_depth.bench import cli as bench
+from fusion_depth.bench import stages as benchmarks
 
 TINY = ["--runs", "2", "--train-steps", "1", "--warmup", "0", "--data-batches", "2"]
 REQUIRED = (
@@ -38,6 +39,7 @@ def _run(tmp_path: Path, *args: str) -> dict:
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_bench_writes_every_key_with_the_baseline(
     tmp_path: Path, cache: Path, capsys: pytest.CaptureFixture
 ) -> None:
@@ -133,6 +135,7 @@ def test_peak_memory_sees_a_large_allocation() -> None:
 ENGINE_KEYS = ("onnxruntime", "openvino", "openvino_int8")
 
 
+@pytest.mark.slow
 def test_bench_times_the_exported_engines(
     tmp_path: Path, cache: Path, capsys: pytest.CaptureFixture
 ) -> None:

@@ -33,6 +33,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
 
+from fusion_depth.data.cache import SkippedFramesError
 from fusion_depth.data.carla import (
     DEPTH_STEP,
     CarlaDepth,
@@ -45,8 +46,7 @@ from fusion_depth.data.carla import (
     relative_transform,
     transform_matrix,
 )
-from fusion_depth.data.prepared import SkippedFramesError
-from fusion_depth.prepare import prepare
+from fusion_depth.prepare.cli import prepare
 
 
 @pytest.fixture(scope="module")
@@ -383,8 +383,9 @@ def test_sweep_config_reproduces_the_papers_carla_table(tmp_path) -> None:
     assert cfg.trainer.max_epochs == 20 and cfg.backbone.pretrained is True
 
 
+@pytest.mark.slow
 def test_training_and_testing_on_a_recording(recording, make_config) -> None:
-    from fusion_depth.train import train
+    from fusion_depth.train.fit import train
 
     cfg = make_config(
         "dataset=carla",
@@ -415,6 +416,7 @@ def test_training_and_testing_on_a_recording(recording, make_config) -> None:
     assert os.path.isfile(results["best_checkpoint"])
 
 
+@pytest.mark.slow
 def test_the_carla_sweep_runs_under_the_smoke_experiment(recording, tmp_path) -> None:
     sweep = tmp_path / "sweep"
     result = run_sweep(

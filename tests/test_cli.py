@@ -19,14 +19,19 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from PIL import Image
 
-from fusion_depth.callbacks import ProgressLog
-from fusion_depth.cli import PATH_KEYS, check_override_keys, literal_paths, register_sweeps
-from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_values, validate_config
+from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values, validate_config
+from fusion_depth.config.hydra_main import (
+    PATH_KEYS,
+    check_override_keys,
+    literal_paths,
+    register_sweeps,
+)
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
+from fusion_depth.experiment.callbacks import ProgressLog
+from fusion_depth.experiment.protocol import EvalProtocol
 from fusion_depth.models import DepthNet
-from fusion_depth.protocol import EvalProtocol
-from fusion_depth.train import train
+from fusion_depth.train.fit import train
 
 # --- paths as printed are paths as accepted ---------------------------------------------------
 
@@ -192,6 +197,7 @@ def test_the_readme_has_commands_for_every_entry_point() -> None:
     assert set(HYDRA_COMMANDS) | {"report", "bench"} <= modules
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", readme_commands())
 def test_every_readme_command_parses_and_composes(
     command: str, monkeypatch, tmp_path, packaged_sweeps
@@ -208,7 +214,7 @@ def test_every_readme_command_parses_and_composes(
         _parser().parse_args(args)
         return
     if module == "bench":
-        from fusion_depth.bench import bench_parser
+        from fusion_depth.bench.cli import bench_parser
 
         args = bench_parser().parse_intermixed_args(args).overrides
         config_name, config_dir = "train", None
@@ -240,7 +246,7 @@ def test_every_readme_command_parses_and_composes(
     if HYDRA_COMMANDS.get(module) == "train" or module == "bench":
         if cfg.dataset.get("requires") and cfg.dataset.name == "nuscenes":
             cfg.dataset.requires = None  # the devkit is an optional extra
-        check_values(cfg)
+        check_config_values(cfg)
 
 
 # --- config values checked before training ----------------------------------------------------
@@ -266,6 +272,7 @@ def test_optimizer_scheduler_and_trainer_values_are_checked(make_config, overrid
         validate_config(make_config("experiment=smoke", override))
 
 
+@pytest.mark.slow
 def test_a_one_pixel_bottleneck_at_batch_1_is_refused_and_the_next_size_trains(make_config):
     tiny = ("experiment=smoke", "data.batch_size=1", "dataset.height=32", "dataset.width=32")
     with pytest.raises(ConfigError, match=r"data.batch_size=1 with dataset.height=32, dataset"):
@@ -345,9 +352,11 @@ def test_training_logs_a_line_per_epoch_and_inside_epochs_without_a_terminal(
         "trainer.enable_progress_bar=false",
         "callbacks.progress_log.every_s=1e-9",  # a line after every batch
     )
-    with caplog.at_level(logging.INFO, logger="fusion_depth.callbacks"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.experiment.callbacks"):
         results = train(cfg)
-    lines = [r.getMessage() for r in caplog.records if r.name == "fusion_depth.callbacks"]
+    lines = [
+        r.getMessage() for r in caplog.records if r.name == "fusion_depth.experiment.callbacks"
+    ]
     epochs = [line for line in lines if re.match(r"epoch \d/2: train loss", line)]
     assert len(epochs) == 2, lines
     first = results["validation"][0]
@@ -375,7 +384,7 @@ def test_progress_lines_follow_the_clock(caplog) -> None:
     now = [0.0]
     callback = ProgressLog(every_s=60, clock=lambda: now[0])
     trainer = FakeTrainer()
-    with caplog.at_level(logging.INFO, logger="fusion_depth.callbacks"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.experiment.callbacks"):
         callback.on_train_epoch_start(trainer, None)
         for batch in range(1, 11):
             now[0] += 25.0
@@ -418,6 +427,7 @@ def _error_lines(stderr: str) -> list[str]:
     return stderr[stderr.index("Error executing job") :].strip().splitlines()
 
 
+@pytest.mark.slow
 def test_a_corrupt_data_file_is_a_short_error_naming_it(tmp_path) -> None:
     bad = _truncate(_topview(tmp_path / "crane data=1") / "train" / "rgb" / "b.png")
     args = [
@@ -438,6 +448,7 @@ def test_a_corrupt_data_file_is_a_short_error_naming_it(tmp_path) -> None:
     assert full.returncode == 1 and "Traceback" in full.stderr and str(bad) in full.stderr
 
 
+@pytest.mark.slow
 def test_a_run_folder_hydra_cannot_create_is_a_short_error_naming_it(tmp_path) -> None:
     (tmp_path / "afile").write_text("not a folder")
     done = run_module(
@@ -449,6 +460,7 @@ def test_a_run_folder_hydra_cannot_create_is_a_short_error_naming_it(tmp_path) -
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.slow
 def test_unknown_key_on_the_command_line_is_one_line(tmp_path) -> None:
     done = run_module(["fusion_depth.train", "experiment=smoke", "trainer.max_epoch=3"], tmp_path)
     assert done.returncode == 1
@@ -459,6 +471,7 @@ def test_unknown_key_on_the_command_line_is_one_line(tmp_path) -> None:
     assert not (tmp_path / "outputs").exists()
 
 
+@pytest.mark.slow
 def test_a_corrupt_file_read_in_a_loader_worker_is_a_short_error_naming_it(tmp_path) -> None:
     """A file that breaks after preparing (here: the prepared cache's copy) is read inside a
     DataLoader worker process, whose error torch re-raises wrapped in the worker's traceback."""
@@ -478,6 +491,7 @@ def test_a_corrupt_file_read_in_a_loader_worker_is_a_short_error_naming_it(tmp_p
     assert "DataLoader worker" not in done.stderr and "Traceback" not in done.stderr
 
 
+@pytest.mark.slow
 def test_a_sweep_job_with_a_corrupt_file_fails_in_one_line_and_the_others_run(tmp_path) -> None:
     good = _topview(tmp_path / "good")
     bad = _topview(tmp_path / "bad")

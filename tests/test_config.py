@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 from fusion_depth.config import validate_config
-from fusion_depth.schedules import WarmupCosine
+from fusion_depth.optim.schedules import WarmupCosine
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -122,7 +122,7 @@ def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:
     assert (cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (7, 0.2)
     assert (cfg["loss.w_ssim"], cfg["loss.w_edge"], cfg["loss.w_pixel"]) == (1.0, 1.0, 1.0)
     cosine = _flat(make_config("scheduler=cosine"))
-    assert cosine["scheduler._target_"] == "fusion_depth.schedules.WarmupCosine"
+    assert cosine["scheduler._target_"] == "fusion_depth.optim.schedules.WarmupCosine"
     assert "scheduler.step_size" not in cosine
     # Other models on the built-in dataset keep their own published setup.
     radarnet = _flat(make_config("model=radarnet", "fusion=concat"))
@@ -156,7 +156,7 @@ def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
             assert cfg[key] == value, key
     # model=densedepth's default schedule names the paper's StepLR (create_schedule, so that the
     # built-in dataset's recipe can name another).
-    assert cfg["scheduler._target_"] == "fusion_depth.schedules.create_schedule"
+    assert cfg["scheduler._target_"] == "fusion_depth.optim.schedules.create_schedule"
     assert (cfg["scheduler.name"], cfg["scheduler.step_size"], cfg["scheduler.gamma"]) == (
         "step",
         PAPER_RECIPE["scheduler.step_size"],
@@ -174,7 +174,7 @@ def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
         ("loss", "l2", "loss.pixel", "l2"),
         ("loss", "berhu", "loss.pixel", "berhu"),
         ("backbone", "resnet50", "backbone.name", "resnet50"),
-        ("logger", "csv", "logger._target_", "fusion_depth.loggers.csv_logger"),
+        ("logger", "csv", "logger._target_", "fusion_depth.experiment.loggers.csv_logger"),
         ("logger", "none", "logger._target_", None),
     ],
 )
@@ -223,6 +223,7 @@ def test_missing_required_value_fails(make_config) -> None:
         validate_config(make_config("backbone.name=???"))
 
 
+@pytest.mark.slow
 def test_cli_rejects_bad_choice_before_touching_data(tmp_path: Path) -> None:
     env = {**os.environ, "FUSION_DEPTH_CACHE": str(tmp_path / "cache")}
     result = subprocess.run(

@@ -15,9 +15,10 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-import fusion_depth.data.prepared as prepared
+import fusion_depth.data.cache as prepared
 from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.base import FrameList, PreparedDataset
+from fusion_depth.data.cache import PreparedFrame, PreparedSplit, SkippedFramesError, prepare_split
 from fusion_depth.data.datamodule import DepthDataModule, IndexedDataset
 from fusion_depth.data.depth_io import (
     MAX_ENCODED_DEPTH,
@@ -30,16 +31,10 @@ from fusion_depth.data.depth_io import (
     write_rgb_png,
 )
 from fusion_depth.data.encoding import decode_sample
-from fusion_depth.data.prepared import (
-    PreparedFrame,
-    PreparedSplit,
-    SkippedFramesError,
-    prepare_split,
-)
 from fusion_depth.data.procedural import DEPTH_SCALE, ProceduralDepth
 from fusion_depth.data.radar_points import point_rows
+from fusion_depth.experiment.module import DepthModule
 from fusion_depth.models import DepthNet
-from fusion_depth.module import DepthModule
 
 H, W = 32, 64
 
@@ -330,7 +325,7 @@ def test_an_older_png_cache_is_prepared_again_and_left_alone(tmp_path, caplog) -
     (tmp_path / "data").mkdir()
     old = _old_cache(tmp_path / "cache", Frames, tmp_path / "data")
     before = {p: p.stat().st_mtime_ns for p in old.rglob("*")}
-    with caplog.at_level(logging.INFO, logger="fusion_depth.data.prepared"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.data.cache"):
         split = Frames("val", tmp_path / "data", tmp_path / "cache")
     assert split.cache != old and split.cache.parent == old.parent
     assert sorted(p.name for p in (split.cache / "val").glob("000000.*")) == [
@@ -345,6 +340,6 @@ def test_an_older_png_cache_is_prepared_again_and_left_alone(tmp_path, caplog) -
     assert {p: p.stat().st_mtime_ns for p in old.rglob("*")} == before  # never touched
     assert f"are no longer read ({old})" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="fusion_depth.data.prepared"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.data.cache"):
         Frames("train", tmp_path / "data", tmp_path / "cache")  # nothing to prepare, no notice
     assert "no longer read" not in caplog.text

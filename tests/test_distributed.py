@@ -9,9 +9,10 @@ import pytest
 from helpers import compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
-from fusion_depth.distributed import local_world_size
+from fusion_depth.experiment.distributed import local_world_size
 
 
+@pytest.mark.slow
 def test_a_two_process_cpu_ddp_run_trains_and_tests_without_relaunching(tmp_path) -> None:
     sweep = tmp_path / "sweep"
     args = [

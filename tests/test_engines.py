@@ -1,4 +1,4 @@
-"""Exported model files run by their engines (``fusion_depth.exporting.runtime``):
+"""Exported model files run by their engines (``fusion_depth.export.runtime``):
 ``evaluate model_file=`` scores them by the checkpoint's protocol, ``predict model_file=`` writes
 their depth, ``report --compare engine=torch`` pairs them with their checkpoint, and sidecars
 that are missing or wrong are refused in one line naming the file and the key.
@@ -22,23 +22,24 @@ from helpers import compose_config, save_untrained_checkpoint
 from hydra.core.global_hydra import GlobalHydra
 from PIL import Image
 
-from fusion_depth.checkpoint import CheckpointError, dataset_config, load_model, make_reader
 from fusion_depth.data.depth_io import read_depth_png, write_depth_png
 from fusion_depth.errors import ConfigError
-from fusion_depth.evaluate import evaluate
-from fusion_depth.exporting import (
+from fusion_depth.evaluate.scoring import evaluate
+from fusion_depth.experiment.checkpoints import dataset_config, load_model, make_reader
+from fusion_depth.experiment.record import load_runs
+from fusion_depth.export import (
     ExportedModel,
     SidecarError,
     export_model,
     load_exported,
     sidecar_path,
 )
-from fusion_depth.inference import predict_depth
-from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.predict import predict
+from fusion_depth.metrics.depth import METRIC_KEYS
+from fusion_depth.models.inference import predict_depth
+from fusion_depth.predict.cli import predict
 from fusion_depth.report import compare_to_baseline, group_runs
 from fusion_depth.report import main as report_main
-from fusion_depth.run_record import load_runs
+from fusion_depth.utils.checkpoint_file import CheckpointError
 
 H, W = 64, 96
 RTOL = 1e-3  # fp32 files: the verification tolerance
@@ -84,6 +85,7 @@ def scored(checkpoint: Path, model_files: dict[str, Path], tmp_path_factory) -> 
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt,engine", [("onnx", "onnxruntime"), ("openvino", "openvino-fp32")])
 def test_evaluate_model_file_gives_the_checkpoints_metrics(
     fmt: str, engine: str, scored: Path, checkpoint: Path, model_files: dict[str, Path]
@@ -108,6 +110,7 @@ def test_evaluate_model_file_gives_the_checkpoints_metrics(
     ]
 
 
+@pytest.mark.slow
 def test_report_pairs_each_exported_model_with_its_checkpoint(scored: Path, capsys) -> None:
     comparisons = compare_to_baseline(group_runs(load_runs(scored)), {"engine": "torch"})
     assert sorted(c.group["engine"] for c in comparisons) == ["onnxruntime", "openvino-fp32"]
@@ -120,6 +123,7 @@ def test_report_pairs_each_exported_model_with_its_checkpoint(scored: Path, caps
     assert "| Engine" in table and "openvino-fp32" in table and "onnxruntime" in table
 
 
+@pytest.mark.slow
 def test_the_fixed_batch_file_runs_any_batch(checkpoint: Path, model_files) -> None:
     net = load_exported(model_files["openvino"]).net
     assert isinstance(net, ExportedModel) and net.info.batch_size == 2
@@ -171,6 +175,7 @@ def test_predict_model_file_writes_the_depth_pngs(
     assert skipped.source.endswith("small.png") and "takes 64×96 inputs" in skipped.reason
 
 
+@pytest.mark.slow
 def test_a_model_is_named_by_ckpt_path_or_model_file_not_both(checkpoint, model_files, tmp_path):
     both = [f"ckpt_path={checkpoint}", f"model_file={model_files['onnx']}"]
     for config, extra in (("evaluate", []), ("predict", ["input=split:test"])):

@@ -18,10 +18,11 @@ from helpers import REPO, compose_config
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
-from fusion_depth.checkpoint import CheckpointError, load_model
-from fusion_depth.evaluate import evaluate
-from fusion_depth.inference import predict_depth
-from fusion_depth.metrics import METRIC_KEYS, DepthMetrics
+from fusion_depth.evaluate.scoring import evaluate
+from fusion_depth.experiment.checkpoints import load_model
+from fusion_depth.metrics.depth import METRIC_KEYS, DepthMetrics
+from fusion_depth.models.inference import predict_depth
+from fusion_depth.utils.checkpoint_file import CheckpointError
 
 
 def _evaluate(overrides: list[str], run_dir: Path) -> list[dict]:
@@ -112,6 +113,7 @@ def test_a_foreign_dataset_reader_in_a_checkpoint_is_not_called(checkpoints, tmp
 # --- evaluate ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_evaluate_scores_the_checkpoints_dataset_and_writes_the_record(
     checkpoints, smoke_dataset, tmp_path
 ) -> None:
@@ -153,6 +155,7 @@ def test_evaluate_scores_the_checkpoints_dataset_and_writes_the_record(
     assert again["test"] == results["test"]
 
 
+@pytest.mark.slow
 def test_protocol_options_reach_the_numbers(checkpoints, tmp_path) -> None:
     base = [f"ckpt_path={checkpoints['rgb']}", "eval.bin_width=null"]
     (plain,) = _evaluate(base, tmp_path / "plain")
@@ -176,6 +179,7 @@ def test_a_fusion_guard_that_does_not_match_fails_before_any_work(checkpoints, t
     assert not (tmp_path / "run" / "metrics.json").exists()
 
 
+@pytest.mark.slow
 def test_a_folder_of_runs_is_rescored_run_by_run(checkpoints, tmp_path) -> None:
     sweep = tmp_path / "sweep"
     for name, fusion in (("fusion=rgb", "rgb"), ("fusion=concat", "concat")):
@@ -190,6 +194,7 @@ def test_a_folder_of_runs_is_rescored_run_by_run(checkpoints, tmp_path) -> None:
         assert (tmp_path / "out" / name / "per_image.csv").is_file()
 
 
+@pytest.mark.slow
 def test_the_command_line_entry_point(checkpoints, tmp_path) -> None:
     result = subprocess.run(
         [

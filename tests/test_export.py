@@ -20,17 +20,12 @@ import torch
 from helpers import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
-import fusion_depth.exporting.torchscript as export_module
-from fusion_depth.checkpoint import load_model
-from fusion_depth.export import export
-from fusion_depth.exporting import (
-    DepthExportModel,
-    ExportError,
-    export_model,
-    sidecar_path,
-)
-from fusion_depth.inference import predict_depth
+import fusion_depth.export.torchscript as export_module
+from fusion_depth.experiment.checkpoints import load_model
+from fusion_depth.export import DepthExportModel, ExportError, export_model, sidecar_path
+from fusion_depth.export.cli import export
 from fusion_depth.models import DepthNet
+from fusion_depth.models.inference import predict_depth
 
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:FutureWarning")
 
@@ -78,6 +73,7 @@ def _session(path: Path) -> ort.InferenceSession:
 # --------------------------------------------------------------------------- ONNX
 
 
+@pytest.mark.slow
 def test_fusion_onnx_matches_pytorch_at_any_batch(fusion_onnx: Path, fusion_model) -> None:
     onnx.checker.check_model(str(fusion_onnx))
     session = _session(fusion_onnx)
@@ -90,6 +86,7 @@ def test_fusion_onnx_matches_pytorch_at_any_batch(fusion_onnx: Path, fusion_mode
         _assert_matches_pytorch(depth, fusion_model.net, image, sparse)
 
 
+@pytest.mark.slow
 def test_the_sparse_input_is_used(fusion_onnx: Path) -> None:
     session = _session(fusion_onnx)
     image, sparse = _inputs(1)
@@ -98,6 +95,7 @@ def test_the_sparse_input_is_used(fusion_onnx: Path) -> None:
     assert np.abs(with_returns - without).max() > 0.1
 
 
+@pytest.mark.slow
 def test_sidecar_tells_deployment_what_to_feed(fusion_onnx: Path, fusion_model) -> None:
     info = json.loads(sidecar_path(fusion_onnx).read_text())
     assert sidecar_path(fusion_onnx) == fusion_onnx.with_name("concat.onnx.json")
@@ -125,6 +123,7 @@ def test_sidecar_tells_deployment_what_to_feed(fusion_onnx: Path, fusion_model) 
         assert path.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
+@pytest.mark.slow
 def test_fixed_batch_for_a_bare_network(tmp_path: Path) -> None:
     """What the benchmark does: a DepthNet without checkpoint, static shapes (``add`` fusion)."""
     torch.manual_seed(0)
@@ -147,6 +146,7 @@ def test_fixed_batch_for_a_bare_network(tmp_path: Path) -> None:
         export_model(net, "onnx", tmp_path / "other.onnx")
 
 
+@pytest.mark.slow
 def test_entry_point_exports_rgb_onnx_into_the_run_dir(checkpoints, tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     result = run_module(
@@ -195,6 +195,7 @@ def test_missing_onnx_packages_name_the_extra(
 # --------------------------------------------------------------------------- TorchScript
 
 
+@pytest.mark.slow
 def test_torchscript_round_trip_equals_pytorch(fusion_model, tmp_path: Path) -> None:
     out = export_model(fusion_model, "torchscript", tmp_path / "deploy" / "concat.pt")
     scripted = torch.jit.load(str(out))
@@ -212,6 +213,7 @@ def test_torchscript_round_trip_equals_pytorch(fusion_model, tmp_path: Path) -> 
     assert info["verified"]["max_abs_diff_m"] == 0.0
 
 
+@pytest.mark.slow
 def test_height_and_width_override_the_training_size(fusion_model, tmp_path: Path) -> None:
     out = export_model(fusion_model, "torchscript", tmp_path / "m.pt", height=96, width=128)
     image, sparse = _inputs(1, 96, 128)
@@ -223,6 +225,7 @@ def test_height_and_width_override_the_training_size(fusion_model, tmp_path: Pat
     assert info["outputs"][0]["shape"] == ["batch", 1, 96, 128]
 
 
+@pytest.mark.slow
 def test_exporting_does_not_change_the_callers_model(fusion_model, tmp_path: Path) -> None:
     before = {k: v.clone() for k, v in fusion_model.net.state_dict().items()}
     wrapper = DepthExportModel(fusion_model.net)
@@ -283,6 +286,7 @@ def test_config_errors_come_before_loading_the_checkpoint(tmp_path: Path) -> Non
         GlobalHydra.instance().clear()
 
 
+@pytest.mark.slow
 def test_a_failed_write_leaves_the_previous_file_untouched(
     fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -302,6 +306,7 @@ def test_a_failed_write_leaves_the_previous_file_untouched(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt", "m.pt.json"]  # no temp files
 
 
+@pytest.mark.slow
 def test_a_model_that_disagrees_with_pytorch_is_not_written(
     fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

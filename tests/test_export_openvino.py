@@ -17,12 +17,12 @@ import pytest
 import torch
 from helpers import save_untrained_checkpoint
 
-from fusion_depth.checkpoint import load_model
-from fusion_depth.cli import user_message
-from fusion_depth.exporting import BACKENDS, ExportError, export_model, sidecar_path
-from fusion_depth.exporting.exporter import check_export_options, resolve_export_precision
-from fusion_depth.exporting.runtime import compile_openvino, cpu_has_bf16
-from fusion_depth.inference import predict_depth
+from fusion_depth.config.hydra_main import user_message
+from fusion_depth.experiment.checkpoints import load_model
+from fusion_depth.export import BACKENDS, ExportError, export_model, sidecar_path
+from fusion_depth.export.exporter import check_export_options, resolve_export_precision
+from fusion_depth.export.runtime import compile_openvino, cpu_has_bf16
+from fusion_depth.models.inference import predict_depth
 
 H, W = 64, 96
 
@@ -59,6 +59,7 @@ def _run(path: Path, precision: str, image: np.ndarray, sparse: np.ndarray) -> n
     return compiled([image, sparse])[compiled.outputs[0]]
 
 
+@pytest.mark.slow
 def test_fp32_ir_gives_pytorchs_depth_at_any_batch(fp32_ir: Path, fusion_model) -> None:
     bin_file = fp32_ir.with_suffix(".bin")
     assert bin_file.is_file() and bin_file.stat().st_size > 1_000_000  # fp32 weights: 4 B each
@@ -89,6 +90,7 @@ def test_fp32_ir_gives_pytorchs_depth_at_any_batch(fp32_ir: Path, fusion_model) 
     assert info["model"] == "densedepth"
 
 
+@pytest.mark.slow
 def test_bf16_is_recorded_and_run_in_bf16(fusion_model, fp32_ir: Path, tmp_path: Path) -> None:
     out = export_model(fusion_model, "openvino", tmp_path / "bf16.xml", precision="bf16")
     info = json.loads(sidecar_path(out).read_text())
@@ -110,6 +112,7 @@ def test_bf16_is_recorded_and_run_in_bf16(fusion_model, fp32_ir: Path, tmp_path:
     assert resolve_export_precision("auto", "onnx") == "fp32"
 
 
+@pytest.mark.slow
 def test_a_failed_export_leaves_the_earlier_files_untouched(
     fusion_model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -132,6 +135,7 @@ def test_a_failed_export_leaves_the_earlier_files_untouched(
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == earlier  # no temp files
 
 
+@pytest.mark.slow
 def test_int8_records_its_calibration_and_measured_accuracy(
     fusion_model, smoke_dataset: dict, tmp_path: Path
 ) -> None:
@@ -161,6 +165,7 @@ def test_int8_records_its_calibration_and_measured_accuracy(
     assert accuracy["rmse"]["diff"]["mean"] != 0.0  # int8 is not the fp32 model
 
 
+@pytest.mark.slow
 def test_int8_calibrates_on_frames_it_is_given(fusion_model, tmp_path: Path) -> None:
     """``calibration=``: frames of the caller's (``bench`` quantizes its random-weight network on
     synthetic frames), no dataset read; wrong shapes, or frames without quantize, are refused."""
@@ -193,6 +198,7 @@ def test_int8_calibrates_on_frames_it_is_given(fusion_model, tmp_path: Path) -> 
     ]
 
 
+@pytest.mark.slow
 def test_max_rmse_increase_refuses_and_writes_nothing(fusion_model, tmp_path: Path) -> None:
     out = tmp_path / "deploy" / "m.xml"
     # An fp32 IR costs ~0 m of RMSE: any negative bound must refuse it.

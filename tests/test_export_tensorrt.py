@@ -21,13 +21,13 @@ from helpers import compose_config
 from hydra.core.global_hydra import GlobalHydra
 
 from fusion_depth.errors import MissingDependencyError
-from fusion_depth.export import export
-from fusion_depth.exporting import BACKENDS, SidecarError, export_model, load_exported, read_sidecar
-from fusion_depth.exporting.contract import DepthExportModel, ExportSpec
-from fusion_depth.exporting.exporter import check_quantize, resolve_export_precision
-from fusion_depth.exporting.sidecar import sidecar_contents, sidecar_path
-from fusion_depth.inference import predict_depth
+from fusion_depth.export import BACKENDS, SidecarError, export_model, load_exported, read_sidecar
+from fusion_depth.export.cli import export
+from fusion_depth.export.contract import DepthExportModel, ExportSpec
+from fusion_depth.export.exporter import check_quantize, resolve_export_precision
+from fusion_depth.export.sidecar import sidecar_contents, sidecar_path
 from fusion_depth.models import DepthNet
+from fusion_depth.models.inference import predict_depth
 
 H, W = 64, 96
 HAS_GPU = torch.cuda.is_available()
@@ -125,6 +125,7 @@ def test_a_tensorrt_sidecar_reads_back_and_its_engine_refuses_without_a_gpu(
             load_exported(path)
 
 
+@pytest.mark.slow
 def test_the_glue_around_torch_tensorrt_with_a_stand_in_on_the_cpu(
     net: DepthNet, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -41,6 +41,7 @@ from hypothesis.extra import numpy as hnp
 from PIL import Image
 from torch.utils.data import DataLoader
 
+from fusion_depth.data.cache import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.carla import (
     CONDITIONS,
     RADAR_COLUMNS,
@@ -60,7 +61,6 @@ from fusion_depth.data.depth_io import (
     write_depth_png,
     write_rgb_png,
 )
-from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.topview import TopViewDepth, read_depth_file
 
 # Sized for well under a minute on two shared cores (FUZZ_READERS_EXAMPLES=5000 for a deeper
@@ -488,6 +488,7 @@ def radar_text(draw) -> bytes:
     return data
 
 
+@pytest.mark.slow
 @FUZZ
 @given(text=radar_text(), fov=st.floats(1.0, 179.0), yaw=st.floats(-180, 180))
 def test_damaged_radar_files_load_finite_detections_or_fail_naming_the_file(

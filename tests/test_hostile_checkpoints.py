@@ -15,19 +15,13 @@ import pytest
 import torch
 from helpers import compose_config, run_module
 
-from fusion_depth.checkpoint import (
-    CONFIG_KEY,
-    RUN_KEY,
-    CheckpointError,
-    dataset_config,
-    load_model,
-    make_reader,
-)
 from fusion_depth.data.procedural import ProceduralDepth
-from fusion_depth.evaluate import evaluate
-from fusion_depth.export import export
-from fusion_depth.predict import predict
-from fusion_depth.train import train
+from fusion_depth.evaluate.scoring import evaluate
+from fusion_depth.experiment.checkpoints import dataset_config, load_model, make_reader
+from fusion_depth.export.cli import export
+from fusion_depth.predict.cli import predict
+from fusion_depth.train.fit import train
+from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
 
 
 def _payload(marker: Path) -> dict:
@@ -78,6 +72,7 @@ def _resume_dir(crafted_ckpt: Path, root: Path) -> Path:
     return run_dir
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_entry_point_refuses_a_checkpoint_that_names_code(crafted, kind, tmp_path) -> None:
     path, key = crafted[kind]
@@ -102,6 +97,7 @@ def test_every_entry_point_refuses_a_checkpoint_that_names_code(crafted, kind, t
     assert not (run_dir / "metrics.json").exists()
 
 
+@pytest.mark.slow
 def test_the_command_line_refuses_them_in_one_line(crafted, tmp_path) -> None:
     """As a user runs them: exit status 1 and the one-line refusal naming the key path, for
     each entry point and each kind of payload (round robin)."""
@@ -126,6 +122,7 @@ def test_the_command_line_refuses_them_in_one_line(crafted, tmp_path) -> None:
         assert "Traceback" not in done.stderr, (args, done.stderr[-2000:])
 
 
+@pytest.mark.slow
 def test_the_reader_is_looked_up_by_dataset_name(checkpoints, tmp_path) -> None:
     loaded = load_model(checkpoints["rgb"])
     block = dataset_config(loaded, None)
@@ -238,7 +235,7 @@ def _model_checkpoint_state(checkpoint: dict) -> dict:
     ],
 )
 def test_a_malformed_training_state_is_refused_in_one_line(tmp_path, change, message) -> None:
-    from fusion_depth.resume import plan_start
+    from fusion_depth.experiment.resume import plan_start
 
     run_dir = tmp_path / "run"
     _last_ckpt(run_dir, change)
@@ -249,7 +246,7 @@ def test_a_malformed_training_state_is_refused_in_one_line(tmp_path, change, mes
 def test_a_training_state_cannot_name_files_outside_its_folder(tmp_path) -> None:
     """Lightning deletes the checkpoints a ModelCheckpoint state names once better ones arrive,
     and tests its best one: a crafted state must not point it at any other file."""
-    from fusion_depth.resume import plan_start
+    from fusion_depth.experiment.resume import plan_start
 
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")

@@ -24,11 +24,10 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
-from fusion_depth.config import CONF_DIR, check_values
+from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values
+from fusion_depth.config.hydra_main import register_sweeps
 from fusion_depth.errors import ConfigError
-from fusion_depth.resume import RunLockedError
-from fusion_depth.run_record import RunRecord
-from fusion_depth.search import (
+from fusion_depth.experiment.hparams_search import (
     BEST_FILE,
     INTERRUPTED,
     SearchSummary,
@@ -37,6 +36,8 @@ from fusion_depth.search import (
     objective,
     retrain_command,
 )
+from fusion_depth.experiment.record import RunRecord
+from fusion_depth.experiment.resume import RunLockedError
 
 STUDY = "fusion_depth"  # conf/hparams_search/optuna.yaml: hydra.sweeper.study_name
 
@@ -83,10 +84,11 @@ def _compose_retrain(line: str):
             cfg = compose("train", overrides=single, return_hydra_config=True)
     finally:
         GlobalHydra.instance().clear()
-    check_values(cfg)
+    check_config_values(cfg)
     return cfg
 
 
+@pytest.mark.slow
 def test_a_killed_study_started_again_ends_with_all_its_trials(tmp_path) -> None:
     sweep_dir = tmp_path / "search"
     args = _search_args(sweep_dir, 3)
@@ -153,6 +155,7 @@ def test_a_killed_study_started_again_ends_with_all_its_trials(tmp_path) -> None
     assert cfg.model.net.sparse_encoding == winner.params["model.net.sparse_encoding"]
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning")
 def test_a_failing_trial_is_recorded_as_failed_and_the_study_goes_on(tmp_path) -> None:
     sweep_dir = tmp_path / "search"
@@ -206,12 +209,15 @@ def test_a_test_or_unknown_metric_is_refused_in_one_line(name) -> None:
 
 
 def _search_config(*overrides: str, preset: str = "optuna"):
+    """``train`` with ``hparams_search=<preset>``, or the search reproduction sweeps/<preset>."""
     GlobalHydra.instance().clear()
+    register_sweeps()
+    reproduction = (Path(SWEEPS_DIR) / f"{preset}.yaml").is_file()
     try:
         with initialize_config_dir(CONF_DIR, version_base="1.3"):
             return compose(
-                "train",
-                overrides=[f"hparams_search={preset}", *overrides],
+                preset if reproduction else "train",
+                overrides=[*([] if reproduction else [f"hparams_search={preset}"]), *overrides],
                 return_hydra_config=True,
             )
     finally:
@@ -222,12 +228,12 @@ def _search_config(*overrides: str, preset: str = "optuna"):
 # (encoder, batch size, epochs, batches per epoch), a (key, value) of the schedule's config that
 # makes it the warm-up + cosine one, and keys that must be searched.
 RECIPE_SEARCHES = {
-    "procedural_recipe": (
+    "procedural_recipe_search": (
         ("resnet18", 8, 15, 100),
-        ("_target_", "fusion_depth.schedules.WarmupCosine"),
+        ("_target_", "fusion_depth.optim.schedules.WarmupCosine"),
         {"optimizer.lr", "dataset.num_train"},
     ),
-    "procedural_recipe_no_amx": (
+    "procedural_recipe_search_19_epochs": (
         ("resnet10t", 16, 19, 125),
         ("name", "cosine"),
         {"optimizer.lr", "loss.w_pixel"},
@@ -237,7 +243,7 @@ RECIPE_SEARCHES = {
 
 @pytest.mark.parametrize("preset", sorted(RECIPE_SEARCHES))
 def test_the_built_in_recipe_search_gives_every_trial_the_same_budget(preset: str) -> None:
-    """hparams_search=procedural_recipe(_no_amx): each corner of its space composes, passes the
+    """sweeps/procedural_recipe_search(_19_epochs): each corner of its space composes, passes the
     config checks and trains with the fixed budget (so a trial's cost does not depend on its
     values)."""
     budget_expected, schedule, must_search = RECIPE_SEARCHES[preset]
@@ -256,7 +262,7 @@ def test_the_built_in_recipe_search_gives_every_trial_the_same_budget(preset: st
                 bound = sweep.start if corner == 0 else sweep.end
                 values.append(f"{override.key_or_group}={bound}")
         cfg = _search_config(*fixed, *values, preset=preset)
-        check_values(cfg)
+        check_config_values(cfg)
         for value in values:  # each value reached the run's config
             key, _, text = value.partition("=")
             assert float(OmegaConf.select(cfg, key)) == pytest.approx(float(text)), value
@@ -272,7 +278,7 @@ def test_the_built_in_recipe_search_gives_every_trial_the_same_budget(preset: st
 
 def test_the_preset_composes_with_the_config_checks_and_a_direction_must_fit_the_metric() -> None:
     cfg = _search_config()
-    check_values(cfg)
+    check_config_values(cfg)
     assert cfg.optimized_metric == "val_rmse"
     assert cfg.hydra.sweeper.storage == f"sqlite:///{cfg.hydra.sweep.dir}/optuna.db"
     params = cfg.hydra.sweeper.params
@@ -324,6 +330,7 @@ def test_a_stored_study_continues_to_its_total_and_runs_an_interrupted_trial_aga
     assert trials[3].system_attrs["fixed_params"] == {"optimizer.lr": lr}
 
 
+@pytest.mark.slow
 def test_a_study_whose_trials_all_fail_ends_in_one_line(tmp_path) -> None:
     # Every trial fails the config checks: the sweeper's request for the best trial then
     # fails inside Optuna, which the user reads as one line, not Optuna's traceback.

@@ -20,8 +20,8 @@ import torch
 from helpers import compose_config
 from helpers.probe import PROBE, RESUMABLE, probe_env
 
-from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.train import train
+from fusion_depth.metrics.depth import METRIC_KEYS
+from fusion_depth.train.fit import train
 
 # RESUMABLE (3 batches per epoch, last.ckpt after every step and epoch) for 4 epochs, with a
 # CSV log and a learning rate that changes every epoch, so a lost or repeated scheduler step
@@ -108,6 +108,7 @@ def kill(process: subprocess.Popen) -> None:
     process.stderr.close()
 
 
+@pytest.mark.slow
 def test_kills_in_validation_and_in_the_test_stage_are_redone(tmp_path, uninterrupted) -> None:
     run_dir = tmp_path / "run"
     # 1: killed inside epoch 1's validation, after that epoch's last training step.
@@ -143,6 +144,7 @@ def test_kills_in_validation_and_in_the_test_stage_are_redone(tmp_path, uninterr
     assert results["resumed_from"] == str(run_dir / "checkpoints" / "last.ckpt")
 
 
+@pytest.mark.slow
 def test_random_kills_never_change_the_result(tmp_path, uninterrupted) -> None:
     """At least 10 SIGKILLs at random moments, a third of them while a checkpoint is being
     written, each followed by the same command; then the run is let finish."""
@@ -219,6 +221,7 @@ def _kill_at_each(tmp_path: Path, run_dir: Path, overrides: list[str], points: l
     assert final.returncode == 0, final.stderr[-3000:]
 
 
+@pytest.mark.slow
 def test_a_kill_right_after_a_step_save_loses_no_log_row(tmp_path, uninterrupted) -> None:
     """Killed after the step save of a batch, before Lightning logged that batch: the resumed
     CSV log still has its row (recorded in the checkpoint)."""
@@ -228,6 +231,7 @@ def test_a_kill_right_after_a_step_save_loses_no_log_row(tmp_path, uninterrupted
     assert_same_as_uninterrupted(run_dir, uninterrupted)
 
 
+@pytest.mark.slow
 def test_resume_is_exact_with_gradient_accumulation(tmp_path) -> None:
     """Two successive kills in the same accumulation window: no state is saved inside a window
     (its summed gradients are in no checkpoint), so the window is redone whole."""

@@ -22,14 +22,14 @@ from PIL import Image
 
 import fusion_depth.data.kitti as kitti
 from fusion_depth.config import validate_config
+from fusion_depth.data.cache import SkippedFramesError
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
-from fusion_depth.data.prepared import SkippedFramesError
 from fusion_depth.errors import ConfigError
-from fusion_depth.metrics import crop_mask
-from fusion_depth.prepare import prepare
-from fusion_depth.protocol import EvalProtocol
-from fusion_depth.train import train
+from fusion_depth.experiment.protocol import EvalProtocol
+from fusion_depth.metrics.depth import crop_mask
+from fusion_depth.prepare.cli import prepare
+from fusion_depth.train.fit import train
 
 REPO = Path(__file__).resolve().parents[1]
 H, W = 40, 100
@@ -492,8 +492,9 @@ def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
 # --- configs end to end --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_training_and_testing_through_the_real_configs(make_config, kitti_data) -> None:
-    from fusion_depth.train import train
+    from fusion_depth.train.fit import train
 
     cfg = make_config(
         "dataset=kitti",
@@ -548,6 +549,7 @@ def test_the_sweep_config_reproduces_the_papers_kitti_table(tmp_path) -> None:
     assert cfg.backbone.pretrained is True and cfg.dataset.max_depth == 80.0
 
 
+@pytest.mark.slow
 def test_the_kitti_sweep_runs_under_smoke_and_scores_inside_the_garg_crop(
     kitti_data, tmp_path
 ) -> None:

@@ -165,6 +165,7 @@ def launch_smoke_sweep(launcher: list[str], sweep: Path) -> None:
     assert [job["status"] for job in summary] == ["ok", "ok"]
 
 
+@pytest.mark.slow
 def test_submitit_local_sweep_of_two_smoke_jobs(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # both jobs start at once: one thread each
     sweep = tmp_path / "sweep"
@@ -180,6 +181,7 @@ def test_submitit_local_sweep_of_two_smoke_jobs(tmp_path, monkeypatch) -> None:
         assert (job / f"{job.name}_0_result.pkl").is_file()
 
 
+@pytest.mark.slow
 def test_joblib_sweep_of_two_smoke_jobs(tmp_path) -> None:
     sweep = tmp_path / "sweep"
     launch_smoke_sweep(["hydra/launcher=parallel"], sweep)

@@ -1,10 +1,9 @@
 """Files written by an earlier release still work: a checkpoint and an exported ONNX model
 written by fusion-depth 0.1.0 (before the package was rearranged into layers) evaluate to the
-numbers that release printed, and predict alike.
+numbers that release printed, and predict alike; a run folder it left interrupted resumes.
 
-``tests/fixtures/v0.1.0/`` (see its README) holds the two files and ``expected_metrics.json``,
-the ``test`` and ``test_by_condition`` blocks of the ``metrics.json`` that release's
-``evaluate`` wrote for each of them on the smoke dataset.
+``tests/fixtures/v0.1.0/`` (see its README) holds the files and ``expected_metrics.json``, the
+``test`` and ``test_by_condition`` blocks of the ``metrics.json`` that release wrote for each.
 """
 
 from __future__ import annotations
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from helpers import REPO, run_module
 
 FIXTURES = REPO / "tests" / "fixtures" / "v0.1.0"
@@ -39,6 +39,7 @@ def _assert_same_numbers(got: dict, expected: dict, where: str) -> None:
             assert _close(got[key], value), f"{where}.{key}: {got[key]} != {value}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("key", "path"), [("ckpt_path", CHECKPOINT), ("model_file", MODEL_FILE)], ids=["ckpt", "onnx"]
 )
@@ -59,6 +60,7 @@ def test_a_file_of_the_earlier_release_evaluates_to_its_numbers(
         _assert_same_numbers(record[block], EXPECTED[key][block], block)
 
 
+@pytest.mark.slow
 def test_the_earlier_releases_files_predict_the_same_depth(tmp_path: Path) -> None:
     depths = {}
     # The checkpoint in fp32, as the file was exported (auto would pick bf16 on some CPUs).
@@ -86,3 +88,21 @@ def test_the_earlier_releases_files_predict_the_same_depth(tmp_path: Path) -> No
     # The checkpoint in PyTorch and its ONNX export in onnxruntime: the export's own tolerance.
     assert np.all(np.isfinite(depths["ckpt_path"]))
     np.testing.assert_allclose(depths["model_file"], depths["ckpt_path"], rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.slow
+def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_path: Path) -> None:
+    """A run folder that release wrote (interrupted before its test stage, so ``last.ckpt`` but
+    no ``metrics.json``), moved to another place, resumes under the same command and finishes
+    with the numbers that release's own run printed, testing the best checkpoint it kept."""
+    run_dir = tmp_path / "moved" / "run"
+    shutil.copytree(FIXTURES / "interrupted_run", run_dir)
+    overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text())
+    result = run_module(["fusion_depth.train", *overrides, f"hydra.run.dir={run_dir}"], tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    log = (run_dir / "train.log").read_text()
+    assert f"resuming from {run_dir / 'checkpoints' / 'last.ckpt'}" in log
+    record = json.loads((run_dir / "metrics.json").read_text())
+    assert Path(record["best_checkpoint"]).parent == run_dir / "checkpoints"
+    for block in ("test", "test_by_condition"):
+        _assert_same_numbers(record[block], EXPECTED["interrupted_run"][block], block)

@@ -1,4 +1,5 @@
-"""Tests for fusion_depth.losses: hand-computed values, masking and gradient behaviour."""
+"""Tests for fusion_depth.losses.depth_loss: hand-computed values, masking and gradient
+behaviour."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import pytest
 import torch
 
-from fusion_depth.losses import (
+from fusion_depth.losses.depth_loss import (
     PIXEL_LOSSES,
     DepthLoss,
     berhu_loss,

@@ -1,4 +1,5 @@
-"""Tests for fusion_depth.metrics: hand-computed values and the averaging/validity conventions."""
+"""Tests for fusion_depth.metrics.depth: hand-computed values and the averaging/validity
+conventions."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import pytest
 import torch
 
-from fusion_depth.metrics import (
+from fusion_depth.metrics.depth import (
     HIGHER_IS_BETTER,
     METRIC_KEYS,
     DepthMetrics,

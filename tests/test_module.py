@@ -10,9 +10,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from fusion_depth.data.transforms import TrainAugmentation
-from fusion_depth.losses import DepthLoss
+from fusion_depth.experiment.module import DepthModule, NonFiniteLossError, downsample_depth
+from fusion_depth.losses.depth_loss import DepthLoss
 from fusion_depth.models import DepthNet
-from fusion_depth.module import DepthModule, NonFiniteLossError, downsample_depth
 
 
 def test_downsample_dense_depth_is_area_average() -> None:
@@ -136,6 +136,7 @@ def test_a_nan_loss_stops_the_run_saying_where_and_what() -> None:
     assert "model.on_nonfinite_loss=skip" in message
 
 
+@pytest.mark.slow
 def test_skip_drops_nan_batches_up_to_the_limit() -> None:
     module = _fit_with_nan_batches({1, 3}, on_nonfinite_loss="skip", max_nonfinite_skips=2)
     assert module.nonfinite_skips == 2

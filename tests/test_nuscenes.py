@@ -210,10 +210,8 @@ def token(*parts: object) -> str:
     return hashlib.md5("/".join(map(str, parts)).encode()).hexdigest()
 
 
-def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]]) -> dict:
-    """Writes ``<root>/<version>/`` (the 13 tables), ``maps/`` and the sensor files of
-    ``scenes`` = [(name, description, number of keyframes)]; returns scene -> sample tokens."""
-    tables: dict[str, list] = {name: [] for name in nus.TABLES}
+def _describe_sensors(tables: dict[str, list]) -> None:
+    """Fills the tables every version shares: categories, attributes, visibilities, sensors."""
     tables["category"] = [
         {"token": token("cat"), "name": "vehicle.car", "description": "Vehicle designed for 4 ppl"}
     ]
@@ -235,6 +233,10 @@ def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]])
                 "camera_intrinsic": INTRINSIC if modality == "camera" else [],
             }
         )
+
+
+def _add_log_and_map(root: Path, version: str, tables: dict[str, list]) -> str:
+    """Adds the log and its map, a blank mask written under ``maps/``; returns the log token."""
     log_token = token(version, "log")
     tables["log"].append(
         {
@@ -256,6 +258,88 @@ def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]])
             "filename": map_file,
         }
     )
+    return log_token
+
+
+def _write_sweep_file(root: Path, sweep: str, i: int, stamp: int, key: bool) -> tuple[str, str]:
+    """Writes sample ``i``'s file of ``sweep``; returns its filename and ``fileformat``."""
+    channel = sweep.split("/")[0]
+    folder = "samples" if key else "sweeps"
+    stem = f"n015-2018-07-24-11-22-45+0800__{channel}__{stamp}"
+    if channel == "CAM_FRONT":
+        filename, fmt = f"{folder}/{channel}/{stem}.jpg", "jpg"
+        write_jpeg(root / filename, seed=stamp % 1000)
+    elif channel.startswith("RADAR"):
+        filename, fmt = f"{folder}/{channel}/{stem}.pcd", "pcd"
+        points = RADAR_POINTS[sweep]
+        xyz = in_sensor(np.stack([camera_point(*p[:3]) for p in points], 1), i, sweep)
+        write_radar_pcd(root / filename, xyz, [p[3] for p in points])
+    else:
+        filename, fmt = f"{folder}/{channel}/{stem}.pcd.bin", "pcd"
+        xyz = in_sensor(np.stack(LIDAR_POINTS[sweep], 1), i, sweep)
+        write_lidar_bin(root / filename, xyz)
+    return filename, fmt
+
+
+def _add_sweeps(
+    root: Path,
+    version: str,
+    tables: dict[str, list],
+    scene: str,
+    i: int,
+    sample_token: str,
+    clock: int,
+    last_sd: dict[str, dict],
+) -> None:
+    """Writes sample ``i``'s sweeps; adds their ego poses and sample_data, chained by channel."""
+    sweeps = [
+        ("RADAR_FRONT/prev", -90000, False),
+        ("RADAR_FRONT", -20000, True),
+        ("RADAR_FRONT_LEFT", -15000, True),
+        ("LIDAR_TOP/prev", -40000, False),
+        ("LIDAR_TOP", 10000, True),
+        ("CAM_FRONT", 0, True),
+    ]
+    for sweep, offset, key in sweeps:
+        channel = sweep.split("/")[0]
+        stamp = clock + offset
+        filename, fmt = _write_sweep_file(root, sweep, i, stamp, key)
+        pose = ego_poses(i)[sweep]
+        pose_token = token(version, scene, i, sweep, "pose")
+        tables["ego_pose"].append(
+            {
+                "token": pose_token,
+                "timestamp": stamp,
+                "rotation": pose.quaternion,
+                "translation": list(pose.translation),
+            }
+        )
+        record = {
+            "token": token(version, scene, i, sweep),
+            "sample_token": sample_token,
+            "ego_pose_token": pose_token,
+            "calibrated_sensor_token": token("calib", channel),
+            "timestamp": stamp,
+            "fileformat": fmt,
+            "is_key_frame": key,
+            "height": CAM_H if channel == "CAM_FRONT" else 0,
+            "width": CAM_W if channel == "CAM_FRONT" else 0,
+            "filename": filename,
+            "prev": last_sd[channel]["token"] if channel in last_sd else "",
+            "next": "",
+        }
+        if channel in last_sd:
+            last_sd[channel]["next"] = record["token"]
+        last_sd[channel] = record
+        tables["sample_data"].append(record)
+
+
+def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]]) -> dict:
+    """Writes ``<root>/<version>/`` (the 13 tables), ``maps/`` and the sensor files of
+    ``scenes`` = [(name, description, number of keyframes)]; returns scene -> sample tokens."""
+    tables: dict[str, list] = {name: [] for name in nus.TABLES}
+    _describe_sensors(tables)
+    log_token = _add_log_and_map(root, version, tables)
     samples: dict[str, list[str]] = {}
     last_sd: dict[str, dict] = {}  # channel -> the previous sample_data record of its chain
     clock = 1532402927000000
@@ -285,59 +369,7 @@ def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]])
                     "scene_token": token(version, name),
                 }
             )
-            sweeps = [
-                ("RADAR_FRONT/prev", -90000, False),
-                ("RADAR_FRONT", -20000, True),
-                ("RADAR_FRONT_LEFT", -15000, True),
-                ("LIDAR_TOP/prev", -40000, False),
-                ("LIDAR_TOP", 10000, True),
-                ("CAM_FRONT", 0, True),
-            ]
-            for sweep, offset, key in sweeps:
-                channel = sweep.split("/")[0]
-                stamp = clock + offset
-                folder = "samples" if key else "sweeps"
-                stem = f"n015-2018-07-24-11-22-45+0800__{channel}__{stamp}"
-                if channel == "CAM_FRONT":
-                    filename, fmt = f"{folder}/{channel}/{stem}.jpg", "jpg"
-                    write_jpeg(root / filename, seed=stamp % 1000)
-                elif channel.startswith("RADAR"):
-                    filename, fmt = f"{folder}/{channel}/{stem}.pcd", "pcd"
-                    points = RADAR_POINTS[sweep]
-                    xyz = in_sensor(np.stack([camera_point(*p[:3]) for p in points], 1), i, sweep)
-                    write_radar_pcd(root / filename, xyz, [p[3] for p in points])
-                else:
-                    filename, fmt = f"{folder}/{channel}/{stem}.pcd.bin", "pcd"
-                    xyz = in_sensor(np.stack(LIDAR_POINTS[sweep], 1), i, sweep)
-                    write_lidar_bin(root / filename, xyz)
-                pose = ego_poses(i)[sweep]
-                pose_token = token(version, name, i, sweep, "pose")
-                tables["ego_pose"].append(
-                    {
-                        "token": pose_token,
-                        "timestamp": stamp,
-                        "rotation": pose.quaternion,
-                        "translation": list(pose.translation),
-                    }
-                )
-                record = {
-                    "token": token(version, name, i, sweep),
-                    "sample_token": sample_token,
-                    "ego_pose_token": pose_token,
-                    "calibrated_sensor_token": token("calib", channel),
-                    "timestamp": stamp,
-                    "fileformat": fmt,
-                    "is_key_frame": key,
-                    "height": CAM_H if channel == "CAM_FRONT" else 0,
-                    "width": CAM_W if channel == "CAM_FRONT" else 0,
-                    "filename": filename,
-                    "prev": last_sd[channel]["token"] if channel in last_sd else "",
-                    "next": "",
-                }
-                if channel in last_sd:
-                    last_sd[channel]["next"] = record["token"]
-                last_sd[channel] = record
-                tables["sample_data"].append(record)
+            _add_sweeps(root, version, tables, name, i, sample_token, clock, last_sd)
     (root / version).mkdir(parents=True, exist_ok=True)
     for name, rows in tables.items():
         (root / version / f"{name}.json").write_text(json.dumps(rows, indent=0))
@@ -660,8 +692,8 @@ def test_missing_and_wrong_options_fail_clearly(nusc_root, tmp_path) -> None:
 
 
 def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None:
-    from fusion_depth.prepare import prepare
-    from fusion_depth.train import train
+    from fusion_depth.prepare.cli import prepare
+    from fusion_depth.train.fit import train
 
     root, _ = nusc_root
     cfg = make_config(

@@ -15,7 +15,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 from fusion_depth.config import validate_config
 from fusion_depth.data.nuscenes import NuScenesDepth, condition_from_description
-from fusion_depth.prepare import prepare
+from fusion_depth.prepare.cli import prepare
 
 
 @pytest.fixture

@@ -89,6 +89,7 @@ def _command(args: list[str], root: Path, ckpt: str | None = None) -> list[str]:
     return filled
 
 
+@pytest.mark.slow
 def test_the_readme_dataset_trains_evaluates_and_prepares(own_dataset) -> None:
     work, root, env = own_dataset["work"], own_dataset["root"], own_dataset["env"]
     train_args, evaluate_args = own_dataset["commands"]
@@ -113,6 +114,7 @@ def test_the_readme_dataset_trains_evaluates_and_prepares(own_dataset) -> None:
     assert "rmse" in scored.stdout.lower()
 
 
+@pytest.mark.slow
 def test_a_broken_frame_of_the_readme_dataset_is_named(own_dataset, tmp_path) -> None:
     """A missing sparse map fails training before it starts, naming the file; prepare skips the
     frame and names it."""

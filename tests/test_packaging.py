@@ -43,6 +43,7 @@ def wheel(tmp_path_factory) -> Path:
     return found
 
 
+@pytest.mark.slow
 def test_the_wheel_carries_every_config_sweep_and_module(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
     expected = {
@@ -59,6 +60,7 @@ def test_the_wheel_carries_every_config_sweep_and_module(wheel: Path) -> None:
         assert f"{script} = fusion_depth.{command}:main" in text
 
 
+@pytest.mark.slow
 def test_the_installed_package_runs_a_smoke_sweep_from_any_folder(wheel, tmp_path) -> None:
     target = tmp_path / "site"
     done = _run(

@@ -15,23 +15,23 @@ import torch
 from helpers import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
-from fusion_depth.checkpoint import load_model
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
-from fusion_depth.inference import predict_depth
-from fusion_depth.predict import predict
-from fusion_depth.prediction import (
-    PredictSummary,
-    list_images,
-    predict_file,
-    predict_folder,
-    predict_split,
-)
-from fusion_depth.visualize import (
+from fusion_depth.data.visualize import (
     MIN_COLORBAR_HEIGHT,
     colorbar_ticks,
     colorize_depth,
     depth_colorbar,
     with_colorbar,
+)
+from fusion_depth.experiment.checkpoints import load_model
+from fusion_depth.models.inference import predict_depth
+from fusion_depth.predict.cli import predict
+from fusion_depth.predict.files import (
+    PredictSummary,
+    list_images,
+    predict_file,
+    predict_folder,
+    predict_split,
 )
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
@@ -206,7 +206,7 @@ def test_a_failure_writing_one_input_is_a_skip_and_leaves_no_outputs_of_it(
 def _failing_on_white(monkeypatch: pytest.MonkeyPatch, always: bool = False) -> list[int]:
     """The network raises (as on running out of memory) for any batch holding an all-white
     image, or for every batch; returns the batch sizes it was called with."""
-    import fusion_depth.prediction as module
+    import fusion_depth.predict.files as module
 
     real, calls = module.predict_depth, []
 
@@ -370,6 +370,7 @@ def test_config_with_another_dataset_for_a_split(checkpoints, tmp_path: Path) ->
     assert read_rgb(out / "val_000001.viz.png").shape == (H, 4 * 128 + _colorbar_width(H), 3)
 
 
+@pytest.mark.slow
 def test_entry_point_writes_outputs_and_fails_on_skips(checkpoints, tmp_path: Path) -> None:
     # b cannot be read; the 1x1 image c after it is predicted like a.
     images, sparse = _write_inputs(tmp_path, {"a": (H, W), "b": (H, W), "c": (1, 1)})

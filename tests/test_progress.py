@@ -1,4 +1,4 @@
-"""fusion_depth.progress: periodic log lines off a terminal, a bar on one (a fake clock)."""
+"""fusion_depth.utils.progress: periodic log lines off a terminal, a bar on one (a fake clock)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from fusion_depth.progress import Progress, format_duration, track
+from fusion_depth.utils.progress import Progress, format_duration, track
 
 LOGGER = "fusion_depth.test_progress"
 

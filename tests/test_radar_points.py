@@ -16,11 +16,11 @@ from helpers.carla import W as CARLA_W
 from helpers.carla import record_fixture
 
 from fusion_depth.data import RADAR_POINT_FIELDS
+from fusion_depth.data.cache import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.carla import CarlaDepth
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.depth_io import DataFileError
 from fusion_depth.data.encoding import decode_sample
-from fusion_depth.data.prepared import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.procedural import ProceduralDepth
 from fusion_depth.data.radar_points import (
     DEPTH,

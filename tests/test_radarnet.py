@@ -9,11 +9,11 @@ import pytest
 import torch
 from helpers import REPO, run_module
 
-from fusion_depth.checkpoint import CheckpointError, load_model, plain_config
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.inference import predict_depth
+from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.models import MODELS, create_model
+from fusion_depth.models.inference import predict_depth
 from fusion_depth.models.radarnet import (
     RadarNet,
     association_labels,
@@ -23,6 +23,7 @@ from fusion_depth.models.radarnet import (
     points_from_sparse,
     quasi_dense_depth,
 )
+from fusion_depth.utils.checkpoint_file import CheckpointError, plain_config
 
 
 def _points(rows: list[tuple[float, float, float]], pad_to: int = 0) -> torch.Tensor:
@@ -241,6 +242,7 @@ def test_the_fusion_stage_needs_a_trained_association() -> None:
     assert not any(p.requires_grad for p in net.association.parameters())
 
 
+@pytest.mark.slow
 def test_the_two_stages_train_and_the_second_evaluates_by_name(tmp_path) -> None:
     """Stage 1 (association BCE), stage 2 on its checkpoint (L1 in metres), then evaluate."""
     common = ["model=radarnet", "fusion=concat", "experiment=smoke", "trainer.max_epochs=1"]

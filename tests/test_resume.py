@@ -18,24 +18,20 @@ import yaml
 from helpers import compose_config, run_module
 from helpers.probe import PROBE, RESUMABLE, probe_env, probe_records
 
-from fusion_depth.checkpoint import (
-    CONFIG_KEY,
-    RUN_KEY,
-    AtomicCheckpointIO,
-    CheckpointError,
-    CheckpointWriteError,
-)
+from fusion_depth.config.run_dirs import run_dirname
 from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
-from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.resume import OtherRunError, config_changes, plan_start
-from fusion_depth.runs import run_dirname
-from fusion_depth.train import train
+from fusion_depth.experiment.checkpoint_io import AtomicCheckpointIO, CheckpointWriteError
+from fusion_depth.experiment.resume import OtherRunError, config_changes, plan_start
+from fusion_depth.metrics.depth import METRIC_KEYS
+from fusion_depth.train.fit import train
+from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
 
 # The built-in recipe's per-step schedule (warm-up + cosine), so that a learning rate restored
 # one step off would change the resumed run's metrics (test_kills covers the per-epoch StepLR).
 PER_STEP_SCHEDULE = ["scheduler=cosine", "scheduler.warmup_fraction=0.2"]
 
 
+@pytest.mark.slow
 def test_a_killed_run_resumes_mid_epoch_and_ends_like_an_uninterrupted_one(tmp_path) -> None:
     run_dir = tmp_path / "run"
     command = [
@@ -106,6 +102,7 @@ SWEEP = [
 ]
 
 
+@pytest.mark.slow
 def test_a_sweep_rerun_skips_finished_jobs_and_resumes_the_failed_one(tmp_path) -> None:
     env = probe_env(tmp_path, at_step=4, action="fail", only_fusion="concat")
     first = run_module(SWEEP, cwd=tmp_path, env=env)
@@ -344,7 +341,7 @@ def test_the_disk_check_asks_for_room_for_the_checkpoints_the_run_writes(tmp_pat
     from torch import nn
 
     from fusion_depth.config import checkpoint_bytes
-    from fusion_depth.train import checkpoint_room
+    from fusion_depth.train.fit import checkpoint_room
 
     model = nn.Linear(100, 10)
     full, weights = checkpoint_bytes(model), checkpoint_bytes(model, 0)
@@ -388,8 +385,8 @@ def test_a_new_start_removes_what_interrupted_attempts_left(tmp_path) -> None:
 
 
 def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
-    from fusion_depth.resume import finished_results
-    from fusion_depth.sweep import summarize_sweep
+    from fusion_depth.experiment.resume import finished_results
+    from fusion_depth.experiment.sweep_summary import summarize_sweep
 
     job = tmp_path / "sweep" / "job"
     (job / ".hydra").mkdir(parents=True)
@@ -448,8 +445,8 @@ def test_a_split_without_frames_is_refused() -> None:
 
 
 def test_a_run_whose_every_batch_was_skipped_reports_no_result(tmp_path, monkeypatch) -> None:
-    from fusion_depth.module import DepthModule
-    from fusion_depth.train import NoTrainingError
+    from fusion_depth.experiment.module import DepthModule
+    from fusion_depth.train.fit import NoTrainingError
 
     def nan_loss(self, batch):
         return {"loss": torch.tensor(float("nan"), requires_grad=True)}
@@ -462,6 +459,7 @@ def test_a_run_whose_every_batch_was_skipped_reports_no_result(tmp_path, monkeyp
     assert not (run_dir / "metrics.json").exists()
 
 
+@pytest.mark.slow
 def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
     run_dir = tmp_path / "run"
     command = ["fusion_depth.train", *RESUMABLE, PROBE, f"hydra.run.dir={run_dir}"]
@@ -513,8 +511,9 @@ def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
     assert (run_dir / "metrics.json").read_text() == metrics
 
 
+@pytest.mark.slow
 def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> None:
-    from fusion_depth.resume import RunLock
+    from fusion_depth.experiment.resume import RunLock
 
     sweep_dir = tmp_path / "sweep"
     job_dir = sweep_dir / run_dirname("experiment=smoke")
@@ -539,7 +538,7 @@ def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> No
 
 
 def test_a_lock_file_that_is_a_link_or_a_folder_is_refused(tmp_path) -> None:
-    from fusion_depth.resume import RunLock, RunLockedError
+    from fusion_depth.experiment.resume import RunLock, RunLockedError
 
     target = tmp_path / "target.txt"
     target.write_text("keep me")

@@ -21,7 +21,7 @@ from torch import nn
 
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
 from fusion_depth.errors import ConfigError, OutputDirError
-from fusion_depth.redaction import (
+from fusion_depth.experiment.redaction import (
     RedactSecrets,
     redact_hydra_files,
     redact_overrides,
@@ -202,6 +202,7 @@ def _run_train(args: list[str], cwd: Path, env: dict | None = None, timeout: int
     )
 
 
+@pytest.mark.slow
 def test_cli_shows_the_error_line_without_a_traceback(tmp_path) -> None:
     """What a user sees for a bad value: Hydra's line naming the overrides, our one line, and
     Hydra's hint about HYDRA_FULL_ERROR; no traceback, no data touched."""
@@ -384,13 +385,14 @@ def test_hydra_callback_redacts_the_job_files_and_the_sweep_record(tmp_path) -> 
 
 
 def test_wandb_stays_offline_with_a_key_when_wandb_mode_is_offline(monkeypatch, tmp_path):
-    from fusion_depth.loggers import wandb_logger
+    from fusion_depth.experiment.loggers import wandb_logger
 
     monkeypatch.setenv("WANDB_API_KEY", "k" * 40)
     monkeypatch.setenv("WANDB_MODE", "offline")
     assert wandb_logger(save_dir=str(tmp_path))._offline is True
 
 
+@pytest.mark.slow
 def test_a_training_run_writes_no_secret_anywhere(tmp_path) -> None:
     """A real (one-epoch smoke) run with a W&B key in the environment and another one passed
     the legitimate Hydra way (``+hydra.job.env_set.WANDB_API_KEY=...``, which lands in argv,
@@ -438,7 +440,7 @@ def test_a_training_run_writes_no_secret_anywhere(tmp_path) -> None:
     for stream in (result.stdout, result.stderr):
         assert env_key not in stream and argv_key not in stream
     # Hydra writes .hydra/hydra.yaml before any of our code runs; this one needs the
-    # fusion_depth.redaction.RedactSecrets callback in conf/hydra/default.yaml (or train calling
-    # redact_hydra_files) to pass.
+    # fusion_depth.experiment.redaction.RedactSecrets callback in conf/hydra/default.yaml (or train
+    # calling redact_hydra_files) to pass.
     assert holding_a_secret(hydra_files) == []
     assert "WANDB_API_KEY: '***'" in (run_dir / ".hydra" / "hydra.yaml").read_text()

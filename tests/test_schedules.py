@@ -15,7 +15,7 @@ from hydra.utils import instantiate
 
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.schedules import (
+from fusion_depth.optim.schedules import (
     SCHEDULE_ARGUMENTS,
     SCHEDULES,
     WarmupCosine,
@@ -59,6 +59,7 @@ def test_bad_arguments_are_named(kwargs, match) -> None:
         WarmupCosine(optimizer, **kwargs)
 
 
+@pytest.mark.slow
 def test_the_module_steps_it_per_optimizer_step_over_the_runs_steps(make_config) -> None:
     cfg = make_config(
         "experiment=smoke",
@@ -125,6 +126,7 @@ def test_the_interval_follows_the_name_a_partial_gives() -> None:
     assert schedule_interval(torch.optim.lr_scheduler.StepLR) == "epoch"
 
 
+@pytest.mark.slow
 def test_the_recipe_names_its_schedule_and_the_command_line_adjusts_it(make_config) -> None:
     """model=densedepth's default schedule is the recipe's (cosine) on the built-in dataset and
     the paper's StepLR elsewhere; either takes its own arguments from the command line, and an

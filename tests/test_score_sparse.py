@@ -6,8 +6,8 @@ import pytest
 import torch
 from helpers import compose_config
 
-from fusion_depth.protocol import EvalProtocol
-from fusion_depth.score_sparse import score_sparse, score_sparse_input
+from fusion_depth.experiment.protocol import EvalProtocol
+from fusion_depth.score_sparse.cli import score_sparse, score_sparse_input
 
 
 def _frame(condition: str, depth: torch.Tensor, sparse: torch.Tensor) -> dict:

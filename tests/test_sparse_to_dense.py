@@ -9,12 +9,13 @@ import torch
 import torch.nn.functional as F
 from helpers import REPO, run_module, run_sweep
 
-from fusion_depth.checkpoint import load_model, plain_config
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
+from fusion_depth.experiment.checkpoints import load_model
+from fusion_depth.experiment.record import load_runs
 from fusion_depth.models import MODELS, create_model
 from fusion_depth.models.sparse_to_dense import SparseToDense, Unpool, UpProjection
-from fusion_depth.run_record import load_runs
+from fusion_depth.utils.checkpoint_file import plain_config
 
 
 def _stage_shapes(net: SparseToDense, image: torch.Tensor, sparse: torch.Tensor) -> list:
@@ -132,6 +133,7 @@ def test_a_model_refuses_what_it_cannot_take_at_config_time(make_config, overrid
         validate_config(cfg)
 
 
+@pytest.mark.slow
 def test_every_model_config_composes_and_builds(make_config) -> None:
     for name, entry in MODELS.items():
         cfg = make_config(f"model={name}", f"fusion={entry.fusions[-1]}", "experiment=smoke")
@@ -161,6 +163,7 @@ def test_a_checkpoint_is_rebuilt_by_the_model_name(tmp_path, smoke_dataset) -> N
         torch.testing.assert_close(loaded.net(image, sparse), net.eval()(image, sparse))
 
 
+@pytest.mark.slow
 def test_sparse_to_dense_trains_evaluates_and_predicts(tmp_path) -> None:
     """The model through the same machinery as the paper's: train (its L1 loss), then the
     printed best checkpoint scored by evaluate, which rebuilds it by name."""
@@ -187,6 +190,7 @@ def test_sparse_to_dense_trains_evaluates_and_predicts(tmp_path) -> None:
     assert (tmp_path / "eval" / "metrics.json").is_file()
 
 
+@pytest.mark.slow
 def test_the_methods_sweep_runs_each_model_with_its_own_encoder_and_loss(tmp_path) -> None:
     """sweeps/methods.yaml under the smoke experiment, one seed: one run per model."""
     result = run_sweep("methods", ["seed=42", "trainer.max_epochs=1"], tmp_path / "sweep")

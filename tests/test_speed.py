@@ -6,10 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fusion_depth import speed
-from fusion_depth.losses import DepthLoss
+from fusion_depth.experiment import speed
+from fusion_depth.experiment.module import DepthModule
+from fusion_depth.losses.depth_loss import DepthLoss
 from fusion_depth.models import DepthNet
-from fusion_depth.module import DepthModule
 
 
 def test_auto_precision_is_bf16_only_where_the_cpu_has_bf16(
@@ -132,7 +132,7 @@ def test_evaluate_scores_in_the_checkpoints_precision_by_default(
 ) -> None:
     from types import SimpleNamespace
 
-    from fusion_depth.evaluate import evaluation_precision
+    from fusion_depth.evaluate.scoring import evaluation_precision
 
     monkeypatch.setattr(speed, "cpu_flags", lambda: {"avx512_bf16"})
     fp32 = SimpleNamespace(config={"trainer": {"precision": "32-true"}})

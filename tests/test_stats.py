@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fusion_depth.stats import BootstrapResult, paired_bootstrap
+from fusion_depth.metrics.bootstrap import BootstrapResult, paired_bootstrap
 
 
 def test_interval_covers_a_known_difference_and_excludes_zero() -> None:

@@ -14,12 +14,13 @@ import safetensors.torch
 import timm
 import torch
 
-from fusion_depth.checkpoint import load_model, plain_config
 from fusion_depth.config.validation import validate_config
 from fusion_depth.errors import ConfigError
+from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.models import DepthNet, Encoder
 from fusion_depth.models import encoder as encoder_module
 from fusion_depth.models.encoder import ENCODER_SPECS
+from fusion_depth.utils.checkpoint_file import plain_config
 
 TESTED = ("convnext_atto", "efficientnet_b0", "regnety_002")
 # Strides 2, 4, 8, 16, 32 of a 64×96 input.
@@ -196,8 +197,9 @@ def test_a_checkpoint_rebuilds(tmp_path: Path, smoke_dataset: dict) -> None:
         torch.testing.assert_close(loaded.net(image, sparse), net(image, sparse))
 
 
+@pytest.mark.slow
 def test_one_training_step_and_the_checkpoint_evaluates(make_config) -> None:
-    from fusion_depth.train import train
+    from fusion_depth.train.fit import train
 
     cfg = make_config(
         "experiment=smoke",
@@ -217,12 +219,13 @@ def test_one_training_step_and_the_checkpoint_evaluates(make_config) -> None:
     assert loaded.backbone == "convnext_atto" and loaded.net.encoder.stem is not None
 
 
+@pytest.mark.slow
 def test_onnx_export_matches_pytorch(tmp_path: Path) -> None:
     import numpy as np
     import onnxruntime as ort
 
-    from fusion_depth.exporting import export_model
-    from fusion_depth.inference import predict_depth
+    from fusion_depth.export import export_model
+    from fusion_depth.models.inference import predict_depth
 
     torch.manual_seed(0)
     net = DepthNet("convnext_atto", "concat", backbone_taps="pyramid").eval()

@@ -19,9 +19,9 @@ from PIL import Image
 
 from fusion_depth.config import validate_config
 from fusion_depth.data import topview
-from fusion_depth.data.prepared import SkippedFramesError
+from fusion_depth.data.cache import SkippedFramesError
 from fusion_depth.data.topview import TopViewDepth, read_depth_file
-from fusion_depth.prepare import prepare
+from fusion_depth.prepare.cli import prepare
 
 
 @pytest.fixture(scope="module")
@@ -242,6 +242,7 @@ def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
         TopViewDepth("test", root, cfg.paths.cache_dir, height=H, width=W)
 
 
+@pytest.mark.slow
 def test_prepare_command_names_skipped_frames_and_exits_1(folder, tmp_path) -> None:
     root = _break_two_frames(folder, tmp_path / "copy")
     result = run_module(
@@ -283,8 +284,9 @@ def test_sweep_config_reproduces_the_papers_topview_table(tmp_path) -> None:
     assert cfg.trainer.max_epochs == 30 and cfg.backbone.pretrained is True
 
 
+@pytest.mark.slow
 def test_training_and_testing_on_a_folder(folder, make_config) -> None:
-    from fusion_depth.train import train
+    from fusion_depth.train.fit import train
 
     cfg = _make(
         make_config,
@@ -310,6 +312,7 @@ def test_training_and_testing_on_a_folder(folder, make_config) -> None:
     assert all(math.isfinite(v) for v in results["test"].values())
 
 
+@pytest.mark.slow
 def test_the_topview_sweep_runs_under_the_smoke_experiment(folder, tmp_path) -> None:
     sweep = tmp_path / "sweep"
     overrides = [f"dataset.root={folder}", "seed=42,43", "loss=l1"]

@@ -13,11 +13,12 @@ from helpers import compose_config, run_module, run_sweep
 from omegaconf import OmegaConf
 from PIL import Image
 
-from fusion_depth.metrics import METRIC_KEYS
-from fusion_depth.train import train
-from fusion_depth.visualize import MIN_TILE_HEIGHT
+from fusion_depth.data.visualize import MIN_TILE_HEIGHT
+from fusion_depth.metrics.depth import METRIC_KEYS
+from fusion_depth.train.fit import train
 
 
+@pytest.mark.slow
 def test_one_training_run_writes_metrics_checkpoint_and_wandb(
     make_config, tmp_path, capsys
 ) -> None:
@@ -82,6 +83,7 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(
     assert resolved.model.loss.max_val == cfg.dataset.depth_scale / cfg.dataset.min_depth
 
 
+@pytest.mark.slow
 def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     sweep = tmp_path / "sweep"
     result = run_sweep("loss_fusion_grid", ["seed=42"], sweep)
@@ -98,6 +100,7 @@ def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
     }
 
 
+@pytest.mark.slow
 def test_the_weather_sweep_runs_and_report_compares_per_condition(tmp_path) -> None:
     """sweeps/procedural_weather.yaml under the smoke experiment (two seeds, two modes), then
     the table the README shows: each fusion mode against rgb, image by image, per condition."""
@@ -115,6 +118,7 @@ def test_the_weather_sweep_runs_and_report_compares_per_condition(tmp_path) -> N
     assert "night" in report.stdout and "fog" in report.stdout
 
 
+@pytest.mark.slow
 def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     sweep = tmp_path / "sweep"
     result = run_module(
@@ -140,6 +144,7 @@ def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     assert sorted(job["status"] for job in summary) == ["failed", "ok"]
 
 
+@pytest.mark.slow
 def test_the_same_seed_gives_the_same_metrics(make_config, tmp_path) -> None:
     """Reproducibility: seed_everything(seed, workers=True) covers init, shuffling and
     augmentation, so a second run with the same seed prints the same numbers."""

@@ -8,7 +8,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from fusion_depth.visualize import (
+from fusion_depth.data.visualize import (
     MIN_TILE_HEIGHT,
     PanelFrame,
     colorize_depth,

@@ -2,14 +2,15 @@
 through before any work, one module per concern:
 
 - :mod:`.resolvers`: the ``fd.*`` OmegaConf resolvers that ``conf/`` uses.
-- :mod:`.values`: the values the network, the trainer and the data pipeline can take.
 - :mod:`.keys`: unknown keys (every key must be read by something).
-- :mod:`.validation`: :func:`validate_config`, those checks together as one-line errors.
+- :mod:`.validation`: :func:`validate_config`: the values each reader declares it takes
+  (:mod:`fusion_depth.utils.schema`) and the keys, as one-line errors.
 - :mod:`.output_dir`: the output directory (writable, room for the checkpoints).
-- :mod:`.show`: a value as written on the command line, for the errors.
+- :mod:`.run_dirs`: run and sweep folder names.
+- :mod:`.hydra_main`: what every command line of the package shares.
 
 The errors they raise are in :mod:`fusion_depth.errors`; the redaction of secrets from what a run
-writes is :mod:`fusion_depth.redaction`. Every public name is importable from here.
+writes is :mod:`fusion_depth.experiment.redaction`. Every public name is importable from here.
 """
 
 from __future__ import annotations
@@ -26,8 +27,7 @@ from fusion_depth.config.keys import (
 )
 from fusion_depth.config.output_dir import MB, check_output_dir, checkpoint_bytes
 from fusion_depth.config.resolvers import register_resolvers
-from fusion_depth.config.validation import validate_config
-from fusion_depth.config.values import check_bottleneck, check_dataset, check_values
+from fusion_depth.config.validation import VALUE_CHECKS, check_config_values, validate_config
 
 __all__ = [
     "CONF_DIR",
@@ -36,11 +36,10 @@ __all__ = [
     "PLAIN_CONSUMERS",
     "READ_BY_CODE",
     "SWEEPS_DIR",
-    "check_bottleneck",
-    "check_dataset",
+    "VALUE_CHECKS",
     "check_known_keys",
     "check_output_dir",
-    "check_values",
+    "check_config_values",
     "checkpoint_bytes",
     "register_resolvers",
     "target_accepts",

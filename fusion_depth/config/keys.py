@@ -12,15 +12,15 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.config.show import show
 from fusion_depth.errors import ConfigError
 from fusion_depth.models._registry import create_model, model_class
+from fusion_depth.utils.overrides import show
 
 # Nodes without a ``_target_`` whose keys are one callable's arguments: data → the datamodule
 # (``DepthDataModule(reader=..., **cfg.data)``), eval → the evaluation protocol.
 PLAIN_CONSUMERS: dict[str, str] = {
     "data": "fusion_depth.data.datamodule.DepthDataModule",
-    "eval": "fusion_depth.protocol.EvalProtocol",
+    "eval": "fusion_depth.experiment.protocol.EvalProtocol",
 }
 # Arguments the code passes itself, per node: not config keys (a value would clash with the
 # code's or be overridden by it).

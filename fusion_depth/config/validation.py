@@ -1,13 +1,67 @@
-"""The checks a config must pass before any work, together: :func:`validate_config`."""
+"""The checks a config must pass before any work, together: :func:`validate_config`.
+
+What each key may hold is declared beside the code that reads it (a ``CONFIG_SCHEMA``, see
+:mod:`fusion_depth.utils.schema`, or a check of values that depend on each other);
+:data:`VALUE_CHECKS` lists them in the order they run."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from fusion_depth.config.keys import check_known_keys
-from fusion_depth.config.values import check_values
+from fusion_depth.data import datamodule, transforms
+from fusion_depth.data.base import check_dataset
 from fusion_depth.errors import ConfigError, MissingValueError
+from fusion_depth.experiment import callbacks, module, protocol, resume, speed
+from fusion_depth.losses import depth_loss
+from fusion_depth.models import encoder, fusion
+from fusion_depth.models._registry import check_model
+from fusion_depth.optim import optimizers
+from fusion_depth.optim.schedules import check_scheduler
+from fusion_depth.utils.schema import Schema, check_schema
+
+
+def _schema(schema: Schema) -> Callable[[DictConfig], None]:
+    return lambda cfg: check_schema(cfg, schema)
+
+
+# Every value check, in order: the fusion mode first (a mode no model takes is named alone), then
+# the model against the encoder and dataset it is given, before the dataset's own checks (so a
+# model that needs a sensor the dataset lacks is refused naming both), then the rest.
+VALUE_CHECKS: tuple[Callable[[DictConfig], None], ...] = (
+    _schema(fusion.CONFIG_SCHEMA),
+    _schema(depth_loss.CONFIG_SCHEMA),
+    encoder.check_backbone,
+    _schema(encoder.CONFIG_SCHEMA),
+    check_model,
+    lambda cfg: check_dataset(cfg.dataset, cfg.fusion.mode),
+    _schema(datamodule.CONFIG_SCHEMA),
+    encoder.check_bottleneck,
+    _schema(transforms.CONFIG_SCHEMA),
+    _schema(module.TRAINER_SCHEMA),
+    _schema(optimizers.CONFIG_SCHEMA),
+    check_scheduler,
+    _schema(callbacks.CONFIG_SCHEMA),
+    _schema(speed.CONFIG_SCHEMA),
+    _schema(module.CONFIG_SCHEMA),
+    lambda cfg: check_schema(cfg, protocol.config_schema(cfg)),
+    _schema(resume.CONFIG_SCHEMA),
+)
+
+
+def check_config_values(cfg: DictConfig) -> None:
+    """Every value of ``cfg`` that the network, the trainer and the data pipeline read, checked
+    (when the key is present) before anything is built (:data:`VALUE_CHECKS`).
+
+    Raises:
+        ConfigError: the first value that fails, in one line naming the key and what it accepts.
+        MissingDependencyError: the dataset needs a package that is not installed.
+    """
+    for check in VALUE_CHECKS:
+        check(cfg)
 
 
 def validate_config(cfg: DictConfig) -> dict:
@@ -19,7 +73,7 @@ def validate_config(cfg: DictConfig) -> dict:
     """
     try:
         OmegaConf.to_container(cfg, resolve=False, throw_on_missing=True)  # ??? values first
-        check_values(cfg)  # before importing targets: a missing optional package is named
+        check_config_values(cfg)  # before importing targets: a missing optional package is named
         check_known_keys(cfg)
         return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     except MissingValueError:

@@ -336,12 +336,22 @@ def _street_furniture(
             z += rng.uniform(7.0, 15.0)
 
 
-def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: float) -> Scene:
-    """Samples one street: lanes, sidewalks, facades, parked and moving cars, furniture, sun."""
-    boxes = _Boxes()
-    lamps: list[tuple[float, float, float]] = []
-    camera = _camera(rng, height, width, fov_deg)
+@dataclass(frozen=True)
+class _Lanes:
+    """The street's cross-section: lanes, parking strips and the road's kerb-to-kerb extent."""
 
+    lane: float  # lane width
+    n_same: int  # lanes in the camera's direction
+    n_opp: int  # lanes in the opposite direction (0: one-way)
+    park: np.ndarray  # (2,) bool: a parking strip on the left / right
+    ego: int  # the camera's lane among the n_same
+    centre: float  # X of the line between the two directions
+    travel: tuple[float, float]  # X extent of the travel lanes
+    road: tuple[float, float]  # X extent of travel lanes and parking strips
+
+
+def _lanes(rng: np.random.Generator) -> _Lanes:
+    """Samples lane counts and widths, parking strips and where the camera drives."""
     lane = rng.uniform(3.0, 3.7)
     n_same, n_opp = int(rng.integers(1, 3)), int(rng.integers(0, 3))  # n_opp 0: one-way
     park = rng.random(2) < (0.7, 0.8)
@@ -350,12 +360,19 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
     centre = -(ego + 0.5) * lane + rng.uniform(-0.4, 0.4)  # the camera drives at X ~ 0
     travel = (centre - n_opp * lane, centre + n_same * lane)
     road = (travel[0] - park[0] * park_w, travel[1] + park[1] * park_w)
+    return _Lanes(lane, n_same, n_opp, park, ego, centre, travel, road)
 
+
+def _markings(
+    rng: np.random.Generator, lanes: _Lanes
+) -> tuple[list[tuple[float, float, float, float, float]], list[tuple[float, float, float]]]:
+    """Centre line, lane dividers and edge lines: rows of ``Scene.markings`` and their colours."""
     marks: list[tuple[float, float, float, float, float]] = []
     mark_colors: list[tuple[float, float, float]] = []
+    centre, lane = lanes.centre, lanes.lane
     dash = rng.uniform(2.0, 4.0)
     period, phase = dash * rng.uniform(2.5, 4.0), rng.uniform(0.0, 10.0)
-    if n_opp > 0:
+    if lanes.n_opp > 0:
         if rng.random() < 0.5:  # double yellow
             for off in (-0.12, 0.12):
                 marks.append((centre + off, 0.05, 1.0, 1.0, 0.0))
@@ -363,14 +380,20 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         else:
             marks.append((centre, 0.07, dash, period, phase))
             mark_colors.append(_WHITE_PAINT)
-    for k in [*range(1, n_same), *range(-n_opp + 1, 0)]:
+    for k in [*range(1, lanes.n_same), *range(-lanes.n_opp + 1, 0)]:
         marks.append((centre + k * lane, 0.07, dash, period, phase))
         mark_colors.append(_WHITE_PAINT)
-    for x in travel:
+    for x in lanes.travel:
         if rng.random() < 0.7:
             marks.append((x, 0.06, 1.0, 1.0, 0.0))
             mark_colors.append(_WHITE_PAINT)
+    return marks, mark_colors
 
+
+def _sidewalks_and_buildings(
+    boxes: _Boxes, rng: np.random.Generator, road: tuple[float, float]
+) -> tuple[float, np.ndarray, float]:
+    """Sidewalks, facades, maybe a T-junction; returns kerb height, walk widths, street end."""
     curb = rng.uniform(0.1, 0.2)
     walks = rng.uniform(1.8, 5.0, 2)
     concrete = np.array([1.0, 1.0, 0.97]) * rng.uniform(0.5, 0.68)
@@ -386,9 +409,13 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         _add_building(
             boxes, rng, (-80.0, 0.0, z_end), (80.0, rng.uniform(8.0, 35.0), z_end + 20.0), bid
         )
+    return curb, walks, street_end
 
-    for side, kerb in ((-1, road[0]), (1, road[1])):
-        if not park[(side + 1) // 2]:
+
+def _parked_cars(boxes: _Boxes, rng: np.random.Generator, lanes: _Lanes, street_end: float) -> None:
+    """Rows of parked cars along the kerbs that have a parking strip."""
+    for side, kerb in ((-1, lanes.road[0]), (1, lanes.road[1])):
+        if not lanes.park[(side + 1) // 2]:
             continue
         occupancy = rng.uniform(0.3, 0.95)
         z = rng.uniform(-12.0, 0.0)
@@ -396,24 +423,28 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
             if rng.random() > occupancy:
                 z += rng.uniform(3.0, 8.0)
                 continue
-            usual = side if n_opp > 0 else 1
+            usual = side if lanes.n_opp > 0 else 1
             facing = usual if rng.random() < 0.85 else -usual
             x = kerb - side * (0.25 + 0.95)
             z += _add_car(boxes, rng, x, z, facing, False, False)
             z += rng.uniform(0.6, 2.5)
+
+
+def _traffic(boxes: _Boxes, rng: np.random.Generator, lanes: _Lanes, street_end: float) -> None:
+    """Moving cars, vans and buses in every travel lane, light or dense."""
     gap_scale = rng.uniform(10.0, 50.0)  # light or dense traffic
-    for k in range(-n_opp, n_same):
+    for k in range(-lanes.n_opp, lanes.n_same):
         facing = 1 if k >= 0 else -1
-        x_lane = centre + (k + 0.5) * lane
-        z = rng.uniform(7.0, 30.0) if k == ego else rng.uniform(-4.0, 30.0)
+        x_lane = lanes.centre + (k + 0.5) * lanes.lane
+        z = rng.uniform(7.0, 30.0) if k == lanes.ego else rng.uniform(-4.0, 30.0)
         while z < min(180.0, street_end - 12.0):
             x = x_lane + rng.uniform(-0.25, 0.25)
             z += _add_car(boxes, rng, x, z, facing, True, True)
             z += rng.uniform(5.0, 1.0 + 2.0 * gap_scale)
 
-    for side, kerb in ((-1, road[0]), (1, road[1])):
-        _street_furniture(boxes, rng, side, kerb, walks[(side + 1) // 2], curb, lamps)
 
+def _verge_and_sun(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Ground colours beyond the two sidewalks, and the unit vector towards the sun."""
     verge = np.array(
         [[0.28, 0.40, 0.18] if rng.random() < 0.4 else [0.48, 0.46, 0.43] for _ in range(2)],
         dtype=np.float32,
@@ -427,7 +458,25 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         ],
         dtype=np.float32,
     )
-    sun[np.abs(sun) < 1e-4] = 1e-4
+    sun[np.abs(sun) < 1e-4] = 1e-4  # the shadow caster divides by every component
+    return verge, sun
+
+
+def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: float) -> Scene:
+    """Samples one street: lanes, sidewalks, facades, parked and moving cars, furniture, sun."""
+    # Every helper draws from ``rng`` in turn; this order fixes the built-in dataset's frames.
+    boxes = _Boxes()
+    lamps: list[tuple[float, float, float]] = []
+    camera = _camera(rng, height, width, fov_deg)
+    lanes = _lanes(rng)
+    road = lanes.road
+    marks, mark_colors = _markings(rng, lanes)
+    curb, walks, street_end = _sidewalks_and_buildings(boxes, rng, road)
+    _parked_cars(boxes, rng, lanes, street_end)
+    _traffic(boxes, rng, lanes, street_end)
+    for side, kerb in ((-1, road[0]), (1, road[1])):
+        _street_furniture(boxes, rng, side, kerb, walks[(side + 1) // 2], curb, lamps)
+    verge, sun = _verge_and_sun(rng)
     return Scene(
         camera=camera,
         lo=np.asarray(boxes.lo, dtype=np.float32),
@@ -436,7 +485,7 @@ def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: flo
         color=np.asarray(boxes.color, dtype=np.float32),
         param=np.asarray(boxes.param, dtype=np.float32),
         road=(float(road[0]), float(road[1])),
-        asphalt=float(rng.uniform(0.24, 0.36)),
+        asphalt=float(rng.uniform(0.24, 0.36)),  # the last draw
         markings=np.asarray(marks, dtype=np.float32).reshape(-1, 5),
         marking_color=np.asarray(mark_colors, dtype=np.float32).reshape(-1, 3),
         verge_color=verge,

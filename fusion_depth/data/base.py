@@ -11,7 +11,7 @@ and fills in two methods:
 * :meth:`~PreparedDataset.load_frame`: one frame's arrays at the network's input size.
 
 The base class checks the split, ``on_error`` and the input size, resolves the dataset folder,
-prepares every split once into the shared cache (:mod:`fusion_depth.data.prepared`: atomic,
+prepares every split once into the shared cache (:mod:`fusion_depth.data.cache`: atomic,
 resumable, the dataset folder only ever read) and then serves the requested split as
 :class:`~fusion_depth.data.Sample` dicts. The README's "Add your own dataset" section walks
 through one.
@@ -19,6 +19,7 @@ through one.
 
 from __future__ import annotations
 
+import importlib.util
 import numbers
 import os
 from collections.abc import Sequence
@@ -26,9 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
+from omegaconf import DictConfig
+
 from fusion_depth.data import CONDITIONS, SPLITS
-from fusion_depth.data.folders import require_root
-from fusion_depth.data.prepared import (
+from fusion_depth.data.cache import (
     OnError,
     PreparedFrame,
     PreparedSplit,
@@ -38,7 +40,11 @@ from fusion_depth.data.prepared import (
     is_prepared,
     prepare_splits,
 )
+from fusion_depth.data.folders import require_root
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, check_max_points
+from fusion_depth.errors import ConfigError, MissingDependencyError
+from fusion_depth.utils.overrides import show
+from fusion_depth.utils.schema import is_number
 
 # The encoder halves the resolution five times, and the decoder's skips must line up.
 SIZE_MULTIPLE = 32
@@ -98,7 +104,7 @@ class PreparedDataset(PreparedSplit):
         height, width: the network's input size in pixels, multiples of 32.
         on_error: ``"raise"`` fails at the first broken frame, naming its file; ``"skip"``
             prepares every other frame of every split, then raises
-            :class:`~fusion_depth.data.prepared.SkippedFramesError` listing the broken ones
+            :class:`~fusion_depth.data.cache.SkippedFramesError` listing the broken ones
             (what ``python -m fusion_depth.prepare`` uses).
         max_radar_points: ``P``, the rows of ``radar_points`` each sample serves (the nearest
             returns, zero rows after) when :meth:`load_frame` gives radar points (a radar
@@ -238,3 +244,37 @@ class PreparedDataset(PreparedSplit):
             )
         prepare_splits(jobs, on_error=self.on_error)
         return cache
+
+
+def check_dataset(ds: DictConfig, fusion: str) -> None:
+    """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it.
+
+    Raises:
+        ConfigError: a size, depth range or fusion mode the dataset cannot take, naming the key.
+        MissingDependencyError: the dataset's optional package is not installed (with the
+            command that installs it).
+    """
+    try:
+        check_size(ds.height, ds.width)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    for key in ("min_depth", "max_depth", "depth_scale"):
+        if not is_number(ds[key]) or not ds[key] > 0:
+            raise ConfigError(f"dataset.{key}={show(ds[key])}: expected a positive number")
+    if not 0 < ds.min_depth < ds.max_depth:
+        raise ConfigError(
+            f"dataset.min_depth={ds.min_depth}, dataset.max_depth={ds.max_depth}: "
+            "expected 0 < min_depth < max_depth"
+        )
+    needs = ds.get("requires")
+    if needs is not None and importlib.util.find_spec(needs.module) is None:
+        raise MissingDependencyError(
+            f"dataset={ds.name} needs {needs.package} (module {needs.module!r}), which is not "
+            f"installed: {needs.install}"
+        )
+    allowed = ds.get("fusions")
+    if allowed is not None and fusion not in allowed:
+        raise ConfigError(
+            f"fusion={fusion}: dataset={ds.name} has no sparse sensor input, so only "
+            f"fusion={'/'.join(allowed)} is possible (dataset.fusions)"
+        )

@@ -43,7 +43,7 @@ where a frame's file should be, its ``.json`` included, is an IsADirectoryError
 and metadata are checked while listing the recording, so for training (``on_error="raise"``) the
 first one fails before anything is prepared; ``python -m fusion_depth.prepare``
 (``on_error="skip"``) counts such a frame as skipped, like one with a corrupt file, and prepares
-the others (:mod:`fusion_depth.data.prepared`). Files starting with ``.`` (temporary files) are
+the others (:mod:`fusion_depth.data.cache`). Files starting with ``.`` (temporary files) are
 ignored.
 
 Geometry
@@ -79,7 +79,7 @@ Only frames whose condition is in ``conditions`` are used.
 
 Preparing
 ---------
-Every split is turned once into the shared prepared cache (:mod:`fusion_depth.data.prepared`)
+Every split is turned once into the shared prepared cache (:mod:`fusion_depth.data.cache`)
 under ``<cache_root>/carla/<hash>/``, at ``height x width``: the image resized bilinearly (area
 averaging when shrinking), the depth map sampled at the nearest source pixel (exact rendered
 depths, never a blend across an edge), and the radar projected with the intrinsics scaled to the
@@ -109,6 +109,7 @@ import numpy as np
 
 from fusion_depth.data import CONDITIONS, SPLITS
 from fusion_depth.data.base import FrameList, PreparedDataset, check_conditions
+from fusion_depth.data.cache import FRAME_ERRORS, OnError, PreparedFrame, check_on_error, not_a_file
 from fusion_depth.data.depth_io import DataFileError, open_image, png_bit_depth, read_rgb
 from fusion_depth.data.folders import (
     check_max_range,
@@ -118,13 +119,6 @@ from fusion_depth.data.folders import (
     require_dir,
     resize_depth_nearest,
     resize_rgb,
-)
-from fusion_depth.data.prepared import (
-    FRAME_ERRORS,
-    OnError,
-    PreparedFrame,
-    check_on_error,
-    not_a_file,
 )
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
 

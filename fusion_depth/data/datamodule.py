@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from fusion_depth.data import SPLITS
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.errors import ConfigError
+from fusion_depth.utils.schema import NON_NEGATIVE_INT, POSITIVE_INT, Rule, Schema, is_int, one_of
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +144,7 @@ class DepthDataModule(L.LightningDataModule):
     """Builds split datasets from ``reader(split=...)``, a partial from the dataset config.
 
     Every reader returns samples ``{"image", "sparse", "depth", "condition"}`` (optionally
-    ``"frame_box"``, see :func:`fusion_depth.metrics.crop_mask`, and, from a radar dataset,
+    ``"frame_box"``, see :func:`fusion_depth.metrics.depth.crop_mask`, and, from a radar dataset,
     ``"radar_points"`` (P, K), which batch to (B, P, K): P is fixed per dataset config), so the
     model never knows which dataset it trains on; the datamodule adds ``"index"``. Every sample
     of a split has the same keys, as the default collate needs. Loaders carry the encoded form
@@ -248,7 +249,7 @@ def check_batches(
     Raises:
         ConfigError: one line naming the split, its size and the batch size (or the limit).
     """
-    # trainer.max_epochs=0 is refused with the other config values (config.check_values).
+    # trainer.max_epochs=0 is refused with the other config values (fusion_depth.config.validation).
     if trainer.get("max_steps") == 0:
         raise ConfigError("trainer.max_steps=0: leaves nothing to train; expected at least 1")
     stages = (
@@ -290,14 +291,14 @@ def check_scorable(
 ) -> None:
     """Refuse, before any training, a validation or test split of which no frame that the stage
     sees has a pixel the metrics can score: ground truth in ``(protocol.min_depth, largest
-    cap)`` inside ``protocol.crop`` (:func:`fusion_depth.metrics.scored_mask`). Such a split
+    cap)`` inside ``protocol.crop`` (:func:`fusion_depth.metrics.depth.scored_mask`). Such a split
     would otherwise end the first validation with "DepthMetrics has not scored any image", e.g.
     a KITTI frame whose lidar rows lie outside the bottom-centre crop of a small
     ``dataset.height``. Frames are read in the stage's order until one can be scored, so a good
     split costs one frame.
 
     Args:
-        protocol: an :class:`~fusion_depth.protocol.EvalProtocol` (``min_depth``,
+        protocol: an :class:`~fusion_depth.experiment.protocol.EvalProtocol` (``min_depth``,
             ``max_depth`` caps, ``crop``).
         trainer: the trainer config (its ``limit_{stage}_batches``).
         dataset: the dataset's name, for the message.
@@ -307,7 +308,7 @@ def check_scorable(
         ConfigError: naming the split, the frames checked, the sample size and the crop, and
             what to change.
     """
-    from fusion_depth.metrics import scored_mask
+    from fusion_depth.metrics.depth import scored_mask
 
     cap = max(protocol.max_depth)
     for stage in stages:
@@ -336,3 +337,18 @@ def check_scorable(
                 "bottom centre). Raise dataset.height/dataset.width, widen eval.min_depth/"
                 "eval.max_depth or eval.crop, or check that split's ground truth"
             )
+
+
+# The ``data`` block's values (:class:`DepthDataModule`'s arguments) and the run's seed, which
+# it takes too (fusion_depth.utils.schema).
+CONFIG_SCHEMA: Schema = {
+    "seed": Rule(is_int, "an integer"),
+    "data.batch_size": POSITIVE_INT,
+    "data.eval_batch_size": POSITIVE_INT.or_null("data.batch_size"),
+    "data.num_workers": Rule(
+        lambda v: v == "auto" or NON_NEGATIVE_INT.ok(v), "auto or an integer ≥ 0"
+    ),
+    "data.pin_memory": one_of(None, True, False),
+    "data.persistent_workers": one_of(None, True, False),
+    "data.test_split": one_of(*SPLITS),
+}

@@ -43,7 +43,7 @@ original frame lies in it, so ``eval.crop=garg|eigen`` takes its fractions of th
 frame exactly as the KITTI scripts do. Every frame is condition ``day``.
 
 All of it happens once, in the prepared cache ``<cache_root>/kitti/<hash>/`` (see
-:mod:`fusion_depth.data.prepared`; ``python -m fusion_depth.prepare dataset=kitti ...``). Every
+:mod:`fusion_depth.data.cache`; ``python -m fusion_depth.prepare dataset=kitti ...``). Every
 split is prepared on first use, before any training, so a missing or corrupt file anywhere
 fails at once, naming the file: every frame's files are checked before the first is prepared,
 and a missing one or a directory where a frame's PNG should be is a FileNotFoundError listing a
@@ -68,9 +68,9 @@ from pathlib import Path
 import numpy as np
 
 from fusion_depth.data.base import FrameList, PreparedDataset, check_size
+from fusion_depth.data.cache import OnError, PreparedFrame, not_a_file
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
-from fusion_depth.data.prepared import OnError, PreparedFrame, not_a_file
 
 SUBSETS: tuple[str, ...] = ("train", "val")  # what KITTI publishes ground truth for
 CAMERAS: dict[str, str] = {"l": "image_02", "r": "image_03"}

@@ -74,7 +74,7 @@ if it mentions night (night wins over rain), else ``rain`` if it mentions rain, 
 Preparing
 ---------
 The first split requested prepares all three into the shared cache
-(:mod:`fusion_depth.data.prepared`) under ``<cache_root>/nuscenes/<hash>/``, so a bad file
+(:mod:`fusion_depth.data.cache`) under ``<cache_root>/nuscenes/<hash>/``, so a bad file
 anywhere fails before training. The hash covers every setting above plus the tables' names,
 sizes and modification times; val/test do not depend on ``fill``, so changing it re-prepares
 only the train split. Every file a frame needs is checked before the first frame is written;
@@ -100,9 +100,7 @@ from PIL import Image
 
 from fusion_depth.data import SPLITS
 from fusion_depth.data.base import PreparedDataset, check_conditions
-from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
-from fusion_depth.data.filling import FILL_METHODS, fill_depth
-from fusion_depth.data.prepared import (
+from fusion_depth.data.cache import (
     OnError,
     PreparedFrame,
     SplitJob,
@@ -110,6 +108,8 @@ from fusion_depth.data.prepared import (
     is_prepared,
     prepare_splits,
 )
+from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
+from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
 
 FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused

@@ -33,13 +33,13 @@ where a frame's image or depth map should be is an IsADirectoryError (FileNotFou
 names the path and what was expected. These are found while listing the folder, so for training
 (``on_error="raise"``) the first one fails before anything is prepared; ``python -m
 fusion_depth.prepare`` (``on_error="skip"``) counts such a frame as skipped, like one whose file
-is corrupt, and prepares the others (:mod:`fusion_depth.data.prepared`). Depth maps without an
+is corrupt, and prepares the others (:mod:`fusion_depth.data.cache`). Depth maps without an
 image are ignored with a warning.
 
 Preparing
 ---------
 As :mod:`fusion_depth.data.carla`: every split is prepared once into the shared cache
-(:mod:`fusion_depth.data.prepared`) under ``<cache_root>/topview/<hash>/`` at ``height x width``,
+(:mod:`fusion_depth.data.cache`) under ``<cache_root>/topview/<hash>/`` at ``height x width``,
 the image resized bilinearly (area averaging when shrinking), the depth sampled at the nearest
 source pixel so every value is one Unreal rendered. The hash covers the settings and every file's
 name, size and modification time. The first split built prepares all three, so a bad file
@@ -57,6 +57,7 @@ import numpy as np
 
 from fusion_depth.data import CONDITIONS, SPLITS
 from fusion_depth.data.base import FrameList, PreparedDataset
+from fusion_depth.data.cache import OnError, PreparedFrame, check_on_error, not_a_file
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.folders import (
     check_max_range,
@@ -67,7 +68,6 @@ from fusion_depth.data.folders import (
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.prepared import OnError, PreparedFrame, check_on_error, not_a_file
 
 FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")

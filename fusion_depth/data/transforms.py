@@ -8,6 +8,8 @@ import kornia.augmentation as K
 import torch
 from torch import nn
 
+from fusion_depth.utils.schema import PROBABILITY, Rule, Schema, is_number
+
 
 class TrainAugmentation(nn.Module):
     """The paper's online augmentation: horizontal flip, brightness and contrast jitter.
@@ -52,3 +54,19 @@ class TrainAugmentation(nn.Module):
             "sparse": sparse.contiguous(),
             "depth": depth.contiguous(),
         }
+
+
+_FACTOR_RANGE = Rule(
+    lambda v: (
+        isinstance(v, list) and len(v) == 2 and all(is_number(x) for x in v) and 0 < v[0] <= v[1]
+    ),
+    "[low, high] factors with 0 < low ≤ high",
+)
+# The ``augment`` block's values (:class:`TrainAugmentation`'s arguments;
+# fusion_depth.utils.schema).
+CONFIG_SCHEMA: Schema = {
+    "augment.flip_p": PROBABILITY,
+    "augment.color_p": PROBABILITY,
+    "augment.brightness": _FACTOR_RANGE,
+    "augment.contrast": _FACTOR_RANGE,
+}

@@ -7,6 +7,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from fusion_depth.utils.schema import Schema, one_of
+
 FUSION_MODES = ("rgb", "concat", "add")
 # How tables and plots name each mode (the paper's Table 1: RGB, RGB-Fusion, and addition).
 FUSION_LABELS: dict[str, str] = {"rgb": "RGB", "concat": "RGB-Fusion", "add": "RGB-Add"}
@@ -87,3 +89,12 @@ class InputFusion(nn.Module):
         if self.mode == "add":
             return (image + s - self.mean) / self.std
         return self.mix(torch.cat([(image - self.mean) / self.std, s], dim=1))
+
+
+# The values of the keys this module reads (fusion_depth.utils.schema); the fusion mode comes
+# first, so a mode no model takes is named alone.
+CONFIG_SCHEMA: Schema = {
+    "fusion.mode": one_of(*FUSION_MODES),
+    "model.net.fusion": one_of(*FUSION_MODES),
+    "model.net.sparse_encoding": one_of(*SPARSE_ENCODINGS),
+}

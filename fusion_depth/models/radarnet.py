@@ -343,8 +343,8 @@ class RadarNet(DepthModel):
 
     Raises:
         ValueError: a backbone, fusion mode, stage or setting the model does not define.
-        fusion_depth.checkpoint.CheckpointError: ``association_weights`` is not a radarnet
-            checkpoint with an association network.
+        fusion_depth.utils.checkpoint_file.CheckpointError: ``association_weights`` is not a
+            radarnet checkpoint with an association network.
     """
 
     output_space = "depth"
@@ -419,13 +419,13 @@ class RadarNet(DepthModel):
 
     def load_association(self, path: str | Path) -> None:
         """Load the association network of a ``model=radarnet`` checkpoint (weights only,
-        through :func:`fusion_depth.checkpoint.read_checkpoint`).
+        through :func:`fusion_depth.utils.checkpoint_file.read_checkpoint`).
 
         Raises:
             CheckpointError: the file is not a readable training checkpoint, or not one of
                 ``model=radarnet`` with an association network of this shape.
         """
-        from fusion_depth.checkpoint import CheckpointError, read_checkpoint
+        from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
 
         key = f"model.net.association_weights={path}"
         try:

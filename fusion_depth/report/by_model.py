@@ -25,7 +25,7 @@ from fusion_depth.report.groups import (
     identity_cells,
     identity_columns,
 )
-from fusion_depth.tables import format_table
+from fusion_depth.utils.tables import format_table
 
 BY_MODEL = "model"  # the --by choice
 SECTION = "condition"  # the breakdown whose columns --by model shows

@@ -19,6 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion_depth.experiment.record import RunRecord
+from fusion_depth.experiment.run_folder import PER_IMAGE_FILE
+from fusion_depth.metrics.bootstrap import BootstrapResult, paired_bootstrap
 from fusion_depth.report.groups import (
     ALL,
     identity_cells,
@@ -28,10 +31,7 @@ from fusion_depth.report.groups import (
     put_first,
     tex_escape,
 )
-from fusion_depth.run_record import RunRecord
-from fusion_depth.runs import PER_IMAGE_FILE
-from fusion_depth.stats import BootstrapResult, paired_bootstrap
-from fusion_depth.tables import format_table
+from fusion_depth.utils.tables import format_table
 
 # --- Paired comparisons: --compare KEY=VALUE[,KEY=VALUE...] -----------------------------------
 
@@ -281,14 +281,51 @@ def compare_to_baseline(
     loss.
 
     Each comparison holds the mean per-image difference (other − baseline) and its bootstrap
-    interval (:func:`fusion_depth.stats.paired_bootstrap`), over all shared images and, with
-    ``by="condition"``, over each condition's images (columns in ``first`` first).
+    interval (:func:`fusion_depth.metrics.bootstrap.paired_bootstrap`), over all shared images and,
+    with ``by="condition"``, over each condition's images (columns in ``first`` first).
 
     Raises:
         ValueError: a key that cannot be compared, no group with the baseline's values
             (naming the values there are), no group to compare, or runs that cannot be paired.
     """
     spec = compare_spec(baseline)
+    _check_compare_request(groups, baseline, spec, by)
+    baselines = [g for g in groups if _is_baseline(g, baseline)]
+    if not baselines:
+        have = "; ".join(sorted({",".join(f"{k}={g[k]}" for k in baseline) for g in groups}))
+        raise ValueError(
+            f"--compare {spec}: no runs with {' and '.join(spec.split(','))} (have: {have})"
+        )
+    varying = _varying_keys(baseline)
+    identity = [k for k in _GROUP_KEYS if k not in varying]
+    load = _cached_loader()
+    keys = tuple(baseline)
+    comparisons = []
+    for g in groups:
+        if _is_baseline(g, baseline):
+            continue
+        for base in _closest_baselines(g, baselines, identity):
+            diff, conditions, seeds = paired_differences(base, g, metric, load)
+            columns = [ALL]
+            if by == "condition":
+                columns = _condition_columns([*base["runs"], *g["runs"]], conditions, first)
+            results = _bootstrap_columns(diff, conditions, columns, resamples, level)
+            comparisons.append(
+                Comparison(g, base, keys, metric, seeds, diff.shape[1], level, results)
+            )
+    if not comparisons:
+        raise ValueError(
+            f"--compare {spec}: no other group differs from it only in "
+            f"{' and '.join(k for k in _GROUP_KEYS if k in varying)} "
+            f"(groups: {', '.join(_group_name(g) for g in groups)})"
+        )
+    return comparisons
+
+
+def _check_compare_request(
+    groups: Sequence[dict], baseline: Mapping[str, str], spec: str, by: str | None
+) -> None:
+    """Refuse a ``--compare`` with no or unknown keys, a bad ``--by``, or a value no group has."""
     if not baseline:
         raise ValueError("--compare: expected at least one KEY=VALUE, e.g. fusion=rgb")
     for key in baseline:
@@ -303,60 +340,50 @@ def compare_to_baseline(
             have = ", ".join(sorted({str(g[key]) for g in groups}))
             raise ValueError(f"--compare {spec}: no runs with {key}={value} (have: {have})")
 
-    def is_baseline(g: dict) -> bool:
-        return all(g[k] == v for k, v in baseline.items())
 
-    baselines = [g for g in groups if is_baseline(g)]
-    if not baselines:
-        have = "; ".join(sorted({",".join(f"{k}={g[k]}" for k in baseline) for g in groups}))
-        raise ValueError(
-            f"--compare {spec}: no runs with {' and '.join(spec.split(','))} (have: {have})"
-        )
-    varying = _varying_keys(baseline)
-    identity = [k for k in _GROUP_KEYS if k not in varying]
+def _is_baseline(group: dict, baseline: Mapping[str, str]) -> bool:
+    """Whether ``group`` has every ``key: value`` of ``baseline``."""
+    return all(group[k] == v for k, v in baseline.items())
 
-    def same_but_keys(a: dict, b: dict) -> bool:
-        return all(a[k] == b[k] for k in identity)
 
+def _closest_baselines(
+    group: dict, baselines: Sequence[dict], identity: Sequence[str]
+) -> list[dict]:
+    """Baselines equal to ``group`` in ``identity`` sharing most of its backbone and loss."""
+    matching = [b for b in baselines if all(b[k] == group[k] for k in identity)]
+    # Of the baselines a group may be paired with, those sharing most of what a model
+    # brings (its encoder and loss): a model's own loss variant pairs with the same loss.
+    closest = max((_shared_parts(b, group) for b in matching), default=0)
+    return [b for b in matching if _shared_parts(b, group) == closest]
+
+
+def _cached_loader() -> Callable[[RunRecord, str], PerImage]:
+    """:func:`load_per_image`, reading each run's metric once (a baseline pairs many groups)."""
     cache: dict[tuple[Path | None, str], PerImage] = {}
 
-    def load(run: RunRecord, m: str) -> PerImage:
-        if (run.path, m) not in cache:
-            cache[run.path, m] = load_per_image(run, m)
-        return cache[run.path, m]
+    def load(run: RunRecord, metric: str) -> PerImage:
+        if (run.path, metric) not in cache:
+            cache[run.path, metric] = load_per_image(run, metric)
+        return cache[run.path, metric]
 
-    keys = tuple(baseline)
-    comparisons = []
-    for g in groups:
-        if is_baseline(g):
-            continue
-        matching = [b for b in baselines if same_but_keys(b, g)]
-        # Of the baselines a group may be paired with, those sharing most of what a model
-        # brings (its encoder and loss): a model's own loss variant pairs with the same loss.
-        closest = max((_shared_parts(b, g) for b in matching), default=0)
-        for base in (b for b in matching if _shared_parts(b, g) == closest):
-            diff, conditions, seeds = paired_differences(base, g, metric, load)
-            columns = [ALL]
-            if by == "condition":
-                columns = _condition_columns([*base["runs"], *g["runs"]], conditions, first)
-            results: dict[str, BootstrapResult | None] = {}
-            for column in columns:
-                d = diff if column == ALL else diff[:, conditions == column]
-                results[column] = (
-                    paired_bootstrap(d, resamples=resamples, level=level)
-                    if d.shape[1] >= 2
-                    else None
-                )
-            comparisons.append(
-                Comparison(g, base, keys, metric, seeds, diff.shape[1], level, results)
-            )
-    if not comparisons:
-        raise ValueError(
-            f"--compare {spec}: no other group differs from it only in "
-            f"{' and '.join(k for k in _GROUP_KEYS if k in varying)} "
-            f"(groups: {', '.join(_group_name(g) for g in groups)})"
+    return load
+
+
+def _bootstrap_columns(
+    diff: np.ndarray,
+    conditions: np.ndarray,
+    columns: Sequence[str],
+    resamples: int,
+    level: float,
+) -> dict[str, BootstrapResult | None]:
+    """Each column's paired bootstrap of ``diff`` (None where it has fewer than 2 images)."""
+    results: dict[str, BootstrapResult | None] = {}
+    for column in columns:
+        d = diff if column == ALL else diff[:, conditions == column]
+        results[column] = (
+            paired_bootstrap(d, resamples=resamples, level=level) if d.shape[1] >= 2 else None
         )
-    return comparisons
+    return results
 
 
 def _group_name(group: dict) -> str:

@@ -36,7 +36,7 @@ def _checkpoint(folder: Path) -> Path:
     saves one (``tests/conftest.py``'s helper)."""
     from omegaconf import OmegaConf
 
-    from fusion_depth.bench import compose_train_config
+    from fusion_depth.bench.cli import compose_train_config
 
     sys.path.insert(0, str(REPO / "tests"))
     from conftest import save_untrained_checkpoint
@@ -50,9 +50,9 @@ def _checkpoint(folder: Path) -> Path:
 def _export_and_run(ckpt: Path, folder: Path, precision: str) -> dict[str, Any]:
     import torch
 
-    from fusion_depth.checkpoint import load_model
-    from fusion_depth.exporting import export_model, load_exported, sidecar_path
-    from fusion_depth.inference import predict_depth
+    from fusion_depth.experiment.checkpoints import load_model
+    from fusion_depth.export import export_model, load_exported, sidecar_path
+    from fusion_depth.models.inference import predict_depth
 
     loaded = load_model(ckpt)
     start = time.perf_counter()
@@ -102,7 +102,7 @@ def _evaluate(model_file: str, folder: Path) -> dict[str, Any]:
 
 
 def _int8_is_refused() -> str:
-    from fusion_depth.exporting import check_export_options
+    from fusion_depth.export import check_export_options
 
     try:
         check_export_options("tensorrt", None, None, None, True, "auto", "int8")
@@ -113,7 +113,7 @@ def _int8_is_refused() -> str:
 
 
 def _bench(folder: Path, full: bool) -> dict[str, Any]:
-    from fusion_depth import bench
+    from fusion_depth.bench import cli as bench
 
     # The smoke run skips torch.compile (minutes on a GPU); the full one times the defaults.
     size = ["dataset.height=384", "dataset.width=1248"] if full else ["experiment=smoke"]
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full", action="store_true", help="also bench at 384×1248")
     args = parser.parse_args(argv)
     os.chdir(REPO)
-    from fusion_depth.exporting.runtime import require_tensorrt
+    from fusion_depth.export.runtime import require_tensorrt
 
     try:
         require_tensorrt("tests/gpu/check_tensorrt.py")

@@ -49,8 +49,8 @@ def save_untrained_checkpoint(
     evaluate/predict need no training run. ``backbone=resnet18`` is faster; an untrained one
     predicts max_depth everywhere, so ``spread=True`` scales its output layer to depths around
     10 m that vary across the image."""
-    from fusion_depth.checkpoint import plain_config
     from fusion_depth.models import DepthNet
+    from fusion_depth.utils.checkpoint_file import plain_config
 
     torch.manual_seed(seed)
     kwargs = {

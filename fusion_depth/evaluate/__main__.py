@@ -1,0 +1,5 @@
+"""``python -m fusion_depth.evaluate``."""
+
+from fusion_depth.evaluate.cli import main
+
+main()

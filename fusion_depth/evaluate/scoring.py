@@ -1,0 +1,210 @@
+"""Scoring a checkpoint, a folder of training runs or an exported model file on a dataset split
+by the ``eval`` protocol, as ``python -m fusion_depth.evaluate`` does (:mod:`.cli`).
+
+The model is rebuilt from the checkpoint (weights-only loading, see
+:mod:`fusion_depth.experiment.checkpoints`) or loaded by its sidecar and run by its engine
+(:mod:`fusion_depth.export.runtime`), and scored; ``metrics.json`` and ``per_image.csv`` are
+written in the same format as a training run's, so ``report`` reads both. The record's
+``run.engine`` says what ran the network (``torch`` for a checkpoint, e.g. ``openvino-int8``
+for an exported file), so ``report --compare engine=torch`` pairs an exported model with its
+checkpoint on the same images.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.data import SPLITS
+from fusion_depth.data.base import check_dataset
+from fusion_depth.data.datamodule import DepthDataModule, check_scorable
+from fusion_depth.experiment.callbacks import ProgressLog
+from fusion_depth.experiment.checkpoints import LoadedModel, dataset_config, load_model, make_reader
+from fusion_depth.experiment.loggers import closing
+from fusion_depth.experiment.module import DepthModule
+from fusion_depth.experiment.protocol import EvalProtocol
+from fusion_depth.experiment.record import (
+    METRICS_FILE,
+    RunRecord,
+    publish_results,
+    read_run_record,
+    rescored_identity,
+)
+from fusion_depth.experiment.run_folder import RESOLVED_CONFIG_FILE
+from fusion_depth.experiment.speed import PRECISIONS, accelerator_device, resolve_precision
+from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
+from fusion_depth.utils.checkpoint_file import CheckpointError
+from fusion_depth.utils.files import write_text_atomic
+
+log = logging.getLogger(__name__)
+
+
+def evaluation_precision(requested: str, loaded: LoadedModel, accelerator: str) -> str:
+    """``checkpoint`` (evaluate's default): the precision the run trained and was tested in,
+    so a re-score reproduces its test stage; ``auto`` where it recorded none or where that
+    precision needs a GPU this machine lacks. Any other value as for training."""
+    device = accelerator_device(accelerator)
+    if requested == "checkpoint":
+        trained = (loaded.config.get("trainer") or {}).get("precision")
+        usable = trained in PRECISIONS and not (trained == "16-mixed" and device.type != "cuda")
+        requested = trained if usable else "auto"
+    return resolve_precision(requested, device)
+
+
+def _guards(cfg: DictConfig) -> dict[str, str | None]:
+    """The optional ``fusion=``/``backbone=`` guards of ``cfg``."""
+    return {
+        "fusion": cfg.fusion.mode if cfg.get("fusion") else None,
+        "backbone": cfg.backbone.name if cfg.get("backbone") else None,
+    }
+
+
+def evaluate_checkpoint(
+    cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path
+) -> RunRecord:
+    """Score one checkpoint; writes ``metrics.json`` and ``per_image.csv`` into ``output_dir``
+    and returns the record written."""
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    return evaluate_loaded(cfg, load_model(ckpt_path, **_guards(cfg)), output_dir)
+
+
+def evaluate_model_file(
+    cfg: DictConfig, model_file: str | Path, output_dir: str | Path
+) -> RunRecord:
+    """Score an exported model file (``model_file=``), run by the engine its sidecar names;
+    writes ``metrics.json`` and ``per_image.csv`` into ``output_dir`` and returns the record.
+
+    Raises:
+        SidecarError: the sidecar is missing or has a bad key (naming the file and key).
+        CheckpointError: the sidecar records no dataset and no ``dataset=`` was given.
+    """
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    return evaluate_loaded(cfg, load_exported(model_file, **_guards(cfg)), output_dir)
+
+
+def evaluate_loaded(cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path) -> RunRecord:
+    """Score ``loaded`` (a checkpoint's network, or an exported model file's
+    :class:`~fusion_depth.export.runtime.ExportedModel`, which runs on the CPU in the
+    precision its engine was given, so the Trainer's is fp32); writes ``metrics.json`` and
+    ``per_image.csv`` into ``output_dir`` and returns the record written."""
+    exported = isinstance(loaded.net, ExportedModel)
+    # Resolved here: once detached from the root config its ${...} references could not be.
+    chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
+    block = dataset_config(loaded, chosen)
+    # A block from the checkpoint (or sidecar) is built from the package's table of readers.
+    reader = make_reader(block, None if chosen is not None else loaded.path, loaded.key)
+    dataset = OmegaConf.create(block)
+    check_dataset(dataset, loaded.fusion)
+    L.seed_everything(cfg.seed, workers=True)
+    output_dir = Path(output_dir)
+    protocol = EvalProtocol.from_config(cfg.eval, dataset.min_depth, dataset.max_depth)
+    module = DepthModule(
+        net=loaded.net,
+        conditions=list(dataset.get("conditions") or ()),
+        channels_last=cfg.model.channels_last and not exported,
+        compile=cfg.model.compile and not exported,
+        compile_mode=cfg.model.compile_mode,
+        protocol=protocol,
+    )
+    datamodule = DepthDataModule(
+        reader=reader,
+        batch_size=cfg.data.eval_batch_size,
+        num_workers=cfg.data.num_workers,
+        test_split=cfg.split,
+    )
+    logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
+    progress = cfg.trainer.enable_progress_bar
+    # An exported file runs on the CPU, in its engine's precision.
+    placement = {"accelerator": "cpu", "devices": 1} if exported else {}
+    precision = (
+        "32-true"
+        if exported
+        else evaluation_precision(cfg.trainer.precision, loaded, cfg.trainer.accelerator)
+    )
+    trainer = instantiate(
+        cfg.trainer,
+        default_root_dir=str(output_dir),
+        callbacks=[ProgressLog()],
+        logger=logger,
+        precision=precision,
+        enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
+        enable_model_summary=False,
+        **placement,
+    )
+    # The fusion/backbone guards only name a choice; their other keys refer to a training config.
+    settings = OmegaConf.masked_copy(cfg, [k for k in cfg if k not in ("fusion", "backbone")])
+    resolved = {
+        "evaluate": {
+            **OmegaConf.to_container(settings, resolve=True),
+            "fusion": loaded.fusion,
+            "backbone": loaded.backbone,
+        },
+        "dataset": OmegaConf.to_container(dataset, resolve=True),
+        "checkpoint_config": loaded.config,
+    }
+    write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
+    # Before the work: a malformed record fails first.
+    identity = rescored_identity(loaded.run, loaded.config, dataset, engine_identity(loaded.net))
+    check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
+    with closing(logger):
+        if logger:
+            logger.log_hyperparams(resolved)
+        result = module.run_test(trainer, datamodule, verbose=False)
+        source = {"checkpoint": str(loaded.path.resolve())}
+        if exported:  # the checkpoint it was exported from, as its sidecar records it
+            source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
+        record = RunRecord.from_result(identity, result, cfg.split, **source, seed=cfg.seed)
+        title = (
+            f"{cfg.split} metrics of {loaded.path} ({result.overall['num_images']} images, "
+            f"{dataset.name}{f', {identity.engine}' if exported else ''})"
+        )
+        publish_results(output_dir, record, result, trainer.loggers, title)
+    return record
+
+
+def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
+    """(run folder relative to ``folder``, best checkpoint) of every training run below it."""
+    found = []
+    for metrics in sorted(folder.rglob(METRICS_FILE)):
+        best = read_run_record(metrics).best_checkpoint
+        if best is not None and not isinstance(best, str):
+            raise CheckpointError(f"{metrics}: best_checkpoint={best!r} is not a path")
+        if best and Path(best).is_file():
+            found.append((metrics.parent.relative_to(folder), Path(best)))
+        elif best:
+            log.warning("skipping %s: its best checkpoint %s is gone", metrics.parent, best)
+    if not found:
+        raise FileNotFoundError(
+            f"ckpt_path={folder}: no training run with a best checkpoint below it (looked for "
+            f"{METRICS_FILE} files naming one)"
+        )
+    return found
+
+
+def evaluate(cfg: DictConfig) -> list[dict]:
+    """Score ``cfg.ckpt_path`` (one checkpoint, or every run below a folder) or
+    ``cfg.model_file`` (an exported model file). Returns the contents of each ``metrics.json``
+    written (:meth:`RunRecord.to_json`)."""
+    return [record.to_json() for record in evaluate_records(cfg)]
+
+
+def evaluate_records(cfg: DictConfig) -> list[RunRecord]:
+    """:func:`evaluate`, returning the records written."""
+    check_source(cfg.get("ckpt_path"), cfg.get("model_file"))
+    output_dir = Path(cfg.paths.output_dir)
+    if cfg.get("model_file") is not None:
+        return [evaluate_model_file(cfg, Path(cfg.model_file).expanduser(), output_dir)]
+    path = Path(cfg.ckpt_path).expanduser()
+    if path.is_dir():
+        return [
+            evaluate_checkpoint(cfg, ckpt, output_dir / run) for run, ckpt in find_checkpoints(path)
+        ]
+    # A missing file is reported by load_model, naming ckpt_path.
+    return [evaluate_checkpoint(cfg, path, output_dir)]

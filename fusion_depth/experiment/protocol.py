@@ -1,0 +1,271 @@
+"""The evaluation protocol and what it measures, shared by ``train`` (test stage) and
+``evaluate``: the ``eval`` config group (:class:`EvalProtocol`: depth caps, crop, averaging,
+flip TTA, upsampling, distance bins), a test stage's :class:`EvaluationResult` (metric tables,
+per-image records, latency), ``per_image.csv`` and the printed and W&B tables. The run record
+that holds the results, ``metrics.json``, is :mod:`fusion_depth.experiment.record`'s.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from fusion_depth.experiment.speed import cpu_model
+from fusion_depth.metrics.depth import (
+    AVERAGING,
+    EVAL_CROPS,
+    METRIC_KEYS,
+    METRIC_LABELS,
+    TABLE_METRICS,
+    DepthMetrics,
+)
+from fusion_depth.models.inference import UPSAMPLING
+from fusion_depth.utils.files import write_text_atomic
+from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
+from fusion_depth.utils.tables import format_table
+
+# (metric key, column header) of the printed tables.
+TABLE_COLUMNS: tuple[tuple[str, str], ...] = tuple((k, METRIC_LABELS[k]) for k in TABLE_METRICS)
+
+
+@dataclass(frozen=True)
+class EvalProtocol:
+    """How predictions are scored (the ``eval`` config group; see ``conf/eval/default.yaml``)."""
+
+    min_depth: float
+    max_depth: tuple[float, ...]
+    crop: str = "none"
+    averaging: str = "per_image"
+    flip_tta: bool = False
+    upsample: str = "bilinear"
+    bin_width: float | None = 10.0
+
+    @classmethod
+    def from_config(
+        cls, cfg: Mapping[str, Any] | None, min_depth: float, max_depth: float
+    ) -> EvalProtocol:
+        """The protocol of an ``eval`` block; null depth limits take the model's range."""
+        cfg = dict(cfg or {})
+        caps = cfg.get("max_depth")
+        caps = [max_depth] if caps is None else caps
+        caps = [caps] if isinstance(caps, int | float) else list(caps)
+        bin_width = cfg.get("bin_width", 10.0)
+        if bin_width is not None and not bin_width > 0:
+            raise ValueError(f"eval.bin_width={bin_width}: expected a positive number or null")
+        if cfg.get("upsample", "bilinear") not in UPSAMPLING:
+            raise ValueError(
+                f"eval.upsample={cfg['upsample']!r}: expected one of {list(UPSAMPLING)}"
+            )
+        protocol = cls(
+            min_depth=float(cfg["min_depth"] if cfg.get("min_depth") is not None else min_depth),
+            max_depth=tuple(sorted(float(c) for c in caps)),
+            crop=cfg.get("crop", "none"),
+            averaging=cfg.get("averaging", "per_image"),
+            flip_tta=bool(cfg.get("flip_tta", False)),
+            upsample=cfg.get("upsample", "bilinear"),
+            bin_width=None if bin_width is None else float(bin_width),
+        )
+        protocol.metrics()  # validates the depth range, crop and averaging names
+        return protocol
+
+    @property
+    def distance_bins(self) -> list[float] | None:
+        """Bin edges 0, w, 2w, ... up to the headline cap (the last bin may be narrower)."""
+        if self.bin_width is None:
+            return None
+        cap = self.max_depth[-1]
+        edges = [float(x) for x in np.arange(0.0, cap, self.bin_width)]
+        return [*edges, cap]
+
+    def metrics(self, conditions: Sequence[str] | None = None) -> DepthMetrics:
+        """A fresh DepthMetrics scoring by this protocol."""
+        return DepthMetrics(
+            min_depth=self.min_depth,
+            max_depth=list(self.max_depth),
+            conditions=list(conditions) if conditions else None,
+            averaging=self.averaging,
+            crop=self.crop,
+            distance_bins=self.distance_bins,
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["max_depth"] = list(self.max_depth)
+        out["distance_bins"] = self.distance_bins
+        return out
+
+
+def device_name(device: torch.device | str) -> str:
+    """A readable name of the device inference ran on (GPU model or CPU model and cores)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(device)}"
+    return f"cpu: {cpu_model()} ({torch.get_num_threads()} threads)"
+
+
+def latency_summary(
+    per_frame_s: Sequence[float], device: torch.device | str, batch_size: int, size: tuple
+) -> dict[str, Any]:
+    """Mean and p95 of the per-frame latency of each batch; the first batch (warm-up: lazy
+    initialisation, cudnn autotuning) is left out when there are others."""
+    times = list(per_frame_s[1:] if len(per_frame_s) > 1 else per_frame_s)
+    return {
+        "mean_s": float(np.mean(times)) if times else None,
+        "p95_s": float(np.percentile(times, 95)) if times else None,
+        "num_batches": len(times),
+        "batch_size": batch_size,
+        "input_size": list(size),
+        "device": device_name(device),
+    }
+
+
+@dataclass(frozen=True)
+class EvaluationResult:
+    """What one test stage measured (:meth:`fusion_depth.experiment.module.DepthModule.run_test`).
+
+    Each metrics dict holds every key of :data:`~fusion_depth.metrics.depth.METRIC_KEYS` (RMSE and
+    MAE in metres) plus ``num_images`` and ``num_pixels``; groups without a scored image are
+    left out (see :meth:`fusion_depth.metrics.depth.DepthMetrics.results`).
+    """
+
+    protocol: EvalProtocol  # how the predictions were scored
+    overall: dict[str, float]  # the headline: every scored image, within the largest cap
+    by_condition: dict[str, dict[str, float]]  # per weather/light condition
+    by_distance: dict[str, dict[str, float]]  # per distance bin, "0-10" (m), ...
+    by_cap: dict[str, dict[str, float]]  # per depth cap, "80" (m), ...
+    per_image: list[dict[str, Any]]  # one row per scored image, by index (per_image.csv's)
+    latency: dict[str, Any]  # per-frame inference latency (:func:`latency_summary`)
+
+    @classmethod
+    def from_metrics(
+        cls, protocol: EvalProtocol, metrics: DepthMetrics, latency: dict[str, Any]
+    ) -> EvaluationResult:
+        """The result of ``metrics`` (a DepthMetrics that scored the whole split)."""
+        tables = metrics.results()
+        return cls(
+            protocol=protocol,
+            overall=tables["overall"],
+            by_condition=tables["by_condition"],
+            by_distance=tables["by_distance"],
+            by_cap=tables["by_cap"],
+            per_image=metrics.per_image(),
+            latency=latency,
+        )
+
+
+def write_per_image(path: str | os.PathLike, rows: Sequence[Mapping[str, Any]]) -> None:
+    """``per_image.csv``: index, condition, num_pixels and every metric, one row per image."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["index", "condition", "num_pixels", *METRIC_KEYS])
+    for row in rows:
+        writer.writerow(
+            [row["index"], row["condition"], row["num_pixels"]]
+            + [repr(float(row[k])) for k in METRIC_KEYS]
+        )
+    write_text_atomic(path, out.getvalue())
+
+
+def _rows(groups: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
+    return [
+        [
+            name,
+            *(f"{m[k]:.3f}" for k, _ in TABLE_COLUMNS),
+            str(m["num_images"]),
+            str(m["num_pixels"]),
+        ]
+        for name, m in groups.items()
+    ]
+
+
+def results_tables(result: EvaluationResult) -> str:
+    """Markdown tables of a test stage's result: per condition, per distance bin, per cap, and
+    the latency line."""
+
+    header = [name for _, name in TABLE_COLUMNS] + ["Images", "Pixels"]
+    head_cap = f"{result.protocol.max_depth[-1]:g}"
+    parts = [
+        format_table(["Condition", *header], _rows({"all": result.overall, **result.by_condition}))
+    ]
+    if result.by_distance:
+        parts.append(
+            format_table([f"Distance (m, cap {head_cap})", *header], _rows(result.by_distance))
+        )
+    if len(result.by_cap) > 1:
+        parts.append(
+            format_table(
+                ["Cap (m)", *header], _rows({f"< {k}": v for k, v in result.by_cap.items()})
+            )
+        )
+    latency = result.latency or {}
+    if latency.get("mean_s") is not None:
+        parts.append(
+            f"Inference latency per frame ({latency['input_size'][0]}x{latency['input_size'][1]}, "
+            f"batch {latency['batch_size']}, {latency['device']}): mean "
+            f"{latency['mean_s'] * 1000:.1f} ms, p95 {latency['p95_s'] * 1000:.1f} ms"
+        )
+    return "\n\n".join(parts)
+
+
+def wandb_tables(result: EvaluationResult) -> dict[str, tuple[list[str], list[list]]]:
+    """The breakdowns as (columns, rows) for W&B Tables, keyed by their dashboard name."""
+    columns = ["group", *METRIC_KEYS, "num_images", "num_pixels"]
+
+    def table(groups: Mapping[str, Mapping[str, float]]) -> tuple[list[str], list[list]]:
+        rows = [
+            [name, *(g[k] for k in METRIC_KEYS), g["num_images"], g["num_pixels"]]
+            for name, g in groups.items()
+        ]
+        return columns, rows
+
+    tables = {"test/by_condition": table({"all": result.overall, **result.by_condition})}
+    if result.by_distance:
+        tables["test/by_distance"] = table(result.by_distance)
+    if result.by_cap:
+        tables["test/by_cap"] = table(result.by_cap)
+    return tables
+
+
+def log_to_loggers(loggers: Sequence[Any], result: EvaluationResult) -> None:
+    """Send the breakdown tables to every W&B logger (other loggers get the flat metrics from
+    the module's ``log_dict``)."""
+    from lightning.pytorch.loggers import WandbLogger
+
+    for logger in loggers:
+        if isinstance(logger, WandbLogger):
+            for key, (columns, rows) in wandb_tables(result).items():
+                logger.log_table(key=key, columns=columns, data=rows)
+
+
+def config_schema(cfg: DictConfig) -> Schema:
+    """The ``eval`` group's values (:class:`EvalProtocol`'s arguments;
+    fusion_depth.utils.schema). Each depth cap must lie above the minimum depth scored: the
+    protocol's own, or the dataset's."""
+    floor = config_value(cfg, "eval.min_depth")
+    floor = cfg.dataset.min_depth if floor in (None, ABSENT) else floor
+    positive_metres = Rule(lambda v: is_number(v) and v > 0, "a positive number of metres")
+    return {
+        "eval.crop": one_of(*EVAL_CROPS),
+        "eval.averaging": one_of(*AVERAGING),
+        "eval.upsample": one_of(*UPSAMPLING),
+        "eval.flip_tta": BOOLEAN,
+        "eval.bin_width": positive_metres.or_null("no distance breakdown"),
+        "eval.min_depth": positive_metres.or_null("dataset.min_depth"),
+        "eval.max_depth": Rule(
+            lambda v: (
+                v is None
+                or (is_number(v) and v > floor)
+                or (isinstance(v, list) and v and all(is_number(c) and c > floor for c in v))
+            ),
+            f"a cap or a list of caps in metres, each above the minimum depth {floor}, or null "
+            "(dataset.max_depth)",
+        ),
+    }

@@ -1,0 +1,5 @@
+"""``python -m fusion_depth.export``."""
+
+from fusion_depth.export.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""Optimisation: learning-rate schedules, created by name (``scheduler=``)."""

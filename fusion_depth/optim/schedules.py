@@ -1,0 +1,220 @@
+"""Learning-rate schedules: the paper's per-epoch ``StepLR`` (``scheduler=step``), the per-step
+:class:`WarmupCosine` (``scheduler=cosine``), and :func:`create_schedule`, which builds either by
+name (``scheduler=for_densedepth``, so that a dataset's recipe can name its schedule).
+
+A schedule here declares ``interval = "step"`` and takes ``total_steps``, which the module
+passes: the run's optimizer steps (``trainer.estimated_stepping_batches``), so it follows
+``max_epochs``, ``limit_train_batches`` and gradient accumulation without being told.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.optim.lr_scheduler import LambdaLR, LRScheduler, StepLR
+
+from fusion_depth.errors import ConfigError
+from fusion_depth.utils.schema import (
+    POSITIVE,
+    POSITIVE_INT,
+    Rule,
+    check_schema,
+    config_value,
+    is_number,
+)
+
+
+class WarmupCosine(LambdaLR):
+    """Linear warm-up from ~0 to the optimizer's learning rate over the first
+    ``warmup_fraction`` of ``total_steps``, then cosine decay to ``final_lr_ratio`` times it
+    (Goyal et al. 2017 warm-up; Loshchilov & Hutter 2017, SGDR, without restarts).
+
+    Args:
+        optimizer: its ``lr`` is the peak.
+        total_steps: optimizer steps of the whole run (≥ 1).
+        warmup_fraction: share of ``total_steps`` spent warming up, in [0, 1).
+        final_lr_ratio: learning rate at the last step over the peak, in [0, 1].
+
+    Raises:
+        ValueError: an argument out of range, naming it.
+    """
+
+    interval = "step"  # stepped after every optimizer step, not every epoch
+
+    def __init__(
+        self,
+        optimizer: torch.optim.Optimizer,
+        total_steps: int,
+        warmup_fraction: float = 0.05,
+        final_lr_ratio: float = 0.01,
+    ) -> None:
+        if not (isinstance(total_steps, int) and total_steps >= 1):
+            raise ValueError(f"scheduler total_steps={total_steps!r}: expected an integer ≥ 1")
+        if not 0 <= warmup_fraction < 1:
+            raise ValueError(
+                f"scheduler.warmup_fraction={warmup_fraction!r}: expected a share in [0, 1)"
+            )
+        if not 0 <= final_lr_ratio <= 1:
+            raise ValueError(
+                f"scheduler.final_lr_ratio={final_lr_ratio!r}: expected a ratio in [0, 1]"
+            )
+        self.total_steps = total_steps
+        self.warmup_steps = int(round(warmup_fraction * total_steps))
+        self.final_lr_ratio = final_lr_ratio
+        super().__init__(optimizer, self.factor)
+
+    def factor(self, step: int) -> float:
+        """The learning rate after ``step`` optimizer steps, over the peak."""
+        if step < self.warmup_steps:
+            return (step + 1) / (self.warmup_steps + 1)
+        span = max(1, self.total_steps - self.warmup_steps)
+        progress = min(1.0, (step - self.warmup_steps) / span)
+        cosine = 0.5 * (1 + math.cos(math.pi * progress))
+        return self.final_lr_ratio + (1 - self.final_lr_ratio) * cosine
+
+
+# The schedules a config may name (create_schedule's ``name``): the paper's StepLR, stepped per
+# epoch, and the warm-up + cosine one, stepped per optimizer step.
+SCHEDULES: dict[str, type[LRScheduler]] = {"step": StepLR, "cosine": WarmupCosine}
+# Arguments the module passes itself, never a config's.
+_PASSED_BY_MODULE = ("self", "optimizer", "total_steps", "last_epoch")
+# Every schedule's config arguments, which create_schedule takes (None: unset).
+SCHEDULE_ARGUMENTS = ("step_size", "gamma", "warmup_fraction", "final_lr_ratio")
+
+
+def schedule_class(name: str) -> type[LRScheduler]:
+    """The schedule called ``name`` in :data:`SCHEDULES`.
+
+    Raises:
+        ValueError: an unknown name, listing the known ones.
+    """
+    if name not in SCHEDULES:
+        raise ValueError(
+            f"scheduler.name={name!r}: unknown schedule; expected one of {', '.join(SCHEDULES)}"
+        )
+    return SCHEDULES[name]
+
+
+def schedule_arguments(name: str) -> list[str]:
+    """The arguments a config may give schedule ``name`` (those the module passes left out)."""
+    params = inspect.signature(schedule_class(name)).parameters
+    return [p for p in params if p not in _PASSED_BY_MODULE]
+
+
+def check_schedule_arguments(name: str, arguments: Mapping[str, Any]) -> None:
+    """``arguments`` that are set (not None) must be schedule ``name``'s own, and those it
+    requires must be set.
+
+    Raises:
+        ValueError: an unknown name, a set argument the schedule does not take, or a required
+            one unset, naming it.
+    """
+    allowed = schedule_arguments(name)
+    for key, value in arguments.items():
+        if value is not None and key not in allowed:
+            raise ValueError(
+                f"scheduler.{key}={value!r}: the {name} schedule takes no {key} "
+                f"(its arguments: {', '.join(allowed)}); set it to null"
+            )
+    params = inspect.signature(schedule_class(name)).parameters
+    for key in allowed:
+        if params[key].default is inspect.Parameter.empty and arguments.get(key) is None:
+            raise ValueError(f"scheduler.{key}: the {name} schedule needs it; it is null")
+
+
+def create_schedule(
+    optimizer: torch.optim.Optimizer,
+    name: str = "step",
+    total_steps: int | None = None,
+    step_size: int | None = None,
+    gamma: float | None = None,
+    warmup_fraction: float | None = None,
+    final_lr_ratio: float | None = None,
+) -> LRScheduler:
+    """Schedule ``name`` (:data:`SCHEDULES`) over ``optimizer``, built with the arguments that
+    are set; the others must be None.
+
+    How model=densedepth's default schedule follows a dataset's recipe
+    (``conf/scheduler/for_densedepth.yaml`` reads ``recipe.schedule``): Hydra does not let a
+    preset that the defaults select by interpolation switch the scheduler group, so the recipe
+    names the schedule instead, and the name is looked up here, never imported.
+
+    Args:
+        optimizer: the run's optimizer; its ``lr`` is the peak.
+        name: ``step`` (torch's StepLR, per epoch) or ``cosine`` (:class:`WarmupCosine`, per
+            optimizer step).
+        total_steps: the run's optimizer steps (the module passes it to a per-step schedule).
+        step_size, gamma: StepLR's: lr × ``gamma`` every ``step_size`` epochs.
+        warmup_fraction, final_lr_ratio: :class:`WarmupCosine`'s (None: its defaults).
+
+    Raises:
+        ValueError: an unknown name, or a set argument the named schedule does not take.
+    """
+    arguments = {
+        "step_size": step_size,
+        "gamma": gamma,
+        "warmup_fraction": warmup_fraction,
+        "final_lr_ratio": final_lr_ratio,
+    }
+    check_schedule_arguments(name, arguments)
+    cls = schedule_class(name)
+    given = {key: value for key, value in arguments.items() if value is not None}
+    if getattr(cls, "interval", "epoch") == "step":
+        given["total_steps"] = total_steps
+    return cls(optimizer, **given)
+
+
+def schedule_interval(factory: Callable[..., Any]) -> str:
+    """``"step"`` or ``"epoch"``: how often the schedule a factory builds (a class, or a
+    ``functools.partial`` as Hydra's ``_partial_: true`` makes, also of :func:`create_schedule`)
+    is stepped, so that the module knows whether to pass ``total_steps``."""
+    keywords: dict[str, Any] = {}
+    while isinstance(factory, functools.partial):
+        keywords = {**factory.keywords, **keywords}
+        factory = factory.func
+    if factory is create_schedule:
+        factory = schedule_class(keywords.get("name", "step"))
+    return getattr(factory, "interval", "epoch")
+
+
+def check_scheduler(cfg: DictConfig) -> None:
+    """The ``scheduler`` group's values (fusion_depth.utils.schema). With
+    :func:`create_schedule` (``scheduler=for_densedepth``) only the arguments of the schedule it
+    names are set, the others are null, and those it names must be that schedule's.
+
+    Raises:
+        ConfigError: naming the key and what it accepts.
+    """
+    by_name = config_value(cfg, "scheduler._target_") == f"{__name__}.create_schedule"
+
+    def rule(ok: Callable[[Any], bool], expected: str) -> Rule:
+        return Rule((lambda v: v is None or ok(v)) if by_name else ok, expected)
+
+    check_schema(
+        cfg,
+        {
+            "scheduler.step_size": rule(POSITIVE_INT.ok, "an integer ≥ 1 (epochs)"),
+            "scheduler.gamma": rule(POSITIVE.ok, "a factor > 0"),
+            "scheduler.warmup_fraction": rule(
+                lambda v: is_number(v) and 0 <= v < 1, "a share in [0, 1)"
+            ),
+            "scheduler.final_lr_ratio": rule(
+                lambda v: is_number(v) and 0 <= v <= 1, "a ratio in [0, 1]"
+            ),
+        },
+    )
+    if by_name:
+        scheduler = OmegaConf.to_container(cfg.scheduler, resolve=True)
+        try:  # a key that is no schedule's argument is check_known_keys' to name
+            check_schedule_arguments(
+                scheduler.get("name", "step"),
+                {k: v for k, v in scheduler.items() if k in SCHEDULE_ARGUMENTS},
+            )
+        except ValueError as err:
+            raise ConfigError(str(err)) from None

@@ -1,0 +1,83 @@
+"""Build a dataset's cache once, before training: ``python -m fusion_depth.prepare dataset=...``.
+
+Takes the same configuration as ``fusion_depth.train`` and builds every split the dataset's
+reader would build on first use (projection, filling, resizing), so training epochs only read
+small files. Running it again with the same settings does nothing; an interrupted run continues
+where it stopped (see :mod:`fusion_depth.data.cache`).
+
+Unlike training, which stops at the first frame whose files cannot be read, prepare goes on: it
+logs ``skipped <frame id>: <reason>`` for each broken frame (a corrupt, truncated or missing
+file, a directory where a file should be), prepares every other frame of every split, prints one
+line per split (``train: 3 of 4 frames prepared; skipped 1: train/a02``) and exits with status
+1. A split with a skipped frame is not marked prepared, so training still refuses it, naming
+the file. Running prepare again reuses every frame already written to that cache and prepares
+only the rest; note that CARLA and Top-View caches are keyed by every file's size and time, so
+replacing a file there starts a new cache. Problems that are not about one frame (a missing
+dataset folder, a bad setting, an unwritable cache) fail at once, as in training.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from fusion_depth.config import target_accepts, validate_config
+from fusion_depth.config.hydra_main import hydra_main
+from fusion_depth.data import SPLITS
+from fusion_depth.data.cache import SkippedFramesError
+
+log = logging.getLogger(__name__)
+
+
+def prepare(cfg: DictConfig) -> dict[str, int]:
+    """Builds (or finds) every split of ``cfg.dataset``; returns the frame count per split.
+
+    Readers that prepare a cache are built with ``on_error="skip"`` (the procedural reader, which
+    generates its frames, takes no such argument).
+
+    Raises:
+        SkippedFramesError: some frames could not be prepared; every other frame was. Its
+            ``reports`` hold one :class:`~fusion_depth.data.cache.SplitReport` per split
+            folder (KITTI's test split is its val folder). Each is also logged.
+    """
+    validate_config(cfg)
+    reader = instantiate(cfg.dataset.reader)
+    options = {"on_error": "skip"} if target_accepts(cfg.dataset.reader, "on_error") else {}
+    counts = {}
+    for split in SPLITS:
+        try:
+            dataset = reader(split=split, **options)
+        except SkippedFramesError as err:
+            # A reader prepares all of its splits when the first is built, so err covers them
+            # all; building the next split would only retry (and log) the same broken frames.
+            for report in err.reports:
+                if report.skipped:
+                    log.warning("%s %s (not marked prepared)", cfg.dataset.name, report.line())
+                else:
+                    log.info("%s %s", cfg.dataset.name, report.line())
+            raise
+        counts[split] = len(dataset)
+        log.info("%s %s: %d frames ready", cfg.dataset.name, split, counts[split])
+    return counts
+
+
+@hydra_main("prepare")
+def main(cfg: DictConfig) -> None:
+    """Entry point: prints the frames per split; exits with status 1 when frames were skipped
+    (after printing one line per split)."""
+    try:
+        counts = prepare(cfg)
+    except SkippedFramesError as err:
+        for report in err.reports:
+            print(report.line())
+        skipped = sum(len(report.skipped) for report in err.reports)
+        print(
+            f"{skipped} frame(s) skipped, so their splits are not marked prepared (training "
+            "refuses them): fix or remove their files and run prepare again (frames already "
+            "prepared are kept)"
+        )
+        sys.exit(1)
+    print(", ".join(f"{split}: {n} frames" for split, n in counts.items()))

@@ -1,0 +1,112 @@
+"""``python -m fusion_depth.score_sparse``: the sparse input scored as if it were the prediction.
+
+A depth-completion model can only gain from its sparse input where that input is right. This
+command scores a dataset split's sparse map against the ground truth on the pixels it covers
+(a pixel counts where ``sparse > 0`` and the ground truth is scored by the ``eval`` protocol:
+caps, crop, averaging, distance bins), and prints the test stage's tables (per condition, per
+distance bin of the ground truth, per cap) with how much of the scored ground truth it covers.
+For the built-in radar, whose returns are drawn as vertical lines
+(``dataset.reader.radar_height_extension``), it shows how the lines agree with the surfaces they
+are drawn over; the README's "Result" section reads it.
+
+python -m fusion_depth.score_sparse
+python -m fusion_depth.score_sparse dataset.reader.radar_height_extension=0 split=val
+python -m fusion_depth.score_sparse dataset=kitti dataset.root=/data/kitti
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.config.hydra_main import hydra_main
+from fusion_depth.data import SPLITS
+from fusion_depth.experiment.checkpoints import make_reader
+from fusion_depth.experiment.protocol import EvalProtocol, EvaluationResult, results_tables
+
+
+@dataclass(frozen=True)
+class SparseInputScore:
+    """What :func:`score_sparse_input` measured.
+
+    ``result`` scores the sparse map on the pixels it covers (its ``num_pixels`` count them);
+    ``coverage`` is that count over the ground-truth pixels the protocol scores (a fraction in
+    [0, 1], overall and per condition), ``num_frames`` the frames read.
+    """
+
+    result: EvaluationResult
+    coverage: dict[str, float]
+    num_frames: int
+
+
+def score_sparse_input(
+    dataset: Any, protocol: EvalProtocol, conditions: list[str] | None = None
+) -> SparseInputScore:
+    """Score each sample's ``sparse`` map (1×H×W metres, 0 = no return) against its ``depth``.
+
+    Args:
+        dataset: a split of any reader (samples as :class:`~fusion_depth.data.Sample`).
+        protocol: how to score (:class:`~fusion_depth.experiment.protocol.EvalProtocol`).
+        conditions: the dataset's condition names, for the per-condition rows (None: none).
+
+    Raises:
+        ValueError: the sparse input covers no ground-truth pixel the protocol scores.
+    """
+    covered, every = protocol.metrics(conditions), protocol.metrics(conditions)
+    for index in range(len(dataset)):
+        sample = dataset[index]
+        sparse, depth = sample["sparse"][None], sample["depth"][None]
+        condition = [sample["condition"]] if conditions else None
+        at = torch.tensor([index])
+        box = sample.get("frame_box")
+        box = None if box is None else torch.as_tensor(box)[None]
+        # Ground truth where there is no return is 0, i.e. not scored (as a partial prediction).
+        only_covered = torch.where(sparse > 0, depth, torch.zeros_like(depth))
+        covered.update(sparse, only_covered, condition, index=at, frame_box=box)
+        every.update(depth, depth, condition, index=at, frame_box=box)
+    try:
+        result = EvaluationResult.from_metrics(protocol, covered, latency={})
+    except ValueError:
+        raise ValueError(
+            f"the sparse input covers no ground-truth pixel in ({protocol.min_depth:g}, "
+            f"{protocol.max_depth[-1]:g}) m in {len(dataset)} frames; nothing to score"
+        ) from None
+    totals = every.results()
+    groups = {"all": (result.overall, totals["overall"])}
+    groups.update(
+        (name, (group, totals["by_condition"][name])) for name, group in result.by_condition.items()
+    )
+    coverage = {
+        name: mine["num_pixels"] / all_["num_pixels"] for name, (mine, all_) in groups.items()
+    }
+    return SparseInputScore(result=result, coverage=coverage, num_frames=len(dataset))
+
+
+def score_sparse(cfg: DictConfig) -> SparseInputScore:
+    """The command: read ``cfg.split`` of ``cfg.dataset``, score it, print the tables."""
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split}: expected one of {', '.join(SPLITS)}")
+    if cfg.dataset.sensor == "none":
+        raise ValueError(f"dataset={cfg.dataset.name} has no sparse input (dataset.sensor: none)")
+    block = OmegaConf.to_container(cfg.dataset, resolve=True)
+    dataset = make_reader(block)(split=cfg.split)
+    protocol = EvalProtocol.from_config(cfg.eval, cfg.dataset.min_depth, cfg.dataset.max_depth)
+    conditions = list(cfg.dataset.get("conditions") or []) or None
+    score = score_sparse_input(dataset, protocol, conditions)
+    shares = ", ".join(f"{name} {100 * share:.2f} %" for name, share in score.coverage.items())
+    print(
+        f"dataset={cfg.dataset.name} split={cfg.split}: the sparse input ({cfg.dataset.sensor}) "
+        f"scored as the prediction on the {score.result.overall['num_pixels']} ground-truth "
+        f"pixels it covers in {score.num_frames} frames (coverage of the scored pixels: {shares})"
+    )
+    print(results_tables(score.result))
+    return score
+
+
+@hydra_main("score_sparse")
+def main(cfg: DictConfig) -> None:
+    """Hydra entry point."""
+    score_sparse(cfg)

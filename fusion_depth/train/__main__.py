@@ -1,0 +1,5 @@
+"""``python -m fusion_depth.train``."""
+
+from fusion_depth.train.cli import main
+
+main()

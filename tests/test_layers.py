@@ -1,0 +1,69 @@
+"""The package's layers hold (``[tool.importlinter]`` in ``pyproject.toml``, checked by
+``lint-imports`` in CI): the contract passes on the package as it is, names every top-level
+part, and fails as soon as a lower layer imports a higher one, inside a function too."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tomllib
+from helpers import REPO
+
+CONTRACT = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importlinter"]
+LINT_IMPORTS = str(Path(sys.executable).with_name("lint-imports"))
+
+
+def _lint_imports(cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [LINT_IMPORTS, "--no-cache"], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
+
+
+def test_the_contract_names_every_part_of_the_package() -> None:
+    (layers,) = CONTRACT["contracts"]
+    assert layers["type"] == "layers" and layers["exhaustive"] is True
+    named = {
+        part.strip() for layer in layers["layers"] for part in layer.replace(":", "|").split("|")
+    }
+    package = REPO / "fusion_depth"
+    parts = {p.stem for p in package.iterdir() if p.suffix == ".py" and p.stem != "__init__"}
+    parts |= {p.name for p in package.iterdir() if (p / "__init__.py").is_file()}
+    assert named == parts
+
+
+def test_the_package_keeps_its_layers() -> None:
+    result = _lint_imports(REPO)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "1 kept, 0 broken" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("module", "upward", "in_function"),
+    [
+        ("models/base.py", "fusion_depth.experiment.module", True),
+        ("utils/files.py", "fusion_depth.data.depth_io", False),
+        ("experiment/resume.py", "fusion_depth.config.run_dirs", True),
+        ("data/cache.py", "fusion_depth.prepare.cli", True),
+        ("export/runtime.py", "fusion_depth.predict.files", True),
+    ],
+)
+def test_an_upward_import_breaks_the_contract(
+    tmp_path: Path, module: str, upward: str, in_function: bool
+) -> None:
+    shutil.copytree(
+        REPO / "fusion_depth", tmp_path / "fusion_depth", ignore=shutil.ignore_patterns("*.pyc")
+    )
+    shutil.copy(REPO / "pyproject.toml", tmp_path)
+    statement = f"import {upward}"
+    if in_function:
+        statement = f"def _upward():\n    {statement}\n\n    return {upward}"
+    path = tmp_path / "fusion_depth" / module
+    path.write_text(path.read_text() + f"\n\n{statement}\n")
+    result = _lint_imports(tmp_path)
+    assert result.returncode == 1, result.stdout[-3000:]
+    lower = "fusion_depth." + module.removesuffix(".py").replace("/", ".")
+    assert f"{lower} -> {upward}" in result.stdout
