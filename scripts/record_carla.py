@@ -35,7 +35,7 @@ import numpy as np
 
 from fusion_depth.data.carla import RADAR_COLUMNS, SENSOR_DIRS, relative_transform
 from fusion_depth.data.depth_io import write_rgb_png
-from fusion_depth.utils.files import write_json_atomic, write_text_atomic
+from fusion_depth.utils.atomic import write_json_atomic, write_text_atomic
 
 log = logging.getLogger("record_carla")
 

@@ -28,9 +28,9 @@ from fusion_depth.config.hydra_main import (
 )
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.callbacks import ProgressLog
-from fusion_depth.experiment.protocol import EvalProtocol
 from fusion_depth.models import DepthNet
+from fusion_depth.runner.callbacks import ProgressLog
+from fusion_depth.runner.protocol import EvalProtocol
 from fusion_depth.train.fit import train
 
 # --- paths as printed are paths as accepted ---------------------------------------------------
@@ -352,11 +352,9 @@ def test_training_logs_a_line_per_epoch_and_inside_epochs_without_a_terminal(
         "trainer.enable_progress_bar=false",
         "callbacks.progress_log.every_s=1e-9",  # a line after every batch
     )
-    with caplog.at_level(logging.INFO, logger="fusion_depth.experiment.callbacks"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.runner.callbacks"):
         results = train(cfg)
-    lines = [
-        r.getMessage() for r in caplog.records if r.name == "fusion_depth.experiment.callbacks"
-    ]
+    lines = [r.getMessage() for r in caplog.records if r.name == "fusion_depth.runner.callbacks"]
     epochs = [line for line in lines if re.match(r"epoch \d/2: train loss", line)]
     assert len(epochs) == 2, lines
     first = results["validation"][0]
@@ -384,7 +382,7 @@ def test_progress_lines_follow_the_clock(caplog) -> None:
     now = [0.0]
     callback = ProgressLog(every_s=60, clock=lambda: now[0])
     trainer = FakeTrainer()
-    with caplog.at_level(logging.INFO, logger="fusion_depth.experiment.callbacks"):
+    with caplog.at_level(logging.INFO, logger="fusion_depth.runner.callbacks"):
         callback.on_train_epoch_start(trainer, None)
         for batch in range(1, 11):
             now[0] += 25.0

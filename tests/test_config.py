@@ -174,7 +174,7 @@ def test_real_datasets_train_with_the_papers_recipe(make_config) -> None:
         ("loss", "l2", "loss.pixel", "l2"),
         ("loss", "berhu", "loss.pixel", "berhu"),
         ("backbone", "resnet50", "backbone.name", "resnet50"),
-        ("logger", "csv", "logger._target_", "fusion_depth.experiment.loggers.csv_logger"),
+        ("logger", "csv", "logger._target_", "fusion_depth.runner.loggers.csv_logger"),
         ("logger", "none", "logger._target_", None),
     ],
 )

@@ -33,8 +33,8 @@ from fusion_depth.data.depth_io import (
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.procedural import DEPTH_SCALE, ProceduralDepth
 from fusion_depth.data.radar_points import point_rows
-from fusion_depth.experiment.module import DepthModule
 from fusion_depth.models import DepthNet
+from fusion_depth.runner.module import DepthModule
 
 H, W = 32, 64
 

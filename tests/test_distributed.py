@@ -9,7 +9,7 @@ import pytest
 from helpers import compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
-from fusion_depth.experiment.distributed import local_world_size
+from fusion_depth.runner.distributed import local_world_size
 
 
 @pytest.mark.slow

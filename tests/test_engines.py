@@ -25,8 +25,6 @@ from PIL import Image
 from fusion_depth.data.depth_io import read_depth_png, write_depth_png
 from fusion_depth.errors import ConfigError
 from fusion_depth.evaluate.scoring import evaluate
-from fusion_depth.experiment.checkpoints import dataset_config, load_model, make_reader
-from fusion_depth.experiment.record import load_runs
 from fusion_depth.export import (
     ExportedModel,
     SidecarError,
@@ -39,6 +37,8 @@ from fusion_depth.models.inference import predict_depth
 from fusion_depth.predict.cli import predict
 from fusion_depth.report import compare_to_baseline, group_runs
 from fusion_depth.report import main as report_main
+from fusion_depth.runner.checkpoints import dataset_config, load_model, make_reader
+from fusion_depth.runner.record import load_runs
 from fusion_depth.utils.checkpoint_file import CheckpointError
 
 H, W = 64, 96

@@ -19,9 +19,9 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 from fusion_depth.evaluate.scoring import evaluate
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.metrics.depth import METRIC_KEYS, DepthMetrics
 from fusion_depth.models.inference import predict_depth
+from fusion_depth.runner.checkpoints import load_model
 from fusion_depth.utils.checkpoint_file import CheckpointError
 
 

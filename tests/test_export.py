@@ -21,11 +21,11 @@ from helpers import REPO, compose_config, run_module
 from hydra.core.global_hydra import GlobalHydra
 
 import fusion_depth.export.torchscript as export_module
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.export import DepthExportModel, ExportError, export_model, sidecar_path
 from fusion_depth.export.cli import export
 from fusion_depth.models import DepthNet
 from fusion_depth.models.inference import predict_depth
+from fusion_depth.runner.checkpoints import load_model
 
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:FutureWarning")
 

@@ -18,11 +18,11 @@ import torch
 from helpers import save_untrained_checkpoint
 
 from fusion_depth.config.hydra_main import user_message
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.export import BACKENDS, ExportError, export_model, sidecar_path
 from fusion_depth.export.exporter import check_export_options, resolve_export_precision
 from fusion_depth.export.runtime import compile_openvino, cpu_has_bf16
 from fusion_depth.models.inference import predict_depth
+from fusion_depth.runner.checkpoints import load_model
 
 H, W = 64, 96
 

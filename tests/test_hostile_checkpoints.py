@@ -17,9 +17,9 @@ from helpers import compose_config, run_module
 
 from fusion_depth.data.procedural import ProceduralDepth
 from fusion_depth.evaluate.scoring import evaluate
-from fusion_depth.experiment.checkpoints import dataset_config, load_model, make_reader
 from fusion_depth.export.cli import export
 from fusion_depth.predict.cli import predict
+from fusion_depth.runner.checkpoints import dataset_config, load_model, make_reader
 from fusion_depth.train.fit import train
 from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
 
@@ -235,7 +235,7 @@ def _model_checkpoint_state(checkpoint: dict) -> dict:
     ],
 )
 def test_a_malformed_training_state_is_refused_in_one_line(tmp_path, change, message) -> None:
-    from fusion_depth.experiment.resume import plan_start
+    from fusion_depth.runner.resume import plan_start
 
     run_dir = tmp_path / "run"
     _last_ckpt(run_dir, change)
@@ -246,7 +246,7 @@ def test_a_malformed_training_state_is_refused_in_one_line(tmp_path, change, mes
 def test_a_training_state_cannot_name_files_outside_its_folder(tmp_path) -> None:
     """Lightning deletes the checkpoints a ModelCheckpoint state names once better ones arrive,
     and tests its best one: a crafted state must not point it at any other file."""
-    from fusion_depth.experiment.resume import plan_start
+    from fusion_depth.runner.resume import plan_start
 
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")

@@ -27,7 +27,7 @@ from optuna.trial import TrialState
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values
 from fusion_depth.config.hydra_main import register_sweeps
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.hparams_search import (
+from fusion_depth.runner.hparams_search import (
     BEST_FILE,
     INTERRUPTED,
     SearchSummary,
@@ -36,8 +36,8 @@ from fusion_depth.experiment.hparams_search import (
     objective,
     retrain_command,
 )
-from fusion_depth.experiment.record import RunRecord
-from fusion_depth.experiment.resume import RunLockedError
+from fusion_depth.runner.record import RunRecord
+from fusion_depth.runner.resume import RunLockedError
 
 STUDY = "fusion_depth"  # conf/hparams_search/optuna.yaml: hydra.sweeper.study_name
 

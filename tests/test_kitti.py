@@ -26,9 +26,9 @@ from fusion_depth.data.cache import SkippedFramesError
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.protocol import EvalProtocol
 from fusion_depth.metrics.depth import crop_mask
 from fusion_depth.prepare.cli import prepare
+from fusion_depth.runner.protocol import EvalProtocol
 from fusion_depth.train.fit import train
 
 REPO = Path(__file__).resolve().parents[1]

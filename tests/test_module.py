@@ -10,9 +10,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from fusion_depth.data.transforms import TrainAugmentation
-from fusion_depth.experiment.module import DepthModule, NonFiniteLossError, downsample_depth
 from fusion_depth.losses.depth_loss import DepthLoss
 from fusion_depth.models import DepthNet
+from fusion_depth.runner.module import DepthModule, NonFiniteLossError, downsample_depth
 
 
 def test_downsample_dense_depth_is_area_average() -> None:

@@ -23,7 +23,6 @@ from fusion_depth.data.visualize import (
     depth_colorbar,
     with_colorbar,
 )
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.models.inference import predict_depth
 from fusion_depth.predict.cli import predict
 from fusion_depth.predict.files import (
@@ -33,6 +32,7 @@ from fusion_depth.predict.files import (
     predict_folder,
     predict_split,
 )
+from fusion_depth.runner.checkpoints import load_model
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
 H, W = 64, 96

@@ -11,7 +11,6 @@ from helpers import REPO, run_module
 
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.models import MODELS, create_model
 from fusion_depth.models.inference import predict_depth
 from fusion_depth.models.radarnet import (
@@ -23,6 +22,7 @@ from fusion_depth.models.radarnet import (
     points_from_sparse,
     quasi_dense_depth,
 )
+from fusion_depth.runner.checkpoints import load_model
 from fusion_depth.utils.checkpoint_file import CheckpointError, plain_config
 
 

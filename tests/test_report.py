@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fusion_depth.experiment.record import load_runs
 from fusion_depth.metrics.depth import METRIC_KEYS
 from fusion_depth.report import build_table, group_runs, main, paired_differences
-from fusion_depth.utils.files import write_json_atomic
+from fusion_depth.runner.record import load_runs
+from fusion_depth.utils.atomic import write_json_atomic
 
 
 def _write_run(root, name, fusion, loss, seed, rmse, delta1=0.8, extra=()):
@@ -57,7 +57,7 @@ def test_paper_order_loss_then_modality(tmp_path) -> None:
         [("add", "berhu"), ("rgb", "l2"), ("concat", "l1"), ("rgb", "l1")]
     ):
         _write_run(tmp_path, str(i), fusion, loss, 0, rmse=1.0 + i)
-    from fusion_depth.experiment.record import load_runs
+    from fusion_depth.runner.record import load_runs
 
     groups = group_runs(load_runs(tmp_path))
     assert [(g["loss"], g["fusion"]) for g in groups] == [
@@ -71,7 +71,7 @@ def test_paper_order_loss_then_modality(tmp_path) -> None:
 def test_other_overrides_are_not_averaged_together(tmp_path) -> None:
     _write_run(tmp_path, "a", "rgb", "l1", 1, rmse=1.0, extra=["optimizer.lr=0.001"])
     _write_run(tmp_path, "b", "rgb", "l1", 1, rmse=3.0)
-    from fusion_depth.experiment.record import load_runs
+    from fusion_depth.runner.record import load_runs
 
     table = build_table(group_runs(load_runs(tmp_path)))
     assert "Setting" in table and "optimizer.lr=0.001" in table and "±" not in table

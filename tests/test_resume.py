@@ -20,9 +20,9 @@ from helpers.probe import PROBE, RESUMABLE, probe_env, probe_records
 
 from fusion_depth.config.run_dirs import run_dirname
 from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
-from fusion_depth.experiment.checkpoint_io import AtomicCheckpointIO, CheckpointWriteError
-from fusion_depth.experiment.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.metrics.depth import METRIC_KEYS
+from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO, CheckpointWriteError
+from fusion_depth.runner.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.train.fit import train
 from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
 
@@ -385,8 +385,8 @@ def test_a_new_start_removes_what_interrupted_attempts_left(tmp_path) -> None:
 
 
 def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
-    from fusion_depth.experiment.resume import finished_results
-    from fusion_depth.experiment.sweep_summary import summarize_sweep
+    from fusion_depth.runner.resume import finished_results
+    from fusion_depth.runner.sweep_summary import summarize_sweep
 
     job = tmp_path / "sweep" / "job"
     (job / ".hydra").mkdir(parents=True)
@@ -445,7 +445,7 @@ def test_a_split_without_frames_is_refused() -> None:
 
 
 def test_a_run_whose_every_batch_was_skipped_reports_no_result(tmp_path, monkeypatch) -> None:
-    from fusion_depth.experiment.module import DepthModule
+    from fusion_depth.runner.module import DepthModule
     from fusion_depth.train.fit import NoTrainingError
 
     def nan_loss(self, batch):
@@ -513,7 +513,7 @@ def test_two_commands_on_one_run_folder_train_it_once(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> None:
-    from fusion_depth.experiment.resume import RunLock
+    from fusion_depth.runner.resume import RunLock
 
     sweep_dir = tmp_path / "sweep"
     job_dir = sweep_dir / run_dirname("experiment=smoke")
@@ -538,7 +538,7 @@ def test_a_sweep_job_whose_folder_is_in_use_writes_nothing_there(tmp_path) -> No
 
 
 def test_a_lock_file_that_is_a_link_or_a_folder_is_refused(tmp_path) -> None:
-    from fusion_depth.experiment.resume import RunLock, RunLockedError
+    from fusion_depth.runner.resume import RunLock, RunLockedError
 
     target = tmp_path / "target.txt"
     target.write_text("keep me")

@@ -21,7 +21,7 @@ from torch import nn
 
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
 from fusion_depth.errors import ConfigError, OutputDirError
-from fusion_depth.experiment.redaction import (
+from fusion_depth.runner.redaction import (
     RedactSecrets,
     redact_hydra_files,
     redact_overrides,
@@ -385,7 +385,7 @@ def test_hydra_callback_redacts_the_job_files_and_the_sweep_record(tmp_path) -> 
 
 
 def test_wandb_stays_offline_with_a_key_when_wandb_mode_is_offline(monkeypatch, tmp_path):
-    from fusion_depth.experiment.loggers import wandb_logger
+    from fusion_depth.runner.loggers import wandb_logger
 
     monkeypatch.setenv("WANDB_API_KEY", "k" * 40)
     monkeypatch.setenv("WANDB_MODE", "offline")
@@ -440,7 +440,7 @@ def test_a_training_run_writes_no_secret_anywhere(tmp_path) -> None:
     for stream in (result.stdout, result.stderr):
         assert env_key not in stream and argv_key not in stream
     # Hydra writes .hydra/hydra.yaml before any of our code runs; this one needs the
-    # fusion_depth.experiment.redaction.RedactSecrets callback in conf/hydra/default.yaml (or train
+    # fusion_depth.runner.redaction.RedactSecrets callback in conf/hydra/default.yaml (or train
     # calling redact_hydra_files) to pass.
     assert holding_a_secret(hydra_files) == []
     assert "WANDB_API_KEY: '***'" in (run_dir / ".hydra" / "hydra.yaml").read_text()

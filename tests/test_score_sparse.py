@@ -6,7 +6,7 @@ import pytest
 import torch
 from helpers import compose_config
 
-from fusion_depth.experiment.protocol import EvalProtocol
+from fusion_depth.runner.protocol import EvalProtocol
 from fusion_depth.score_sparse.cli import score_sparse, score_sparse_input
 
 

@@ -11,10 +11,10 @@ from helpers import REPO, run_module, run_sweep
 
 from fusion_depth.config import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.checkpoints import load_model
-from fusion_depth.experiment.record import load_runs
 from fusion_depth.models import MODELS, create_model
 from fusion_depth.models.sparse_to_dense import SparseToDense, Unpool, UpProjection
+from fusion_depth.runner.checkpoints import load_model
+from fusion_depth.runner.record import load_runs
 from fusion_depth.utils.checkpoint_file import plain_config
 
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fusion_depth.experiment import speed
-from fusion_depth.experiment.module import DepthModule
 from fusion_depth.losses.depth_loss import DepthLoss
 from fusion_depth.models import DepthNet
+from fusion_depth.runner import speed
+from fusion_depth.runner.module import DepthModule
 
 
 def test_auto_precision_is_bf16_only_where_the_cpu_has_bf16(

@@ -16,10 +16,10 @@ import torch
 
 from fusion_depth.config.validation import validate_config
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.models import DepthNet, Encoder
 from fusion_depth.models import encoder as encoder_module
 from fusion_depth.models.encoder import ENCODER_SPECS
+from fusion_depth.runner.checkpoints import load_model
 from fusion_depth.utils.checkpoint_file import plain_config
 
 TESTED = ("convnext_atto", "efficientnet_b0", "regnety_002")

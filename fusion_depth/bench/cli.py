@@ -47,8 +47,8 @@ from omegaconf import DictConfig
 from fusion_depth.bench.stages import BENCH_ENGINES, STAGES, run_bench
 from fusion_depth.config import CONF_DIR
 from fusion_depth.config.hydra_main import check_override_keys, literal_paths
+from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.utils.console import quiet_known_noise
-from fusion_depth.utils.files import write_json_atomic
 
 quiet_known_noise()
 

@@ -47,16 +47,6 @@ from torch.utils.flop_counter import FlopCounterMode
 from fusion_depth.data.base import check_dataset
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.encoding import decode_sample
-from fusion_depth.experiment.module import DepthModule
-from fusion_depth.experiment.run_folder import provenance
-from fusion_depth.experiment.speed import (
-    accelerator_device,
-    autocast,
-    machine_info,
-    resolve_precision,
-    should_compile,
-    speed_up,
-)
 from fusion_depth.export import (
     BACKENDS,
     ENGINES,
@@ -66,6 +56,16 @@ from fusion_depth.export import (
     sidecar_path,
 )
 from fusion_depth.models.inference import predict_depth
+from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.run_folder import provenance
+from fusion_depth.runner.speed import (
+    accelerator_device,
+    autocast,
+    machine_info,
+    resolve_precision,
+    should_compile,
+    speed_up,
+)
 
 STAGES = ("peak", "infer", "train", "data")
 

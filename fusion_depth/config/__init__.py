@@ -10,7 +10,7 @@ through before any work, one module per concern:
 - :mod:`.hydra_main`: what every command line of the package shares.
 
 The errors they raise are in :mod:`fusion_depth.errors`; the redaction of secrets from what a run
-writes is :mod:`fusion_depth.experiment.redaction`. Every public name is importable from here.
+writes is :mod:`fusion_depth.runner.redaction`. Every public name is importable from here.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from fusion_depth.utils.overrides import show
 # (``DepthDataModule(reader=..., **cfg.data)``), eval → the evaluation protocol.
 PLAIN_CONSUMERS: dict[str, str] = {
     "data": "fusion_depth.data.datamodule.DepthDataModule",
-    "eval": "fusion_depth.experiment.protocol.EvalProtocol",
+    "eval": "fusion_depth.runner.protocol.EvalProtocol",
 }
 # Arguments the code passes itself, per node: not config keys (a value would clash with the
 # code's or be overridden by it).

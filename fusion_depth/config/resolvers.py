@@ -11,7 +11,7 @@ def register_resolvers() -> None:
     """Register the ``fd.*`` resolvers (idempotent; done on ``import fusion_depth``)."""
     OmegaConf.register_new_resolver("fd.div", lambda a, b: float(a) / float(b), replace=True)
     OmegaConf.register_new_resolver("fd.cache_dir", cache_dir, replace=True)
-    # conf/hydra: run folders named after the overrides (fusion_depth.experiment.run_folder)
+    # conf/hydra: run folders named after the overrides (fusion_depth.runner.run_folder)
     OmegaConf.register_new_resolver("fd.run_dirname", _run_dirname, replace=True)
     OmegaConf.register_new_resolver(
         "fd.sweep_dirname", _sweep_dirname, replace=True, use_cache=True

@@ -15,12 +15,12 @@ from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data import datamodule, transforms
 from fusion_depth.data.base import check_dataset
 from fusion_depth.errors import ConfigError, MissingValueError
-from fusion_depth.experiment import callbacks, module, protocol, resume, speed
 from fusion_depth.losses import depth_loss
 from fusion_depth.models import encoder, fusion
 from fusion_depth.models._registry import check_model
 from fusion_depth.optim import optimizers
 from fusion_depth.optim.schedules import check_scheduler
+from fusion_depth.runner import callbacks, module, protocol, resume, speed
 from fusion_depth.utils.schema import Schema, check_schema
 
 

@@ -84,7 +84,7 @@ from fusion_depth.data.radar_points import (
     read_points,
     write_points,
 )
-from fusion_depth.utils.files import write_json_atomic
+from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.utils.progress import track
 
 # Bump when the cache layout changes, so old caches are not reused (3: .npy arrays, were PNGs).

@@ -298,7 +298,7 @@ def check_scorable(
     split costs one frame.
 
     Args:
-        protocol: an :class:`~fusion_depth.experiment.protocol.EvalProtocol` (``min_depth``,
+        protocol: an :class:`~fusion_depth.runner.protocol.EvalProtocol` (``min_depth``,
             ``max_depth`` caps, ``crop``).
         trainer: the trainer config (its ``limit_{stage}_batches``).
         dataset: the dataset's name, for the message.

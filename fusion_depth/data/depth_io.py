@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from fusion_depth.utils.files import write_atomic
+from fusion_depth.utils.atomic import write_atomic
 
 DEPTH_PNG_SCALE = 256.0  # stored uint16 = round(metres × DEPTH_PNG_SCALE), 0 = no value
 _UINT16_MAX = np.iinfo(np.uint16).max

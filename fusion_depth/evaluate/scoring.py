@@ -2,7 +2,7 @@
 by the ``eval`` protocol, as ``python -m fusion_depth.evaluate`` does (:mod:`.cli`).
 
 The model is rebuilt from the checkpoint (weights-only loading, see
-:mod:`fusion_depth.experiment.checkpoints`) or loaded by its sidecar and run by its engine
+:mod:`fusion_depth.runner.checkpoints`) or loaded by its sidecar and run by its engine
 (:mod:`fusion_depth.export.runtime`), and scored; ``metrics.json`` and ``per_image.csv`` are
 written in the same format as a training run's, so ``report`` reads both. The record's
 ``run.engine`` says what ran the network (``torch`` for a checkpoint, e.g. ``openvino-int8``
@@ -23,23 +23,23 @@ from omegaconf import DictConfig, OmegaConf
 from fusion_depth.data import SPLITS
 from fusion_depth.data.base import check_dataset
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
-from fusion_depth.experiment.callbacks import ProgressLog
-from fusion_depth.experiment.checkpoints import LoadedModel, dataset_config, load_model, make_reader
-from fusion_depth.experiment.loggers import closing
-from fusion_depth.experiment.module import DepthModule
-from fusion_depth.experiment.protocol import EvalProtocol
-from fusion_depth.experiment.record import (
+from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
+from fusion_depth.runner.callbacks import ProgressLog
+from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader
+from fusion_depth.runner.loggers import closing
+from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.protocol import EvalProtocol
+from fusion_depth.runner.record import (
     METRICS_FILE,
     RunRecord,
     publish_results,
     read_run_record,
     rescored_identity,
 )
-from fusion_depth.experiment.run_folder import RESOLVED_CONFIG_FILE
-from fusion_depth.experiment.speed import PRECISIONS, accelerator_device, resolve_precision
-from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
+from fusion_depth.runner.run_folder import RESOLVED_CONFIG_FILE
+from fusion_depth.runner.speed import PRECISIONS, accelerator_device, resolve_precision
+from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.checkpoint_file import CheckpointError
-from fusion_depth.utils.files import write_text_atomic
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,7 @@ python -m fusion_depth.export ckpt_path=best.ckpt format=tensorrt precision=fp16
 The model takes ``image`` (B, 3, H, W) float32 RGB in [0, 1] and, for checkpoints trained with
 ``fusion=concat`` or ``add``, ``sparse`` (B, 1, H, W) float32 metres (0 = no return), and returns
 ``depth`` (B, 1, H, W) float32 metres in ``[min_depth, max_depth]``, computed as ``predict`` and
-``evaluate`` compute it (:mod:`fusion_depth.export`).
+``evaluate`` compute it (:func:`fusion_depth.models.inference.predict_depth`).
 
 * ``H`` × ``W`` is fixed when exporting: the checkpoint's training resolution, or ``height``/
   ``width`` (multiples of 32). The batch axis is dynamic (ONNX: named ``batch``; TorchScript
@@ -56,9 +56,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.hydra_main import hydra_main
-from fusion_depth.experiment.checkpoints import load_model
 from fusion_depth.export.exporter import check_export_options, default_output, export_model
 from fusion_depth.export.sidecar import sidecar_path
+from fusion_depth.runner.checkpoints import load_model
 from fusion_depth.utils.console import quiet_known_noise
 
 log = logging.getLogger(__name__)

@@ -3,10 +3,10 @@ the accuracy an exported model costs (the validation split, against PyTorch fp32
 
 The dataset is chosen as ``evaluate`` chooses it: the block the checkpoint was trained on (its
 reader looked up by name in the package's table,
-:func:`fusion_depth.experiment.checkpoints.make_reader`),
-or a ``dataset=`` choice composed from ``conf/``. The accuracy is scored by the evaluation
-protocol and loop of ``evaluate`` (:class:`~fusion_depth.experiment.module.DepthModule`,
-:class:`~fusion_depth.experiment.protocol.EvalProtocol`), once with the checkpoint's network in fp32
+:func:`fusion_depth.runner.checkpoints.make_reader`), or a ``dataset=`` choice composed from
+``conf/``. The accuracy is scored by the evaluation
+protocol and loop of ``evaluate`` (:class:`~fusion_depth.runner.module.DepthModule`,
+:class:`~fusion_depth.runner.protocol.EvalProtocol`), once with the checkpoint's network in fp32
 and once with the exported file, and the per-image differences get a paired bootstrap interval
 (:func:`fusion_depth.metrics.bootstrap.paired_bootstrap`), as ``report --compare`` computes them.
 """
@@ -23,11 +23,11 @@ import numpy as np
 import torch
 
 from fusion_depth.data.datamodule import DepthDataModule
-from fusion_depth.experiment.checkpoints import LoadedModel, dataset_config, make_reader
-from fusion_depth.experiment.module import DepthModule
-from fusion_depth.experiment.protocol import EvalProtocol, EvaluationResult
 from fusion_depth.metrics.bootstrap import paired_bootstrap
 from fusion_depth.models import DepthModel
+from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, make_reader
+from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult
 
 log = logging.getLogger(__name__)
 

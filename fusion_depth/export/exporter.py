@@ -24,7 +24,6 @@ from typing import Any
 
 import torch
 
-from fusion_depth.experiment.checkpoints import LoadedModel
 from fusion_depth.export.contract import PRECISIONS, Backend, DepthExportModel, ExportSpec
 from fusion_depth.export.data import ExportData, calibration_inputs, compare_accuracy, export_data
 from fusion_depth.export.onnx import ONNX
@@ -35,7 +34,8 @@ from fusion_depth.export.tensorrt import TENSORRT
 from fusion_depth.export.torchscript import TORCHSCRIPT
 from fusion_depth.export.verification import TOLERANCES, ExportError
 from fusion_depth.models import DepthModel
-from fusion_depth.utils.files import write_atomic, write_text_atomic
+from fusion_depth.runner.checkpoints import LoadedModel
+from fusion_depth.utils.atomic import write_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ checkpoint's network. :func:`load_exported` reads ``<model file>.json`` (the sid
 :mod:`fusion_depth.export.sidecar` writes; plain JSON, checked key by key), looks its engine
 up by name in :data:`ENGINES` and wraps the running file in an :class:`ExportedModel`, a
 :class:`~fusion_depth.models.DepthModel` whose output is depth in metres. The evaluation loop
-(:class:`~fusion_depth.experiment.module.DepthModule`), the metrics, tables and ``per_image.csv``
+(:class:`~fusion_depth.runner.module.DepthModule`), the metrics, tables and ``per_image.csv``
 are then the checkpoint's, unchanged.
 
 Engines (one entry of :data:`ENGINES` each):
@@ -44,12 +44,12 @@ from hydra.errors import CompactHydraException
 from torch import nn
 
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.checkpoints import LoadedModel, check_expected
 from fusion_depth.export.contract import QUANTIZATIONS, require_cuda, require_modules
 from fusion_depth.export.sidecar import sidecar_path
 from fusion_depth.export.torchscript import quiet_jit
 from fusion_depth.models import DepthModel
 from fusion_depth.models.fusion import FUSION_MODES
+from fusion_depth.runner.checkpoints import LoadedModel, check_expected
 from fusion_depth.utils.checkpoint_file import check_no_code
 
 log = logging.getLogger(__name__)
@@ -507,8 +507,9 @@ class ExportedModel(DepthModel):
     ``forward(image, sparse)``: image (B, 3, H, W) in [0, 1], sparse (B, 1, H, W) metres (fed
     only to a fusion model) → depth (B, 1, H, W) metres on the input's device. H × W must be the
     size the file was exported at; a file exported with a fixed batch runs any batch in chunks
-    of that size. Its output space is depth, so :meth:`predict_depth` clips to the range only.
-    It has no trainable weights: one empty parameter tells callers the device (CPU).
+    of that size. Its output space is depth, so
+    :func:`~fusion_depth.models.inference.predict_depth` clips to the range only. It has no
+    trainable weights: one empty parameter tells callers the device (CPU).
 
     Raises (forward):
         ValueError: the input size is not the file's.
@@ -565,7 +566,7 @@ def open_exported(info: ModelInfo) -> ExportedModel:
 def load_exported(
     model_file: str | os.PathLike, fusion: str | None = None, backbone: str | None = None
 ) -> LoadedModel:
-    """An exported model file as a :class:`~fusion_depth.experiment.checkpoints.LoadedModel`
+    """An exported model file as a :class:`~fusion_depth.runner.checkpoints.LoadedModel`
     (``key`` ``model_file``) whose network is an :class:`ExportedModel`, and whose config holds what
     the sidecar records (fusion, backbone, model name, the checkpoint's dataset block and run
     identity), so ``evaluate`` and ``predict`` use it as they use a checkpoint.

@@ -16,10 +16,10 @@ from typing import Any
 
 import torch
 
-from fusion_depth.experiment.checkpoints import LoadedModel
-from fusion_depth.experiment.record import training_identity
 from fusion_depth.export.contract import Backend, DepthExportModel, ExportSpec
 from fusion_depth.models import DEFAULT_MODEL
+from fusion_depth.runner.checkpoints import LoadedModel
+from fusion_depth.runner.record import training_identity
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:

@@ -24,7 +24,7 @@ class DepthModel(nn.Module):
     ``uses_sparse``) and implement ``forward(image, sparse) -> output`` (``forward(image, sparse,
     points)`` with :attr:`takes_points`). A subclass may define ``training_loss(batch,
     depth_loss) -> dict`` to compute its own training loss (``model=radarnet``'s stages);
-    :class:`~fusion_depth.experiment.module.DepthModule` then uses it.
+    :class:`~fusion_depth.runner.module.DepthModule` then uses it.
 
     Args:
         min_depth, max_depth: the depth range in metres; predictions are clipped to it.

@@ -1,1 +1,2 @@
-"""Optimisation: learning-rate schedules, created by name (``scheduler=``)."""
+"""Optimisation: learning-rate schedules, created by name (``scheduler=``, :mod:`.schedules`),
+and the values the ``optimizer`` group may take (:mod:`.optimizers`)."""

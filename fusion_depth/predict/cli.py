@@ -40,8 +40,6 @@ from omegaconf import DictConfig
 
 from fusion_depth.config.hydra_main import hydra_main
 from fusion_depth.data import SPLITS
-from fusion_depth.experiment.checkpoints import load_model
-from fusion_depth.experiment.speed import autocast, resolve_device, resolve_precision, speed_up
 from fusion_depth.export.runtime import check_source, load_exported
 from fusion_depth.predict.files import (
     SPLIT_PREFIX,
@@ -50,6 +48,8 @@ from fusion_depth.predict.files import (
     predict_folder,
     predict_split,
 )
+from fusion_depth.runner.checkpoints import load_model
+from fusion_depth.runner.speed import autocast, resolve_device, resolve_precision, speed_up
 from fusion_depth.utils.console import quiet_known_noise
 
 quiet_known_noise()

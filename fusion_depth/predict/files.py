@@ -50,9 +50,9 @@ from fusion_depth.data import SPLITS
 from fusion_depth.data.cache import one_line
 from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
 from fusion_depth.data.visualize import depth_panel, with_colorbar
-from fusion_depth.experiment.checkpoints import LoadedModel, dataset_config, make_reader
 from fusion_depth.models.inference import predict_depth
-from fusion_depth.utils.files import write_atomic
+from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, make_reader
+from fusion_depth.utils.atomic import write_atomic
 from fusion_depth.utils.progress import Progress
 
 # Named after the command, as its log lines have always been (and as users filter them).

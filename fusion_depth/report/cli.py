@@ -62,7 +62,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from fusion_depth.experiment.record import METRICS_FILE, load_runs
 from fusion_depth.report.by_model import (
     BY_MODEL,
     SECTION,
@@ -83,6 +82,7 @@ from fusion_depth.report.groups import (
     group_runs,
 )
 from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
+from fusion_depth.runner.record import METRICS_FILE, load_runs
 
 # --- W&B: --wandb ------------------------------------------------------------------------------
 
@@ -112,7 +112,7 @@ def log_wandb(
     """
     import wandb
 
-    from fusion_depth.experiment.loggers import wandb_logged_in
+    from fusion_depth.runner.loggers import wandb_logged_in
 
     directory = Path(directory)
     try:

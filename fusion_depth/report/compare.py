@@ -19,8 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion_depth.experiment.record import RunRecord
-from fusion_depth.experiment.run_folder import PER_IMAGE_FILE
 from fusion_depth.metrics.bootstrap import BootstrapResult, paired_bootstrap
 from fusion_depth.report.groups import (
     ALL,
@@ -31,6 +29,8 @@ from fusion_depth.report.groups import (
     put_first,
     tex_escape,
 )
+from fusion_depth.runner.record import RunRecord
+from fusion_depth.runner.run_folder import PER_IMAGE_FILE
 from fusion_depth.utils.tables import format_table
 
 # --- Paired comparisons: --compare KEY=VALUE[,KEY=VALUE...] -----------------------------------

@@ -14,11 +14,11 @@ from __future__ import annotations
 import statistics
 from collections.abc import Collection, Sequence
 
-from fusion_depth.experiment.record import BREAKDOWNS, RunRecord
 from fusion_depth.losses.depth_loss import PIXEL_LOSS_LABELS
 from fusion_depth.metrics.depth import HIGHER_IS_BETTER, METRIC_LABELS, METRIC_LATEX, TABLE_METRICS
 from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
+from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
 
 # (metric key, column header, LaTeX header, better) of the tables, from the metrics' own tables.
@@ -58,7 +58,7 @@ def _setting(run: RunRecord) -> str:
 
 
 def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
-    """Groups of runs (:func:`fusion_depth.experiment.record.load_runs`) that differ only in seed,
+    """Groups of runs (:func:`fusion_depth.runner.record.load_runs`) that differ only in seed,
     in the paper's order (models in the model table's order, then loss, then modality). Each
     group: its identity (``dataset``, ``sensor``, ``model``, ``backbone``, ``loss``,
     ``fusion``, ``setting``, ``engine``), ``n``, ``seeds``, ``stats`` (metric → mean, std over

@@ -21,7 +21,7 @@ from fusion_depth.report.groups import (
     metric_label,
     run_metric,
 )
-from fusion_depth.utils.files import write_atomic
+from fusion_depth.utils.atomic import write_atomic
 
 if TYPE_CHECKING:  # Matplotlib is imported by the plots only: a table should print at once.
     from matplotlib.axes import Axes

@@ -24,8 +24,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.hydra_main import hydra_main
 from fusion_depth.data import SPLITS
-from fusion_depth.experiment.checkpoints import make_reader
-from fusion_depth.experiment.protocol import EvalProtocol, EvaluationResult, results_tables
+from fusion_depth.runner.checkpoints import make_reader
+from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, results_tables
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ def score_sparse_input(
 
     Args:
         dataset: a split of any reader (samples as :class:`~fusion_depth.data.Sample`).
-        protocol: how to score (:class:`~fusion_depth.experiment.protocol.EvalProtocol`).
+        protocol: how to score (:class:`~fusion_depth.runner.protocol.EvalProtocol`).
         conditions: the dataset's condition names, for the per-condition rows (None: none).
 
     Raises:

@@ -14,10 +14,10 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from fusion_depth.config.hydra_main import hydra_main, user_message
-from fusion_depth.experiment.hparams_search import DEFAULT_METRIC, metric_key, objective
-from fusion_depth.experiment.redaction import redact_overrides
-from fusion_depth.experiment.resume import RunLockedError
-from fusion_depth.experiment.run_folder import record_failure
+from fusion_depth.runner.hparams_search import DEFAULT_METRIC, metric_key, objective
+from fusion_depth.runner.redaction import redact_overrides
+from fusion_depth.runner.resume import RunLockedError
+from fusion_depth.runner.run_folder import record_failure
 from fusion_depth.train.fit import train_record
 from fusion_depth.utils.console import quiet_known_noise
 
@@ -28,7 +28,7 @@ quiet_known_noise()
 @hydra_main("train")
 def main(cfg: DictConfig) -> float | None:
     """Hydra entry point. Returns the run's ``optimized_metric`` (a validation metric,
-    :func:`fusion_depth.experiment.hparams_search.objective`), what a sweeper such as
+    :func:`fusion_depth.runner.hparams_search.objective`), what a sweeper such as
     ``hparams_search=optuna`` optimises; None on the ranks that do not test. In a sweep a
     failing job is recorded, returns None (a failed trial to the Optuna sweeper) and the sweep
     goes on."""

@@ -24,12 +24,12 @@ from omegaconf import DictConfig, OmegaConf
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
 from fusion_depth.data.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
-from fusion_depth.experiment.checkpoint_io import AtomicCheckpointIO
-from fusion_depth.experiment.distributed import launch_local_ranks, local_world_size
-from fusion_depth.experiment.loggers import closing
-from fusion_depth.experiment.module import DepthModule
-from fusion_depth.experiment.protocol import EvaluationResult
-from fusion_depth.experiment.record import (
+from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
+from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
+from fusion_depth.runner.loggers import closing
+from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.protocol import EvaluationResult
+from fusion_depth.runner.record import (
     METRICS_FILE,
     RunIdentity,
     RunRecord,
@@ -37,18 +37,18 @@ from fusion_depth.experiment.record import (
     read_run_record,
     run_identity,
 )
-from fusion_depth.experiment.redaction import redact_overrides, redact_secrets
-from fusion_depth.experiment.resume import (
+from fusion_depth.runner.redaction import redact_overrides, redact_secrets
+from fusion_depth.runner.resume import (
     RunLock,
     RunStart,
     identity_overrides,
     is_lead_process,
     plan_start,
 )
-from fusion_depth.experiment.run_folder import RESOLVED_CONFIG_FILE
-from fusion_depth.experiment.speed import accelerator_device, resolve_precision
+from fusion_depth.runner.run_folder import RESOLVED_CONFIG_FILE
+from fusion_depth.runner.speed import accelerator_device, resolve_precision
+from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.checkpoint_file import plain_config
-from fusion_depth.utils.files import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -74,11 +74,11 @@ def not_identity_keys() -> list[str]:
 
 def train(cfg: DictConfig) -> dict | None:
     """Fit, test the best checkpoint, write ``metrics.json``; returns its contents
-    (:meth:`RunRecord.to_json <fusion_depth.experiment.record.RunRecord.to_json>`; None on the ranks
+    (:meth:`RunRecord.to_json <fusion_depth.runner.record.RunRecord.to_json>`; None on the ranks
     other than 0 of a data-parallel run that a cluster launcher started).
 
     A run whose ``metrics.json`` is complete is not trained again, and one with a
-    ``last.ckpt`` continues from it (see :mod:`fusion_depth.experiment.resume`)."""
+    ``last.ckpt`` continues from it (see :mod:`fusion_depth.runner.resume`)."""
     record = train_record(cfg)
     return record.to_json() if record is not None else None
 

@@ -1,2 +1,4 @@
-"""The lowest layer: what every other part uses and that knows nothing of depth or training
-(console noise, progress, tables, atomic file writes, checkpoint files read as data)."""
+"""The lowest layer: what every other part uses and that knows nothing of depth or training:
+atomic file writes (:mod:`.atomic`), checkpoint files read as data (:mod:`.checkpoint_file`),
+config schemas (:mod:`.schema`), a value as typed on the command line (:mod:`.overrides`),
+progress, tables and console noise."""

@@ -1,6 +1,5 @@
-"""Reading a checkpoint file without executing code from it.
-
-Loading a trained model back from a checkpoint, without executing code from the file.
+"""Reading a checkpoint file without executing code from it (rebuilding a model from what it
+records is :mod:`fusion_depth.runner.checkpoints`).
 
 Checkpoints are read with ``torch.load(weights_only=True)``, which only rebuilds tensors and
 plain containers. Training stores its run config in every checkpoint (``fusion_depth_config``)

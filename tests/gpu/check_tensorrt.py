@@ -50,9 +50,9 @@ def _checkpoint(folder: Path) -> Path:
 def _export_and_run(ckpt: Path, folder: Path, precision: str) -> dict[str, Any]:
     import torch
 
-    from fusion_depth.experiment.checkpoints import load_model
     from fusion_depth.export import export_model, load_exported, sidecar_path
     from fusion_depth.models.inference import predict_depth
+    from fusion_depth.runner.checkpoints import load_model
 
     loaded = load_model(ckpt)
     start = time.perf_counter()

@@ -13,8 +13,8 @@ import torch
 from hydra.errors import CompactHydraException
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
+from fusion_depth.utils.atomic import write_atomic
 from fusion_depth.utils.checkpoint_file import load_weights_only
-from fusion_depth.utils.files import write_atomic
 
 
 class CheckpointWriteError(OSError, CompactHydraException):

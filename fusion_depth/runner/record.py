@@ -2,12 +2,11 @@
 
 A training run (:mod:`fusion_depth.train`) and a re-scored checkpoint
 (:mod:`fusion_depth.evaluate`) each end by writing one :class:`RunRecord` into their output
-folder; :mod:`fusion_depth.experiment.resume`, :mod:`fusion_depth.experiment.sweep_summary`,
-``evaluate`` (a folder of runs)
-and :mod:`fusion_depth.report` read it back. This module is the only one that knows the file's
-keys: add a field to :class:`RunRecord` (or :class:`RunIdentity`) and every writer writes it and
-every reader gets it. (The metrics inside the ``test*`` sections are keyed by
-:data:`fusion_depth.metrics.depth.METRIC_KEYS`.)
+folder; :mod:`fusion_depth.runner.resume`, :mod:`fusion_depth.runner.sweep_summary`,
+``evaluate`` (a folder of runs) and :mod:`fusion_depth.report` read it back. This module is the
+only one that knows the file's keys: add a field to :class:`RunRecord` (or :class:`RunIdentity`)
+and every writer writes it and every reader gets it. (The metrics inside the ``test*`` sections
+are keyed by :data:`fusion_depth.metrics.depth.METRIC_KEYS`.)
 """
 
 from __future__ import annotations
@@ -19,15 +18,15 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from fusion_depth.experiment.protocol import (
+from fusion_depth.models._registry import DEFAULT_MODEL
+from fusion_depth.runner.protocol import (
     EvaluationResult,
     log_to_loggers,
     results_tables,
     write_per_image,
 )
-from fusion_depth.experiment.run_folder import PER_IMAGE_FILE, provenance
-from fusion_depth.models._registry import DEFAULT_MODEL
-from fusion_depth.utils.files import write_json_atomic
+from fusion_depth.runner.run_folder import PER_IMAGE_FILE, provenance
+from fusion_depth.utils.atomic import write_json_atomic
 
 METRICS_FILE = "metrics.json"
 
@@ -83,8 +82,9 @@ class _Stored:
 class RunIdentity(_Stored):
     """What a run is: the choices ``report`` groups runs by and the overrides that made it.
 
-    Also saved in every checkpoint (``checkpoint.RUN_KEY``), where ``resume`` finds the run's
-    overrides and W&B run and ``evaluate`` the training run's identity. Built by
+    Also saved in every checkpoint (:data:`fusion_depth.utils.checkpoint_file.RUN_KEY`), where
+    ``resume`` finds the run's overrides and W&B run and ``evaluate`` the training run's
+    identity. Built by
     :func:`run_identity` (and :func:`rescored_identity`); values read from a file are as
     recorded, unchecked: readers check the types they rely on.
     """
@@ -218,7 +218,7 @@ class RunRecord(_Stored):
         cls, identity: RunIdentity, result: EvaluationResult, split: str, **outcome: Any
     ) -> RunRecord:
         """The record of a finished run scored on ``split`` with ``result`` (the test stage's,
-        :meth:`fusion_depth.experiment.module.DepthModule.run_test`); ``outcome``: the training
+        :meth:`fusion_depth.runner.module.DepthModule.run_test`); ``outcome``: the training
         fields (train) or ``checkpoint`` and ``seed`` (evaluate). Adds the package versions."""
         return cls(
             status="ok",

@@ -13,7 +13,7 @@ from typing import Any
 
 from lightning.pytorch.loggers import CSVLogger, WandbLogger
 
-from fusion_depth.experiment.redaction import redact_overrides, redact_secrets
+from fusion_depth.runner.redaction import redact_overrides, redact_secrets
 
 
 def wandb_logged_in() -> bool:
@@ -114,7 +114,7 @@ class ResumableCSVLogger(CSVLogger):
     optimizer steps taken before the row was logged, is below ``resume_step``); later rows
     belong to work the resumed run redoes, and are dropped so they are not written twice.
     ``resume_row``, the row Lightning logs right after the checkpoint was written (see
-    :func:`fusion_depth.experiment.callbacks.pending_log_row`), is added when a kill came before it.
+    :func:`fusion_depth.runner.callbacks.pending_log_row`), is added when a kill came before it.
     Lightning's own CSVLogger deletes the file when it starts.
     """
 

@@ -10,9 +10,9 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.experiment.record import METRICS_FILE, read_finished
-from fusion_depth.experiment.run_folder import FAILURE_FILE
-from fusion_depth.utils.files import write_json_atomic
+from fusion_depth.runner.record import METRICS_FILE, read_finished
+from fusion_depth.runner.run_folder import FAILURE_FILE
+from fusion_depth.utils.atomic import write_json_atomic
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
-"""The files of a run folder: their names, ``failure.json`` on error, the
-folder names, and where the code that produced a run came from. ``metrics.json``, the record
-of a finished run, is :mod:`fusion_depth.experiment.record`'s.
+"""The files of a run folder: their names, ``failure.json`` on error, and where the code that
+produced a run came from. ``metrics.json``, the record of a finished run, is
+:mod:`fusion_depth.runner.record`'s; the folder's name, :mod:`fusion_depth.config.run_dirs`'s.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from fusion_depth.utils.files import write_json_atomic
+from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.version import __version__
 
 FAILURE_FILE = "failure.json"

@@ -14,7 +14,7 @@ from lightning.pytorch.callbacks import Checkpoint
 from lightning.pytorch.loggers import WandbLogger
 
 from fusion_depth.data.visualize import PANEL_CAPTION, panel_figure, write_panel_figure
-from fusion_depth.experiment.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
+from fusion_depth.runner.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
 from fusion_depth.utils.progress import format_duration
 from fusion_depth.utils.schema import POSITIVE, Rule, Schema
 

@@ -14,14 +14,14 @@ from torch import nn
 
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.visualize import PanelFrame
-from fusion_depth.experiment.protocol import EvalProtocol, EvaluationResult, latency_summary
-from fusion_depth.experiment.record import RunIdentity
-from fusion_depth.experiment.speed import speed_up
 from fusion_depth.losses.depth_loss import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics.depth import DepthMetrics
 from fusion_depth.models import DepthModel
 from fusion_depth.models.inference import predict_depth, resize_depth
 from fusion_depth.optim.schedules import schedule_interval
+from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, latency_summary
+from fusion_depth.runner.record import RunIdentity
+from fusion_depth.runner.speed import speed_up
 from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY
 from fusion_depth.utils.schema import (
     NON_NEGATIVE,
@@ -86,7 +86,7 @@ class DepthModule(L.LightningModule):
     and the test stage may add flip test-time augmentation. Validation scores the same way
     without it. :meth:`run_test` runs the test stage and returns what it measured.
     ``channels_last``, ``compile`` (true/false/auto) and ``compile_mode`` are applied once the
-    device is known (:func:`fusion_depth.experiment.speed.speed_up`); the precision is the
+    device is known (:func:`fusion_depth.runner.speed.speed_up`); the precision is the
     Trainer's. ``run_config`` (the resolved run config, plain data) is saved in every checkpoint so
     evaluation can rebuild the run without unpickling code. ``loss`` and ``optimizer`` may be
     None for a module that only evaluates.

@@ -2,7 +2,7 @@
 ``evaluate``: the ``eval`` config group (:class:`EvalProtocol`: depth caps, crop, averaging,
 flip TTA, upsampling, distance bins), a test stage's :class:`EvaluationResult` (metric tables,
 per-image records, latency), ``per_image.csv`` and the printed and W&B tables. The run record
-that holds the results, ``metrics.json``, is :mod:`fusion_depth.experiment.record`'s.
+that holds the results, ``metrics.json``, is :mod:`fusion_depth.runner.record`'s.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from fusion_depth.experiment.speed import cpu_model
 from fusion_depth.metrics.depth import (
     AVERAGING,
     EVAL_CROPS,
@@ -28,7 +27,8 @@ from fusion_depth.metrics.depth import (
     DepthMetrics,
 )
 from fusion_depth.models.inference import UPSAMPLING
-from fusion_depth.utils.files import write_text_atomic
+from fusion_depth.runner.speed import cpu_model
+from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
 from fusion_depth.utils.tables import format_table
 
@@ -129,7 +129,7 @@ def latency_summary(
 
 @dataclass(frozen=True)
 class EvaluationResult:
-    """What one test stage measured (:meth:`fusion_depth.experiment.module.DepthModule.run_test`).
+    """What one test stage measured (:meth:`fusion_depth.runner.module.DepthModule.run_test`).
 
     Each metrics dict holds every key of :data:`~fusion_depth.metrics.depth.METRIC_KEYS` (RMSE and
     MAE in metres) plus ``num_images`` and ``num_pixels``; groups without a scored image are

@@ -7,7 +7,7 @@ config's ``optimized_metric`` (a validation metric; a search never looks at test
 that fails returns nothing, which the sweeper records as a failed trial; the study goes on.
 
 :class:`SearchSummary` is the sweep's Hydra callback (it replaces
-:class:`~fusion_depth.experiment.sweep_summary.SweepSummary`):
+:class:`~fusion_depth.runner.sweep_summary.SweepSummary`):
 
 * **Before the first trial** it checks the metric and the direction, takes the sweep folder's
   lock (one search process per study) and, when the study exists already, continues it:
@@ -35,11 +35,11 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict, read_write
 
 from fusion_depth.errors import ConfigError
-from fusion_depth.experiment.record import RunRecord
-from fusion_depth.experiment.resume import RunLock
-from fusion_depth.experiment.sweep_summary import SweepSummary, summarize_sweep
 from fusion_depth.metrics.depth import HIGHER_IS_BETTER, METRIC_KEYS
-from fusion_depth.utils.files import write_json_atomic, write_text_atomic
+from fusion_depth.runner.record import RunRecord
+from fusion_depth.runner.resume import RunLock
+from fusion_depth.runner.sweep_summary import SweepSummary, summarize_sweep
+from fusion_depth.utils.atomic import write_json_atomic, write_text_atomic
 from fusion_depth.utils.overrides import show
 
 log = logging.getLogger(__name__)

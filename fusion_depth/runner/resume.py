@@ -24,8 +24,8 @@ from typing import Any
 import yaml
 from hydra.errors import CompactHydraException
 
-from fusion_depth.experiment.record import METRICS_FILE, RunIdentity, read_finished
-from fusion_depth.experiment.run_folder import (
+from fusion_depth.runner.record import METRICS_FILE, RunIdentity, read_finished
+from fusion_depth.runner.run_folder import (
     FAILURE_FILE,
     PER_IMAGE_FILE,
     RESOLVED_CONFIG_FILE,
@@ -46,7 +46,7 @@ RESUME_MODES = ("auto", "never")
 LAST_CHECKPOINT = "last.ckpt"
 LAST_CHECKPOINT_STATE = "LastCheckpoint"  # its callback state's key in a checkpoint
 LOCK_FILE = ".run.lock"
-TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.utils.files.write_atomic's temporary names
+TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.utils.atomic.write_atomic's temporary names
 
 
 @dataclass
@@ -163,7 +163,7 @@ def identity_overrides(overrides: Sequence[str], excluded: Collection[str]) -> l
 
 def finished_results(output_dir: Path) -> dict | None:
     """The contents of the run's ``metrics.json`` if it holds a finished run's results
-    (:func:`fusion_depth.experiment.record.read_finished`: status ok, test metrics, at least one
+    (:func:`fusion_depth.runner.record.read_finished`: status ok, test metrics, at least one
     optimizer step trained), else None."""
     record = read_finished(output_dir)
     return record.to_json() if record is not None else None

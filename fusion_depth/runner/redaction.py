@@ -14,7 +14,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from fusion_depth.utils.files import write_text_atomic
+from fusion_depth.utils.atomic import write_text_atomic
 
 REDACTED = "***"
 _SECRET_WORDS = (
