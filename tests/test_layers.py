@@ -45,7 +45,7 @@ def test_the_package_keeps_its_layers() -> None:
     ("module", "upward", "in_function"),
     [
         ("models/base.py", "fusion_depth.runner.module", True),
-        ("utils/files.py", "fusion_depth.data.depth_io", False),
+        ("utils/atomic.py", "fusion_depth.data.depth_io", False),
         ("runner/resume.py", "fusion_depth.config.run_dirs", True),
         ("data/cache.py", "fusion_depth.prepare.cli", True),
         ("export/runtime.py", "fusion_depth.predict.files", True),
