@@ -196,9 +196,9 @@ def _best_checkpoint(trainer: L.Trainer) -> tuple[str, float | None]:
     best = best_callback.best_model_path
     # Resumed in a run folder that was moved, Lightning restores the best path as it was then:
     # the file is now in this run's checkpoint folder.
-    moved = Path(best_callback.dirpath or "") / Path(best).name
-    if best and not Path(best).is_file() and moved.is_file():
-        best = str(moved)
+    if best and not Path(best).is_file():
+        moved = Path(best_callback.dirpath) / Path(best).name  # conf/callbacks sets dirpath
+        best = str(moved) if moved.is_file() else best
     return best, float(score) if best and score is not None else None
 
 
