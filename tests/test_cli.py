@@ -20,12 +20,8 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from PIL import Image
 
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values, validate_config
-from fusion_depth.config.hydra_main import (
-    PATH_KEYS,
-    check_override_keys,
-    literal_paths,
-    register_sweeps,
-)
+from fusion_depth.config.hydra_main import register_sweeps, unknown_key_message, user_message
+from fusion_depth.config.run_dirs import job_subdir, run_dir, run_dirname, sweep_dir
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
 from fusion_depth.models import DepthNet
@@ -35,52 +31,72 @@ from fusion_depth.train.fit import train
 
 # --- paths as printed are paths as accepted ---------------------------------------------------
 
-PRINTED_PATHS = [
-    "outputs/fusion=concat,loss=l1/checkpoints/epoch019-rmse8.1234.ckpt",
-    "multirun/fusion=rgb,concat,add,loss=l1,l2,berhu",
-    "multirun/procedural_weather/fusion=concat,seed=43/checkpoints/last.ckpt",
-    "/tmp/runs/experiment=smoke,trainer.max_epochs=3/predictions",
-    "outputs/evaluate/2026-11-30/17-19-11",
-    "it's here/a [b] {c} (d)=e.ckpt",
-    "C:\\data\\x=1",
+# Hydra's override_dirname of runs, as it joins them: sweeps, paths, lists, quotes, spaces.
+OVERRIDE_DIRNAMES = [
+    "fusion=concat,loss=l1",
+    "fusion=rgb,concat,add,loss=l1,l2,berhu",
+    "experiment=smoke,optimizer.lr=1e-4,seed=-1,trainer.max_epochs=3",
+    "+dataset.tag=night rain,dataset.root=/data/kitti,eval.max_depth=[50,70,80]",
+    "input='a=b.png',hydra.run.dir=${now:%H-%M},x={a: 1}",
 ]
 
 
-@pytest.mark.parametrize("path", PRINTED_PATHS)
+@pytest.mark.parametrize("override_dirname", OVERRIDE_DIRNAMES)
 @pytest.mark.parametrize("key", ["ckpt_path", "input", "hydra.run.dir", "dataset.root", "+x.y"])
-def test_a_printed_path_arrives_as_typed(key: str, path: str) -> None:
-    (typed,) = literal_paths([f"{key}={path}"])
-    override = OverridesParser.create().parse_override(typed)
-    assert override.value() == path
-    assert not override.is_sweep_override()
+def test_a_path_a_run_prints_goes_back_unquoted(key: str, override_dirname: str) -> None:
+    name = run_dirname(override_dirname)
+    for path in (
+        f"outputs/{name}/checkpoints/epoch019-rmse8.1234.ckpt",
+        f"multirun/procedural_weather/{name}/{name}/checkpoints/last.ckpt",
+        f"/tmp/runs/{name}/predictions",
+    ):
+        override = OverridesParser.create().parse_override(f"{key}={path}")
+        assert override.value() == path
+        assert not override.is_sweep_override()
 
 
-def test_a_comma_is_a_path_where_that_path_exists_or_a_run_folder_is_meant(tmp_path) -> None:
-    folder = tmp_path / "a,b"
-    folder.mkdir()
-    parser = OverridesParser.create()
-    for override in (f"input={folder}", f"ckpt_path={folder}/", "hydra.run.dir=runs/a,b"):
-        (typed,) = literal_paths([override])
-        assert parser.parse_override(typed).value() == override.partition("=")[2]
-    # A path key whose comma-separated parts are not one existing path stays a sweep.
-    assert literal_paths([f"input={tmp_path}/x.png,{tmp_path}/y.png"]) == [
-        f"input={tmp_path}/x.png,{tmp_path}/y.png"
-    ]
+def test_run_folder_names_read_as_their_overrides() -> None:
+    assert run_dirname("fusion=concat,loss=l1") == "fusion-concat+loss-l1"
+    assert run_dirname("fusion=rgb,concat,loss=l1") == "fusion-rgb+concat+loss-l1"
+    assert run_dirname("optimizer.lr=1e-4,+dataset.tag=a b") == "optimizer.lr-1e-4++dataset.tag-a_b"
+    assert run_dirname("") == "default"
 
 
-def test_what_the_grammar_reads_is_left_alone() -> None:
-    kept = [
-        "fusion=concat",
-        "seed=42,43",  # a sweep
-        "ckpt_path='a=b.ckpt'",  # already quoted
-        "hydra.run.dir=outputs/${now:%H-%M}",  # an interpolation
-        "dataset.root=/data/kitti",
-        "input=a.png,b.png",  # a sweep over paths without '='
-        "eval.max_depth=[50,70,80]",
-        "loss=x=y",  # not a path: Hydra's own error
-    ]
-    assert literal_paths(kept) == kept
-    assert "ckpt_path" in PATH_KEYS and "input" in PATH_KEYS
+def test_a_run_folder_of_an_earlier_release_is_found_by_the_same_command(tmp_path) -> None:
+    """Folders named before 0.2 (``fusion=concat,loss=l1``) are used when only they exist, so
+    the same command resumes or skips them; a folder of the new name wins when both exist."""
+    dirname = "fusion=concat,loss=l1"
+    outputs = tmp_path / "outputs"
+    assert run_dir(str(outputs), dirname) == f"{outputs}/fusion-concat+loss-l1"
+    (outputs / dirname).mkdir(parents=True)
+    assert run_dir(str(outputs), dirname) == f"{outputs}/{dirname}"
+    (outputs / "fusion-concat+loss-l1").mkdir()
+    assert run_dir(str(outputs), dirname) == f"{outputs}/fusion-concat+loss-l1"
+    # a sweep and its jobs, under a sweep config's name
+    multirun = tmp_path / "multirun"
+    legacy = multirun / "procedural_weather" / "seed=42,43"
+    (legacy / "fusion=concat,seed=42").mkdir(parents=True)
+    found = sweep_dir(str(multirun), "procedural_weather", "seed=42,43")
+    assert found == str(legacy)
+    assert job_subdir(found, "fusion=concat,seed=42") == "fusion=concat,seed=42"
+    assert job_subdir(found, "fusion=concat,seed=43") == "fusion-concat+seed-43"
+    assert sweep_dir(str(multirun), "train", "seed=1,2") == f"{multirun}/seed-1+2"
+    assert sweep_dir(str(multirun), "procedural_weather", "") == f"{multirun}/procedural_weather"
+    assert sweep_dir(str(multirun), "train", "") == f"{multirun}/default"
+
+
+def test_a_path_of_ones_own_with_syntax_in_it_gets_its_quoted_form() -> None:
+    from hydra.errors import OverrideParseException
+
+    for override in ("ckpt_path=outputs/fusion=concat,loss=l1/x.ckpt", "input=my runs/a (1).png"):
+        with pytest.raises(OverrideParseException) as err:
+            OverridesParser.create().parse_overrides([override])
+        message = user_message(err.value)
+        key, _, value = override.partition("=")
+        quoted = f"'{key}=\"{value}\"'"
+        assert message.startswith(f"{override}: ") and message.endswith(f"quote it: {quoted}")
+        (typed,) = shlex.split(quoted)
+        assert OverridesParser.create().parse_override(typed).value() == value
 
 
 # --- unknown keys, with or without + ----------------------------------------------------------
@@ -88,10 +104,10 @@ def test_what_the_grammar_reads_is_left_alone() -> None:
 
 def _key_error(*overrides: str, config_name: str = "train") -> str:
     GlobalHydra.instance().clear()
-    with pytest.raises(ConfigError) as err:
-        check_override_keys(config_name, list(overrides))
-    message = str(err.value)
-    assert "\n" not in message
+    with pytest.raises(Exception) as err, initialize_config_dir(CONF_DIR, version_base="1.3"):
+        compose(config_name, overrides=list(overrides), return_hydra_config=True)
+    message = unknown_key_message(err.value, list(overrides))
+    assert message is not None and "\n" not in message
     return message
 
 
@@ -100,8 +116,8 @@ def test_unknown_key_without_plus_gets_the_did_you_mean_line() -> None:
         "trainer.max_epoch: unknown key (did you mean max_epochs?); expected one of"
     )
     assert "did you mean trainer?" in _key_error("trainr.max_epochs=3")
-    # in a sweep, and for evaluate's config too
-    assert "did you mean max_epochs?" in _key_error("fusion=rgb,concat", "trainer.max_epoch=3")
+    # a sweep's job, as the launcher composes it (the command line: below), and evaluate's
+    assert "did you mean max_epochs?" in _key_error("fusion=rgb", "trainer.max_epoch=3")
     assert "did you mean split?" in _key_error("ckpt_path=x", "splt=val", config_name="evaluate")
 
 
@@ -109,15 +125,15 @@ def test_a_trainer_argument_the_config_lacks_says_how_to_add_it() -> None:
     assert "add it with +trainer.detect_anomaly=true" in _key_error("trainer.detect_anomaly=true")
 
 
-def test_known_keys_and_other_problems_pass_to_hydra() -> None:
+def test_other_problems_are_left_to_hydra() -> None:
     GlobalHydra.instance().clear()
-    for overrides in (
-        ["trainer.max_epochs=3", "trainer.accumulate_grad_batches=2", "trainer.max_steps=5"],
-        ["fusion=nope"],  # Hydra lists the options itself
-        ["loss=l1,l2", "fusion=concat"],
-        ["+trainer.max_epoch=3"],  # + is for the config checks (test_safety)
-    ):
-        check_override_keys("train", overrides)
+    with pytest.raises(Exception) as err, initialize_config_dir(CONF_DIR, version_base="1.3"):
+        compose("train", overrides=["fusion=nope"], return_hydra_config=True)
+    assert unknown_key_message(err.value, ["fusion=nope"]) is None  # Hydra lists the options
+    # Known keys compose; + adds a key, which the config checks judge (test_safety).
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(CONF_DIR, version_base="1.3"):
+        compose("train", overrides=["trainer.max_epochs=3", "+trainer.max_epoch=3"])
 
 
 @pytest.fixture
@@ -145,7 +161,7 @@ def test_the_packaged_sweeps_are_found_by_name(packaged_sweeps) -> None:
 # Placeholders the README uses for values the reader fills in.
 PLACEHOLDERS = {
     "<best>": "epoch019-rmse8.8491",
-    "<ckpt>": "outputs/fusion=concat/checkpoints/epoch019-rmse8.8491.ckpt",
+    "<ckpt>": "outputs/fusion-concat/checkpoints/epoch019-rmse8.8491.ckpt",
     "<sweep>": "loss_fusion_grid",
     "<name>": "topview",
 }
@@ -203,7 +219,7 @@ def test_every_readme_command_parses_and_composes(
     command: str, monkeypatch, tmp_path, packaged_sweeps
 ) -> None:
     """Each command's arguments go through the command's own parser: Hydra's override grammar
-    (after the package reads paths as typed), then composition of the real configs (groups
+    then composition of the real configs (groups
     and keys exist) and the value checks; report's and bench's argparse options."""
     from hydra._internal.utils import get_args_parser
 
@@ -230,7 +246,7 @@ def test_every_readme_command_parses_and_composes(
         main(args)
         assert (tmp_path / args[args.index("--out") + 1]).is_file()
         return
-    overrides = OverridesParser.create().parse_overrides(literal_paths(args))
+    overrides = OverridesParser.create().parse_overrides(args)
     single = [
         f"{o.get_key_element()}={next(iter(o.sweep_string_iterator()))}"
         if o.is_sweep_override()
@@ -431,10 +447,10 @@ def test_a_corrupt_data_file_is_a_short_error_naming_it(tmp_path) -> None:
     args = [
         "fusion_depth.train",
         "dataset=topview",
-        f"dataset.root={bad.parents[2]}",  # a folder with '=' in its name, pasted unquoted
+        f"dataset.root='{bad.parents[2]}'",  # a folder with '=' in its name, quoted
         "experiment=smoke",
         "logger=none",
-        f"hydra.run.dir={tmp_path / 'run=1'}",
+        f"hydra.run.dir='{tmp_path / 'run=1'}'",
     ]
     short = run_module(args, cwd=tmp_path)
     assert short.returncode == 1
@@ -467,6 +483,10 @@ def test_unknown_key_on_the_command_line_is_one_line(tmp_path) -> None:
     ]
     assert "did you mean max_epochs?" in done.stderr
     assert not (tmp_path / "outputs").exists()
+    sweep = ["fusion_depth.train", "-m", "experiment=smoke", "fusion=rgb,concat"]
+    done = run_module([*sweep, "trainer.max_epoch=3"], tmp_path)
+    assert done.returncode == 1
+    assert done.stderr.strip().startswith("trainer.max_epoch: unknown key (did you mean max_ep")
 
 
 @pytest.mark.slow

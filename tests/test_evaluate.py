@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -186,8 +187,15 @@ def test_a_folder_of_runs_is_rescored_run_by_run(checkpoints, tmp_path) -> None:
         (sweep / name).mkdir(parents=True)
         record = {"run": {}, "test": {}, "best_checkpoint": str(checkpoints[fusion])}
         (sweep / name / "metrics.json").write_text(json.dumps(record))
+    # A run folder moved here from elsewhere: its record names the checkpoint where it was.
+    moved = sweep / "moved"
+    (moved / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoints["rgb"], moved / "checkpoints" / "epoch000-rmse1.0.ckpt")
+    record = {"run": {}, "test": {}, "best_checkpoint": "/gone/checkpoints/epoch000-rmse1.0.ckpt"}
+    (moved / "metrics.json").write_text(json.dumps(record))
     results = _evaluate([f"ckpt_path={sweep}", "eval.flip_tta=true"], tmp_path / "out")
-    assert sorted(r["run"]["fusion"] for r in results) == ["concat", "rgb"]
+    assert sorted(r["run"]["fusion"] for r in results) == ["concat", "rgb", "rgb"]
+    assert (tmp_path / "out" / "moved" / "metrics.json").is_file()
     for name in ("fusion=rgb", "fusion=concat"):
         saved = json.loads((tmp_path / "out" / name / "metrics.json").read_text())
         assert saved["protocol"]["flip_tta"] is True

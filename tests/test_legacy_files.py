@@ -94,11 +94,18 @@ def test_the_earlier_releases_files_predict_the_same_depth(tmp_path: Path) -> No
 def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_path: Path) -> None:
     """A run folder that release wrote (interrupted before its test stage, so ``last.ckpt`` but
     no ``metrics.json``), moved to another place, resumes under the same command and finishes
-    with the numbers that release's own run printed, testing the best checkpoint it kept."""
-    run_dir = tmp_path / "moved" / "run"
+    with the numbers that release's own run printed, testing the best checkpoint it kept. That
+    release named run folders with ``=`` and ``,``: the same command, without a run folder on
+    its command line, finds the folder of that name."""
+    hydra_record = yaml.safe_load(
+        (FIXTURES / "interrupted_run" / ".hydra" / "hydra.yaml").read_text()
+    )
+    legacy_name = hydra_record["hydra"]["job"]["override_dirname"]
+    assert "=" in legacy_name and "," in legacy_name
+    run_dir = tmp_path / "outputs" / legacy_name
     shutil.copytree(FIXTURES / "interrupted_run", run_dir)
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text())
-    result = run_module(["fusion_depth.train", *overrides, f"hydra.run.dir={run_dir}"], tmp_path)
+    result = run_module(["fusion_depth.train", *overrides], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     log = (run_dir / "train.log").read_text()
     assert f"resuming from {run_dir / 'checkpoints' / 'last.ckpt'}" in log
@@ -106,3 +113,4 @@ def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_
     assert Path(record["best_checkpoint"]).parent == run_dir / "checkpoints"
     for block in ("test", "test_by_condition"):
         _assert_same_numbers(record[block], EXPECTED["interrupted_run"][block], block)
+    assert sorted(p.name for p in (tmp_path / "outputs").iterdir()) == [legacy_name]

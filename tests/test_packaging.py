@@ -101,15 +101,14 @@ def test_the_installed_package_runs_a_smoke_sweep_from_any_folder(wheel, tmp_pat
     assert sweep.returncode == 0, sweep.stderr[-3000:]
     runs = sorted((work / "multirun" / "procedural_weather").rglob("metrics.json"))
     assert [r.parent.name for r in runs] == [
-        "experiment=smoke,fusion=concat,seed=42,trainer.max_epochs=1",
-        "experiment=smoke,fusion=rgb,seed=42,trainer.max_epochs=1",
+        "experiment-smoke+fusion-concat+seed-42+trainer.max_epochs-1",
+        "experiment-smoke+fusion-rgb+seed-42+trainer.max_epochs-1",
     ]
     best = json.loads(runs[0].read_text())["best_checkpoint"]
     assert best in sweep.stdout + sweep.stderr  # printed ...
 
-    # ... and pasted back unquoted, relative to the folder, '=' and ',' and all.
+    # ... and pasted back unquoted, relative to the folder.
     pasted = os.path.relpath(best, work)
-    assert "=" in pasted and "," in pasted
     scored = _run([str(target / "bin" / "fusion-depth-evaluate"), f"ckpt_path={pasted}"], work, env)
     assert scored.returncode == 0, scored.stderr[-3000:]
     written = re.search(r"Written to (\S+metrics\.json)", scored.stdout)

@@ -330,7 +330,7 @@ def test_a_restored_loader_hands_out_the_rest_of_its_epoch(tmp_path) -> None:
 def test_run_dirname_is_stable_and_safe() -> None:
     assert run_dirname("") == "default"
     assert (
-        run_dirname("dataset.root=/data/kitti,fusion=add") == "dataset.root=_data_kitti,fusion=add"
+        run_dirname("dataset.root=/data/kitti,fusion=add") == "dataset.root-_data_kitti+fusion-add"
     )
     long = "x=" + "a" * 400
     name = run_dirname(long)

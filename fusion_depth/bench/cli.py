@@ -46,7 +46,8 @@ from omegaconf import DictConfig
 
 from fusion_depth.bench.stages import BENCH_ENGINES, STAGES, run_bench
 from fusion_depth.config import CONF_DIR
-from fusion_depth.config.hydra_main import check_override_keys, literal_paths
+from fusion_depth.config.hydra_main import unknown_key_message
+from fusion_depth.errors import ConfigError
 from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.utils.console import quiet_known_noise
 
@@ -54,15 +55,16 @@ quiet_known_noise()
 
 
 def compose_train_config(overrides: Sequence[str]) -> DictConfig:
-    """``conf/train.yaml`` with ``overrides`` (paths read as typed, see
-    :func:`fusion_depth.config.hydra_main.literal_paths`); errors name the offending override."""
+    """``conf/train.yaml`` with ``overrides``; errors name the offending override (an unknown
+    key in one line: :func:`fusion_depth.config.hydra_main.unknown_key_message`)."""
     GlobalHydra.instance().clear()
-    overrides = literal_paths(list(overrides))
-    check_override_keys("train", overrides)  # one line for an unknown key
     try:
         with initialize_config_dir(CONF_DIR, version_base="1.3"):
             cfg = compose("train", overrides=list(overrides))
     except HydraException as err:
+        unknown = unknown_key_message(err, list(overrides))
+        if unknown is not None:
+            raise ConfigError(unknown) from err
         raise ValueError(f"bench overrides {list(overrides)}: {err}") from err
     finally:
         GlobalHydra.instance().clear()

@@ -170,12 +170,18 @@ def evaluate_loaded(cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path
 
 
 def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
-    """(run folder relative to ``folder``, best checkpoint) of every training run below it."""
+    """(run folder relative to ``folder``, best checkpoint) of every training run below it.
+
+    A run folder that was moved (or copied from another machine) records its best checkpoint
+    where it was written: the file of that name in the run's ``checkpoints/`` is used then."""
     found = []
     for metrics in sorted(folder.rglob(METRICS_FILE)):
         best = read_run_record(metrics).best_checkpoint
         if best is not None and not isinstance(best, str):
             raise CheckpointError(f"{metrics}: best_checkpoint={best!r} is not a path")
+        moved = metrics.parent / "checkpoints" / Path(best or "").name  # conf/callbacks' dirpath
+        if best and not Path(best).is_file() and moved.is_file():
+            best = str(moved)
         if best and Path(best).is_file():
             found.append((metrics.parent.relative_to(folder), Path(best)))
         elif best:
