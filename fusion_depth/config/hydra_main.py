@@ -13,6 +13,13 @@
   ``ValueError`` or ``OSError`` raised by package code, also from inside a DataLoader worker)
   print as their message, in a few lines, and so do Hydra's own errors about the user's files (a
   run folder it cannot create); ``HYDRA_FULL_ERROR=1`` shows the full traceback, as in Hydra.
+
+The command line goes to Hydra as typed. Run folders are named so that a path a run prints can
+be pasted back unquoted (:mod:`fusion_depth.config.run_dirs`); a path of one's own with ``=``,
+``,``, spaces or brackets in it is quoted as Hydra's grammar asks (``'ckpt_path="a=b.ckpt"'``),
+and the grammar error shows that form. To see Hydra's errors at all, the command sets
+``HYDRA_FULL_ERROR=1`` while Hydra runs it (Hydra then raises them rather than printing them
+and exiting), and reports them itself, as Hydra would, only shorter.
 """
 
 from __future__ import annotations
