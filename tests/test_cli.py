@@ -156,9 +156,9 @@ def test_the_packaged_sweeps_are_found_by_name(packaged_sweeps) -> None:
     assert Path(SWEEPS_DIR, "procedural_weather.yaml").is_file()
 
 
-# --- every README command, as written ---------------------------------------------------------
+# --- every command of the README and the docs, as written -------------------------------------
 
-# Placeholders the README uses for values the reader fills in.
+# Placeholders the README and the docs use for values the reader fills in.
 PLACEHOLDERS = {
     "<best>": "epoch019-rmse8.8491",
     "<ckpt>": "outputs/fusion-concat/checkpoints/epoch019-rmse8.8491.ckpt",
@@ -170,30 +170,37 @@ HYDRA_COMMANDS = {"train": "train", "prepare": "train", "evaluate": "evaluate",
                   "score_sparse": "score_sparse"}  # fmt: skip
 
 
-def readme_commands() -> list[str]:
-    """Every command line of the README: the lines of its shell code blocks (continuations
-    joined) and the inline ``python -m fusion_depth.<command> ...`` outside them."""
-    commands, block, language = [], None, ""
-    for line in (REPO / "README.md").read_text().splitlines():
-        if line.startswith("```"):
-            if block is None:
-                block, language = [], line[3:].strip()
-                continue
-            if language in ("", "bash"):
-                for joined in "\n".join(block).replace("\\\n", " ").splitlines():
-                    # --config-dir my_conf: the README's own dataset, which needs its files;
-                    # tests/test_own_dataset.py writes them and runs those commands for real.
-                    if re.match(r"\s*(python -m fusion_depth\.|fusion-depth-)", joined) and (
-                        "--config-dir my_conf" not in joined
-                    ):
-                        commands.append(joined.strip())
-            block = None
-        elif block is not None:
-            block.append(line)
-        elif not line.startswith("#"):  # headings name a command without arguments
-            commands += re.findall(
-                r"`((?:python -m fusion_depth\.|fusion-depth-)[^\s`]+ [^`]*)`", line
-            )
+DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+
+
+def documented_commands(paths: list[Path] = DOCUMENTS) -> list[str]:
+    """Every command line of the README and the docs: the lines of their shell code blocks
+    (continuations joined) and the inline ``python -m fusion_depth.<command> ...`` outside
+    them."""
+    commands = []
+    for path in paths:
+        block, language = None, ""
+        for line in path.read_text().splitlines():
+            fence = line.strip()
+            if fence.startswith("```"):
+                if block is None:
+                    block, language = [], fence[3:].strip()
+                    continue
+                if language in ("", "bash", "sh", "console"):
+                    for joined in "\n".join(block).replace("\\\n", " ").splitlines():
+                        # --config-dir my_conf: the own-dataset guide's dataset, which needs its
+                        # files; tests/test_own_dataset.py writes them and runs those commands.
+                        if re.match(r"\s*(python -m fusion_depth\.|fusion-depth-)", joined) and (
+                            "--config-dir my_conf" not in joined
+                        ):
+                            commands.append(joined.strip())
+                block = None
+            elif block is not None:
+                block.append(line)
+            elif not line.startswith("#"):  # headings name a command without arguments
+                commands += re.findall(
+                    r"`((?:python -m fusion_depth\.|fusion-depth-)[^\s`]+ [^`]*)`", line
+                )
     return commands
 
 
@@ -208,14 +215,15 @@ def _argv(command: str) -> tuple[str, list[str]]:
     return module.removeprefix("fusion_depth."), args
 
 
-def test_the_readme_has_commands_for_every_entry_point() -> None:
-    modules = {_argv(c)[0] for c in readme_commands()}
+def test_the_docs_have_commands_for_every_entry_point() -> None:
+    modules = {_argv(c)[0] for c in documented_commands()}
     assert set(HYDRA_COMMANDS) | {"report", "bench"} <= modules
+    assert {_argv(c)[0] for c in documented_commands([REPO / "README.md"])} >= {"train", "report"}
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("command", readme_commands())
-def test_every_readme_command_parses_and_composes(
+@pytest.mark.parametrize("command", documented_commands())
+def test_every_documented_command_parses_and_composes(
     command: str, monkeypatch, tmp_path, packaged_sweeps
 ) -> None:
     """Each command's arguments go through the command's own parser: Hydra's override grammar

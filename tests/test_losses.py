@@ -156,7 +156,7 @@ def test_batch_fold_gives_the_per_image_terms_and_gradient(kind: str) -> None:
     # each term must still be the one computed on the (B, 1, h, w) batch, and so must the
     # gradient reaching the network output. Equal up to fp32 rounding: which convolution kernel
     # oneDNN picks for each form depends on the CPU (on the AMD EPYC they agree to the bit, and a
-    # default run repeats its scores to the last digit; README, "Speed → The loss on a CPU").
+    # default run repeats its scores to the last digit; docs/guides/speed.md, "The loss on a CPU").
     g = torch.Generator().manual_seed(5)
     pred = (torch.rand(5, 1, 24, 40, generator=g) * 4 + 0.1).contiguous(
         memory_format=torch.channels_last

@@ -1,6 +1,6 @@
-"""The README's "Add your own dataset" section, run as written: its module and its YAML are
-copied out of the README into a temporary folder, and its commands train, evaluate and prepare
-on a folder of PNG triplets made here."""
+"""The docs' "Add your own dataset" guide (``docs/guides/datasets/own-dataset.md``), run as
+written: its module and its YAML are copied out of the page into a temporary folder, and its
+commands train, evaluate and prepare on a folder of PNG triplets made here."""
 
 from __future__ import annotations
 
@@ -16,15 +16,12 @@ from helpers import REPO, run_module
 
 from fusion_depth.data.depth_io import write_depth_png, write_rgb_png
 
-SECTION = "### Add your own dataset"
+GUIDE = REPO / "docs" / "guides" / "datasets" / "own-dataset.md"
 SMALL = ["experiment=smoke", "trainer.max_epochs=1", "logger=none"]
 
 
 def _section() -> str:
-    text = (REPO / "README.md").read_text(encoding="utf-8")
-    start = text.index(SECTION)
-    end = text.index("\n#", start + len(SECTION))
-    return text[start:end]
+    return GUIDE.read_text(encoding="utf-8")
 
 
 def _blocks(section: str, language: str) -> list[str]:
@@ -52,7 +49,7 @@ def _write_triplets(root: Path, frames: int = 4, size: tuple[int, int] = (80, 20
 
 @pytest.fixture(scope="module")
 def own_dataset(tmp_path_factory) -> dict:
-    """The README's files in a work folder, a dataset folder, and the environment the README's
+    """The guide's files in a work folder, a dataset folder, and the environment the guide's
     ``export PYTHONPATH=$PWD/my_datasets`` gives."""
     work = tmp_path_factory.mktemp("own_dataset")
     section = _section()
@@ -79,7 +76,7 @@ def own_dataset(tmp_path_factory) -> dict:
 
 
 def _command(args: list[str], root: Path, ckpt: str | None = None) -> list[str]:
-    """A README command with its placeholders filled in (``-m`` dropped: run_module adds it)."""
+    """A guide's command with its placeholders filled in (``-m`` dropped: run_module adds it)."""
     filled = []
     for arg in args[1:]:
         arg = arg.replace("/data/triplets", str(root))

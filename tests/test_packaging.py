@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 from helpers import REPO
 
+from fusion_depth.version import __version__
+
 COMMANDS = ("train", "evaluate", "predict", "export", "prepare", "report", "bench", "score_sparse")
 
 
@@ -53,6 +55,10 @@ def test_the_wheel_carries_every_config_sweep_and_module(wheel: Path) -> None:
     }
     expected |= {p.relative_to(REPO).as_posix() for p in (REPO / "fusion_depth").rglob("*.py")}
     assert expected - names == set()
+    # One version: the wheel's is fusion_depth.__version__ (pyproject.toml reads version.py).
+    assert wheel.name.startswith(f"fusion_depth-{__version__}-")
+    (metadata,) = [n for n in names if n.endswith(".dist-info/METADATA")]
+    assert f"\nVersion: {__version__}\n" in zipfile.ZipFile(wheel).read(metadata).decode()
     (entry_points,) = [n for n in names if n.endswith("entry_points.txt")]
     text = zipfile.ZipFile(wheel).read(entry_points).decode()
     for command in COMMANDS:

@@ -103,7 +103,8 @@ def test_smoke_grid_then_report_has_nine_rows(tmp_path) -> None:
 @pytest.mark.slow
 def test_the_weather_sweep_runs_and_report_compares_per_condition(tmp_path) -> None:
     """sweeps/procedural_weather.yaml under the smoke experiment (two seeds, two modes), then
-    the table the README shows: each fusion mode against rgb, image by image, per condition."""
+    the table the weather results page shows: each fusion mode against rgb, image by image, per
+    condition."""
     sweep = tmp_path / "weather"
     result = run_sweep("procedural_weather", ["seed=42,43", "fusion=rgb,concat"], sweep)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -13,7 +13,7 @@ and fills in two methods:
 The base class checks the split, ``on_error`` and the input size, resolves the dataset folder,
 prepares every split once into the shared cache (:mod:`fusion_depth.data.cache`: atomic,
 resumable, the dataset folder only ever read) and then serves the requested split as
-:class:`~fusion_depth.data.Sample` dicts. The README's "Add your own dataset" section walks
+:class:`~fusion_depth.data.Sample` dicts. The guide docs/guides/datasets/own-dataset.md walks
 through one.
 """
 
@@ -101,7 +101,8 @@ class PreparedDataset(PreparedSplit):
         split: one of :data:`~fusion_depth.data.SPLITS`.
         root: the dataset folder (only ever read).
         cache_root: where prepared splits go, ``<cache_root>/<name>/<hash of cache_key()>/``.
-        height, width: the network's input size in pixels, multiples of 32.
+        height: the network's input height in pixels, a multiple of 32.
+        width: the network's input width in pixels, a multiple of 32.
         on_error: ``"raise"`` fails at the first broken frame, naming its file; ``"skip"``
             prepares every other frame of every split, then raises
             :class:`~fusion_depth.data.cache.SkippedFramesError` listing the broken ones

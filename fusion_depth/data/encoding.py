@@ -43,8 +43,9 @@ def encode_sample(
 
     Args:
         image: uint8 (H, W, 3) RGB.
-        sparse, depth: uint16 (H, W), metres × :data:`~fusion_depth.data.depth_io.DEPTH_PNG_SCALE`,
-            0 = no value; writable arrays (copies of a memory map, not the map).
+        sparse: uint16 (H, W), metres × :data:`~fusion_depth.data.depth_io.DEPTH_PNG_SCALE`,
+            0 = no value; a writable array (a copy of a memory map, not the map).
+        depth: the ground truth, uint16 (H, W), in the same encoding as ``sparse``.
         condition: the frame's condition.
 
     Raises:

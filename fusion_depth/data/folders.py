@@ -1,5 +1,5 @@
 """Helpers for datasets read from folders of files (``carla``, ``topview``, and yours: see the
-README's "Add your own dataset").
+docs/guides/datasets/own-dataset.md).
 
 Resizing keeps the depth values exact: images are resampled, depth maps only ever sampled, so
 evaluation scores depths that really were rendered and never a blend across an object edge.

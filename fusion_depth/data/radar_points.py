@@ -51,8 +51,9 @@ def point_rows(
     """Float32 (M, K) rows of M returns, nearest first (a stable sort: ties keep their order).
 
     Args:
-        u, v: (M,) continuous pixel position in the output image (column, row); each stays in
-            its pixel (:func:`same_pixel_float32`).
+        u: (M,) continuous column of each point in the output image; it stays in its pixel
+            (:func:`same_pixel_float32`).
+        v: (M,) continuous row of each point, likewise.
         depth: (M,) metres, camera-frame z.
         rcs: (M,) dBsm, or None for a radar that does not report it (0).
         velocity: (M,) radial velocity in m/s, or None (0).

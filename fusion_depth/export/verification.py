@@ -2,7 +2,7 @@
 tolerance of the precision it computes in.
 
 ``verify`` runs the file on a random input and computes the relative difference ``|exported -
-PyTorch| / PyTorch`` of every pixel. :data:`TOLERANCES` (README, "Export", with the
+PyTorch| / PyTorch`` of every pixel. :data:`TOLERANCES` (docs/guides/export.md, with the
 measurements behind them) bounds, per precision, the statistic :data:`CHECKED` names: fp32
 files agree to rounding, so their largest difference is bounded tightly; bf16 keeps 8 bits of
 mantissa, so its largest difference gets a looser bound, and fp16 (11 bits, TensorRT on a GPU)

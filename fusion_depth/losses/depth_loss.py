@@ -232,7 +232,8 @@ class DepthLoss(nn.Module):
         """Compute every term.
 
         Args:
-            pred, target: (B, C, h, w) reciprocal depth (``depth_scale / depth``).
+            pred: (B, C, h, w) predicted reciprocal depth (``depth_scale / depth``).
+            target: (B, C, h, w) ground-truth reciprocal depth, likewise.
             mask: bool (B, C, h, w), True where the target is valid; None: everywhere.
 
         Returns:
@@ -246,7 +247,7 @@ class DepthLoss(nn.Module):
         # the values and gradients are the same (to the bit where oneDNN's kernels for the two
         # forms agree, as on an AVX-512 EPYC), but Kornia's SSIM then filters with one depthwise
         # convolution per pass instead of a single-channel one over the batch, whose backward
-        # pass oneDNN runs slowly: SSIM 3.5× faster at batch 16 on a CPU (README, "Speed → The
+        # pass oneDNN runs slowly: SSIM 3.5× faster at batch 16 on a CPU (docs/guides/speed.md, "The
         # loss on a CPU").
         pred, target, mask = (t.reshape(1, -1, *t.shape[2:]) for t in (pred, target, mask))
         ssim = masked_ssim_loss(pred, target, mask, self.max_val, self.window_size)

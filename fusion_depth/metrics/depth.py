@@ -215,7 +215,8 @@ def per_image_depth_metrics(
         pred: predicted depth in metres, ``(B, 1, H, W)`` or ``(B, H, W)``.
         target: ground-truth depth, same shape; invalid pixels are those outside
             ``(min_depth, max_depth)`` (0 or NaN placeholders included).
-        min_depth, max_depth: the evaluation range (see module docstring).
+        min_depth: the evaluation range's lower end in metres (see module docstring).
+        max_depth: its upper end (the cap) in metres.
 
     Returns:
         ``(values, has_valid)``: ``values[key]`` is a float64 ``(B,)`` tensor for each key of

@@ -27,7 +27,8 @@ class DepthModel(nn.Module):
     :class:`~fusion_depth.runner.module.DepthModule` then uses it.
 
     Args:
-        min_depth, max_depth: the depth range in metres; predictions are clipped to it.
+        min_depth: the depth range's lower end in metres; predictions are clipped to it.
+        max_depth: the depth range's upper end in metres.
         depth_scale: ``depth_scale / depth`` is the reciprocal output space's value.
 
     Shape:

@@ -68,7 +68,8 @@ ENCODER_SPECS: dict[str, EncoderSpec] = {
     "resnet50": EncoderSpec("", ("act1", "layer1", "layer2", "layer3", "layer4")),
     "resnet18": EncoderSpec("", ("act1", "layer1", "layer2", "layer3", "layer4")),
     # timm's ResNet-10-T (one block per stage, a three-conv stem): the built-in dataset's recipe
-    # trains it from random weights 1.45× faster per sample than ResNet-18 (README).
+    # trains it from random weights 1.45× faster per sample than ResNet-18
+    # (docs/results/built-in-recipe.md).
     "resnet10t": EncoderSpec("", ("act1", "layer1", "layer2", "layer3", "layer4")),
 }
 

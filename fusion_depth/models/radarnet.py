@@ -334,8 +334,11 @@ class RadarNet(DepthModel):
         threshold: the confidence a point needs to claim a pixel of the quasi-dense map.
         train_points: points sampled per image for the association loss.
         max_points: points taken from a sparse map when the batch carries none.
-        pretrained, weights: ImageNet weights for the encoders, as for the other models.
-        min_depth, max_depth, depth_scale: see :class:`~fusion_depth.models.base.DepthModel`.
+        pretrained: ImageNet weights for the encoders, as for the other models.
+        weights: a local file of those weights, as for the other models.
+        min_depth: see :class:`~fusion_depth.models.base.DepthModel`.
+        max_depth: see :class:`~fusion_depth.models.base.DepthModel`.
+        depth_scale: see :class:`~fusion_depth.models.base.DepthModel`.
 
     Shape:
         - image: (B, 3, H, W); sparse: (B, 1, H, W) metres; points: (B, P, 6) or None;

@@ -135,10 +135,13 @@ class SparseToDense(DepthModel):
     Args:
         backbone: ``resnet18`` or ``resnet50`` (timm).
         fusion: ``rgb`` or ``concat`` (RGBd).
-        pretrained, weights: ImageNet weights for the encoder, as for ``model=densedepth``.
-            With ``concat`` the first convolution is new and randomly initialised, as in the
+        pretrained: ImageNet weights for the encoder, as for ``model=densedepth``. With
+            ``concat`` the first convolution is new and randomly initialised, as in the
             reference code (``in_channels != 3``).
-        min_depth, max_depth, depth_scale: see :class:`~fusion_depth.models.base.DepthModel`.
+        weights: a local file of those weights, as for ``model=densedepth``.
+        min_depth: see :class:`~fusion_depth.models.base.DepthModel`.
+        max_depth: see :class:`~fusion_depth.models.base.DepthModel`.
+        depth_scale: see :class:`~fusion_depth.models.base.DepthModel`.
 
     Shape:
         - image: (B, 3, H, W), sparse: (B, 1, H, W); output: (B, 1, H, W) metres.

@@ -150,8 +150,10 @@ def create_schedule(
         name: ``step`` (torch's StepLR, per epoch) or ``cosine`` (:class:`WarmupCosine`, per
             optimizer step).
         total_steps: the run's optimizer steps (the module passes it to a per-step schedule).
-        step_size, gamma: StepLR's: lr × ``gamma`` every ``step_size`` epochs.
-        warmup_fraction, final_lr_ratio: :class:`WarmupCosine`'s (None: its defaults).
+        step_size: StepLR's: lr × ``gamma`` every ``step_size`` epochs.
+        gamma: StepLR's factor.
+        warmup_fraction: :class:`WarmupCosine`'s (None: its default).
+        final_lr_ratio: :class:`WarmupCosine`'s (None: its default).
 
     Raises:
         ValueError: an unknown name, or a set argument the named schedule does not take.

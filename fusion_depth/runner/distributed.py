@@ -56,7 +56,7 @@ def local_world_size(trainer_cfg: DictConfig) -> int:
         raise ValueError(
             f"trainer.num_nodes={trainer.num_nodes}: several nodes need a cluster launcher that "
             "starts one process per device on each node, e.g. -m hydra/launcher=slurm "
-            "(see the README's 'Running at scale')"
+            "(see docs/guides/scale.md)"
         )
     return trainer.num_devices
 

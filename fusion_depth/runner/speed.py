@@ -114,7 +114,7 @@ def autocast(precision: str, device: torch.device | str) -> Iterator[None]:
 
 def should_compile(compile: bool | str, device: torch.device | str) -> bool:
     """``model.compile``: true, false, or ``auto`` (on GPUs only: on a CPU the minutes of
-    compilation outweigh what a short run gains; see the README's benchmark table)."""
+    compilation outweigh what a short run gains; see docs/results/speed.md)."""
     if isinstance(compile, str):
         if compile != "auto":
             raise ValueError(f"model.compile={compile!r}: expected true, false or auto")

@@ -7,7 +7,7 @@ caps, crop, averaging, distance bins), and prints the test stage's tables (per c
 distance bin of the ground truth, per cap) with how much of the scored ground truth it covers.
 For the built-in radar, whose returns are drawn as vertical lines
 (``dataset.reader.radar_height_extension``), it shows how the lines agree with the surfaces they
-are drawn over; the README's "Result" section reads it.
+are drawn over; docs/results/fusion-weather.md reads it.
 
 python -m fusion_depth.score_sparse
 python -m fusion_depth.score_sparse dataset.reader.radar_height_extension=0 split=val
