@@ -74,8 +74,9 @@ if it mentions night (night wins over rain), else ``rain`` if it mentions rain, 
 Preparing
 ---------
 The first split requested prepares all three into the shared cache
-(:mod:`fusion_depth.data.cache`) under ``<cache_root>/nuscenes/<hash>/``, so a bad file
-anywhere fails before training. The hash covers every setting above plus the tables' names,
+(:mod:`fusion_depth.data.cache`), each under ``<cache_root>/nuscenes/<hash>/`` (train's hash
+also covers ``fill``, so val and test share another folder), so a bad file anywhere fails
+before training. The hash covers every setting above plus the tables' names,
 sizes and modification times; val/test do not depend on ``fill``, so changing it re-prepares
 only the train split. Every file a frame needs is checked before the first frame is written;
 the dataset folder is only ever read. Loading the v1.0-trainval tables takes the devkit about a
