@@ -110,7 +110,7 @@ def test_the_weather_sweep_runs_and_report_compares_per_condition(tmp_path) -> N
     assert result.returncode == 0, result.stderr[-3000:]
     assert "4 ok, 0 failed" in result.stdout
     # Job folders are named after their overrides, so a re-run lands in the same place.
-    (job,) = sweep.glob("*fusion=concat*seed=43*")
+    (job,) = sweep.glob("*fusion-concat*seed-43*")
     assert (job / "per_image.csv").is_file()
     args = ["fusion_depth.report", str(sweep), "--by", "condition", "--compare", "fusion=rgb"]
     report = run_module([*args, "--resamples", "500"], cwd=tmp_path, timeout=120)
@@ -138,9 +138,9 @@ def test_failing_job_is_recorded_and_the_sweep_goes_on(tmp_path) -> None:
     failed = next(line for line in result.stdout.splitlines() if line.strip().startswith("failed"))
     assert "dataset.width=48" in failed and "multiple of 32" in failed
     # Job folders are named after their overrides (less logger=, which does not change a run).
-    failure = json.loads((sweep / "dataset.width=48,experiment=smoke" / "failure.json").read_text())
+    failure = json.loads((sweep / "dataset.width-48+experiment-smoke" / "failure.json").read_text())
     assert Path(failure["traceback"]).is_file()
-    assert (sweep / "dataset.width=96,experiment=smoke" / "metrics.json").is_file()
+    assert (sweep / "dataset.width-96+experiment-smoke" / "metrics.json").is_file()
     summary = json.loads((sweep / "sweep_summary.json").read_text())
     assert sorted(job["status"] for job in summary) == ["failed", "ok"]
 
