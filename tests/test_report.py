@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import shlex
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -648,3 +650,88 @@ def test_output_writes_the_table_headed_by_its_command(grid, capsys, tmp_path) -
     capsys.readouterr()
     assert main([str(grid), "--output", str(tmp_path / "t.csv" / "t.md")]) == 2
     assert "t.csv" in capsys.readouterr().err
+
+
+# --- hostile inputs: each refused in one line that names the file ----------------------------
+
+
+def _refused(capsys, argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize(
+    "section,value,expected",
+    [
+        ("test", {"rmse": float("nan")}, "test.rmse=NaN: expected a finite number"),
+        ("test", {"rmse": "abc"}, 'test.rmse="abc": expected a finite number'),
+        ("test", {"rmse": True}, "test.rmse=true: expected a finite number"),
+        ("test", [1, 2], "test: expected an object of metric values, got list"),
+        ("test_by_condition", {"night": {"rmse": None}}, "test_by_condition.night.rmse=null"),
+        ("test_by_condition", ["night"], "test_by_condition: expected an object of groups"),
+    ],
+)
+def test_a_score_that_is_not_a_finite_number_is_refused(
+    tmp_path, capsys, section, value, expected
+) -> None:
+    _write_run(tmp_path, "a", "rgb", "l1", 1, rmse=1.0)
+    path = tmp_path / "a" / "metrics.json"
+    data = json.loads(path.read_text())
+    data[section] = (
+        {**data[section], **value} if section == "test" and isinstance(value, dict) else value
+    )
+    path.write_text(json.dumps(data))  # json writes NaN as NaN, as a careless tool would
+    err = _refused(capsys, [str(tmp_path)])
+    assert err.startswith(f"error: {path}: ") and expected in err
+
+
+def _first_run(grid) -> tuple[Path, list[str]]:
+    root, _ = grid
+    per_image = root / "concat_1" / "per_image.csv"
+    return per_image, [str(root), "--compare", "fusion=rgb", "--resamples", "50"]
+
+
+def test_a_per_image_file_cut_mid_row_is_refused(grid, capsys) -> None:
+    per_image, argv = _first_run(grid)
+    text = per_image.read_text()
+    last = text.rstrip("\n").rsplit("\n", 1)[1]
+    # cut inside the condition field: the row has too few fields
+    per_image.write_text(text[: len(text) - len(last) - 1 + 4])
+    assert "expected 6 fields (a cut or damaged file)" in _refused(capsys, argv)
+    # cut inside the last field: as many fields, but the line is not ended
+    per_image.write_text(text.rstrip("\n")[:-2])
+    assert "the last row is cut short" in _refused(capsys, argv)
+
+
+def test_a_per_image_file_with_more_or_fewer_rows_than_images_is_refused(grid, capsys) -> None:
+    per_image, argv = _first_run(grid)
+    header, *rows = per_image.read_text().splitlines()
+    huge = [header, *rows, *(f"{NUM_IMAGES + i},day,1,1.0,0.1,0.9" for i in range(10**6))]
+    per_image.write_text("\n".join(huge) + "\n")
+    err = _refused(capsys, argv)
+    assert str(per_image) in err and f"more rows than the {NUM_IMAGES} images" in err
+    per_image.write_text("\n".join([header, *rows[:-1]]) + "\n")
+    assert f"{NUM_IMAGES - 1} rows, but its metrics.json scored {NUM_IMAGES}" in _refused(
+        capsys, argv
+    )
+    rows[0] = "-1" + rows[0][rows[0].index(",") :]
+    per_image.write_text("\n".join([header, *rows]) + "\n")
+    assert "image index -1 is not an index of the split" in _refused(capsys, argv)
+
+
+def test_csv_cells_a_spreadsheet_would_run_are_neutralised(tmp_path, capsys) -> None:
+    """OWASP's CSV injection: a recorded value starting with = + - @ tab or CR is written with a
+    leading ' so that a spreadsheet shows it; numbers, negative ones too, stay numbers."""
+    hostile = "=cmd|' /C calc'!A0"
+    _write_run(tmp_path, "a", "rgb", hostile, 1, rmse=1.0)
+    _write_run(tmp_path, "b", "rgb", "@SUM(A1)", 1, rmse=2.0)
+    assert main([str(tmp_path), "--format", "csv"]) == 0
+    rows = _csv(capsys)
+    losses = {r["Loss"] for r in rows}
+    assert losses == {"'" + hostile, "'@SUM(A1)"}
+    for row in rows:
+        for cell in row.values():
+            assert not cell.startswith(("=", "+", "@", "\t", "\r")), cell
+            assert not cell.startswith("-") or float(cell) < 0, cell

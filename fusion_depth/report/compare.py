@@ -12,6 +12,7 @@ mode against DenseDepth RGB).
 from __future__ import annotations
 
 import csv
+import os
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import reduce
@@ -59,6 +60,18 @@ def per_image_path(run: RunRecord) -> Path:
     return Path(run.path).parent / (run.per_image_file or PER_IMAGE_FILE)
 
 
+_EXTRA = "\0extra"  # DictReader's key for fields beyond the header's
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with path.open("rb") as f:
+        f.seek(0, os.SEEK_END)
+        if f.tell() == 0:
+            return False
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) == b"\n"
+
+
 def load_per_image(run: RunRecord, metric: str) -> PerImage:
     """Read ``metric`` of every image from the run's per-image file, checking it on the way."""
     path = per_image_path(run)
@@ -68,23 +81,43 @@ def load_per_image(run: RunRecord, metric: str) -> PerImage:
             f"{PER_IMAGE_FILE}, which runs of older versions did not write: re-score them with "
             f"python -m fusion_depth.evaluate ckpt_path=<sweep folder> and compare the output"
         )
+    expected = (run.test or {}).get("num_images")  # check_scores: a finite number if there
     with path.open(newline="") as f:
-        reader = csv.DictReader(f)
+        reader = csv.DictReader(f, restkey=_EXTRA, restval=None)
         missing = {"index", "condition", metric} - set(reader.fieldnames or ())
         if missing:
             raise ValueError(
                 f"{path}: no column(s) {', '.join(sorted(missing))}; expected a header with "
                 f"index, condition and the metric (have: {', '.join(reader.fieldnames or ())})"
             )
-        try:
-            rows = [(int(r["index"]), r["condition"], float(r[metric])) for r in reader]
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"{path}: line {reader.line_num}: {err}") from err
+        rows = []
+        for r in reader:
+            if _EXTRA in r or None in r.values():
+                raise ValueError(
+                    f"{path}: line {reader.line_num}: expected {len(reader.fieldnames)} fields "
+                    "(a cut or damaged file)"
+                )
+            try:
+                rows.append((int(r["index"]), r["condition"], float(r[metric])))
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{path}: line {reader.line_num}: {err}") from err
+            if expected is not None and len(rows) > expected:
+                raise ValueError(
+                    f"{path}: more rows than the {expected:g} images its {run.path.name} scored"
+                )
+    if not _ends_with_newline(path):
+        raise ValueError(f"{path}: the last row is cut short (the file does not end a line)")
+    if expected is not None and len(rows) != expected:
+        raise ValueError(
+            f"{path}: {len(rows)} rows, but its {run.path.name} scored {expected:g} images"
+        )
     if len(rows) == 0:
         raise ValueError(f"{path}: no images")
     rows.sort()
     index = np.array([r[0] for r in rows], dtype=np.int64)
     values = np.array([r[2] for r in rows], dtype=np.float64)
+    if (index < 0).any():
+        raise ValueError(f"{path}: image index {int(index[0])} is not an index of the split")
     if (np.diff(index) == 0).any():
         dup = int(index[1:][np.diff(index) == 0][0])
         raise ValueError(f"{path}: image index {dup} appears more than once")

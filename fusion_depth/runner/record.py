@@ -12,6 +12,7 @@ are keyed by :data:`fusion_depth.metrics.depth.METRIC_KEYS`.)
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -320,13 +321,50 @@ def read_finished(output_dir: str | os.PathLike) -> RunRecord | None:
     return record if record.finished else None
 
 
+def _is_score(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_scores(record: RunRecord) -> None:
+    """Refuse a record whose scores a table would print wrong: ``test`` and every group of
+    the ``test_by_*`` sections must map names to finite numbers (the evaluator leaves out a
+    group without a scored image, so a NaN never belongs there).
+
+    Raises:
+        ValueError: naming the file, the key and what was found.
+    """
+    sections: list[tuple[str, Any]] = [("test", record.test)]
+    for by, name in BREAKDOWNS.items():
+        section = record.breakdown(by)
+        if section is None:
+            continue
+        if not isinstance(section, dict):
+            raise ValueError(
+                f"{record.path}: {name}: expected an object of groups, got {type(section).__name__}"
+            )
+        sections += [(f"{name}.{group}", values) for group, values in section.items()]
+    for key, values in sections:
+        if not isinstance(values, dict):
+            raise ValueError(
+                f"{record.path}: {key}: expected an object of metric values, got "
+                f"{type(values).__name__}"
+            )
+        for metric, value in values.items():
+            if not _is_score(value):
+                raise ValueError(
+                    f"{record.path}: {key}.{metric}={json.dumps(value)[:40]}: expected a finite "
+                    "number"
+                )
+
+
 def load_runs(root: str | os.PathLike) -> list[RunRecord]:
     """Every ``metrics.json`` below ``root``, sorted by path, each with its ``path`` set.
 
     Raises:
         FileNotFoundError: ``root`` is not a directory.
-        ValueError: a file is not a metrics file (:func:`read_run_record`) or lacks the
-            ``run`` and ``test`` sections.
+        ValueError: a file is not a metrics file (:func:`read_run_record`), lacks the
+            ``run`` and ``test`` sections, or holds a score that is not a finite number
+            (:func:`check_scores`).
     """
     root = Path(root)
     if not root.is_dir():
@@ -336,6 +374,7 @@ def load_runs(root: str | os.PathLike) -> list[RunRecord]:
         record = read_run_record(path)
         if record.run is None or record.test is None:
             raise ValueError(f"{path}: expected a fusion-depth metrics file with 'run' and 'test'")
+        check_scores(record)
         runs.append(record)
     return runs
 

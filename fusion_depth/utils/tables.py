@@ -7,6 +7,22 @@ import csv
 import io
 from collections.abc import Sequence
 
+# A cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV Injection").
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_safe(cell: str) -> str:
+    """``cell`` as a spreadsheet shows it, never runs it: a cell starting with ``=``, ``+``,
+    ``-``, ``@``, a tab or a carriage return gets a leading ``'`` (OWASP's advice on CSV
+    injection), unless it is a number (``-0.003`` stays a number)."""
+    if not cell.startswith(_FORMULA_STARTS):
+        return cell
+    try:
+        float(cell)
+    except ValueError:
+        return "'" + cell
+    return cell
+
 
 def format_table(
     header: Sequence[str],
@@ -14,12 +30,13 @@ def format_table(
     fmt: str = "markdown",
     bold: set[tuple[int, int]] | frozenset = frozenset(),
 ) -> str:
-    """Render string cells as Markdown, LaTeX or CSV; ``bold`` holds (row, column) indices."""
+    """Render string cells as Markdown, LaTeX or CSV; ``bold`` holds (row, column) indices.
+    CSV cells that a spreadsheet would run as a formula are neutralised (:func:`csv_safe`)."""
     if fmt == "csv":
         out = io.StringIO()
         writer = csv.writer(out, lineterminator="\n")
-        writer.writerow(header)
-        writer.writerows(rows)
+        writer.writerow([csv_safe(c) for c in header])
+        writer.writerows([csv_safe(c) for c in row] for row in rows)
         return out.getvalue().rstrip("\n")
     if fmt == "markdown":
         cells = [
