@@ -27,6 +27,7 @@ from fusion_depth.errors import ConfigError
 from fusion_depth.evaluate.scoring import evaluate
 from fusion_depth.export import (
     ExportedModel,
+    ModelFileError,
     SidecarError,
     export_model,
     load_exported,
@@ -246,3 +247,85 @@ def test_missing_or_unreadable_sidecars_and_a_sidecar_without_dataset(
     with pytest.raises(CheckpointError, match=r"model_file=.*: its sidecar records no dataset"):
         _run("evaluate", [f"model_file={copy}"], tmp_path / "run")
     assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+# --- damaged model files: one line naming the file, before any data is made ------------------
+
+
+def _copy_ir(model_file: Path, folder: Path) -> Path:
+    """An OpenVINO IR (``.xml``, ``.bin``) and its sidecar copied into ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in (model_file, model_file.with_suffix(".bin"), sidecar_path(model_file)):
+        shutil.copy(path, folder / path.name)
+    return folder / model_file.name
+
+
+def _refused_in_one_line(model_file: Path, error: type[Exception], tmp_path: Path) -> str:
+    with pytest.raises(error) as err:
+        _run("evaluate", [f"model_file={model_file}"], tmp_path / "run")
+    text = str(err.value)
+    assert "\n" not in text and str(model_file.parent) in text, text
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    return text
+
+
+def test_a_truncated_onnx_file_is_refused_naming_it(model_files, tmp_path: Path) -> None:
+    copy = _copy(model_files["onnx"], tmp_path / "cut", lambda info: None)
+    data = copy.read_bytes()
+    copy.write_bytes(data[: len(data) // 2])
+    text = _refused_in_one_line(copy, ModelFileError, tmp_path)
+    assert f"model_file={copy}: onnxruntime cannot load it (" in text and "export it again" in text
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing"])
+def test_a_damaged_openvino_weights_file_is_refused_naming_it(
+    damage: str, model_files, tmp_path: Path
+) -> None:
+    copy = _copy_ir(model_files["openvino"], tmp_path / damage)
+    weights = copy.with_suffix(".bin")
+    if damage == "missing":
+        weights.unlink()
+    else:
+        weights.write_bytes(weights.read_bytes()[:1000])
+    text = _refused_in_one_line(copy, ModelFileError, tmp_path)
+    assert f"model_file={copy}: openvino cannot load it (" in text
+
+
+def test_a_sidecar_nested_beyond_reason_is_refused(model_files, tmp_path: Path) -> None:
+    copy = _copy(model_files["onnx"], tmp_path / "deep", lambda info: None)
+    sidecar_path(copy).write_text("[" * 100_000 + "]" * 100_000)
+    text = _refused_in_one_line(copy, SidecarError, tmp_path)
+    assert f"{sidecar_path(copy)}: nested too deeply to be a sidecar" == text
+
+
+@pytest.mark.parametrize(
+    "fmt,edit,message",
+    [
+        (
+            "onnx",
+            lambda i: [x.update(shape=["batch", x["shape"][1], 128, 96]) for x in i["inputs"]],
+            r"input 'image' has shape \['batch', 3, 64, 96\] in the file, but its sidecar says "
+            r"\['batch', 3, 128, 96\]",
+        ),
+        (
+            "openvino",
+            lambda i: [x.update(shape=["batch", *x["shape"][1:]]) for x in i["inputs"]],
+            r"input 'image' has shape \[2, 3, 64, 96\] in the file, but its sidecar says "
+            r"\['batch', 3, 64, 96\]",
+        ),
+    ],
+)
+def test_a_sidecar_whose_shapes_differ_from_the_file_is_refused_before_any_data(
+    fmt: str, edit, message: str, model_files, tmp_path: Path
+) -> None:
+    """Refused when the file is opened: no test split is made at the sidecar's size, and the
+    engine never sees an input of the wrong shape."""
+    if fmt == "onnx":
+        copy = _copy(model_files["onnx"], tmp_path / "shape", edit)
+    else:
+        copy = _copy_ir(model_files["openvino"], tmp_path / "shape")
+        info = json.loads(sidecar_path(copy).read_text())
+        edit(info)
+        sidecar_path(copy).write_text(json.dumps(info))
+    text = _refused_in_one_line(copy, ModelFileError, tmp_path)
+    assert re.search(message, text), text

@@ -33,6 +33,7 @@ from fusion_depth.export.onnx import require_onnx
 from fusion_depth.export.runtime import (
     ENGINES,
     ExportedModel,
+    ModelFileError,
     SidecarError,
     load_exported,
     read_sidecar,
@@ -52,6 +53,7 @@ __all__ = [
     "ExportError",
     "ExportSpec",
     "ExportedModel",
+    "ModelFileError",
     "SidecarError",
     "check_export_options",
     "check_format",

@@ -64,6 +64,11 @@ TORCH_ENGINE = "torch"
 _REQUIRED = object()  # get()'s default: the key must be there
 
 
+class ModelFileError(ValueError, CompactHydraException):
+    """A model file its engine cannot load (truncated, or its weights missing), or whose
+    inputs differ from what its sidecar says; the one-line message names the file."""
+
+
 class SidecarError(ValueError, CompactHydraException):
     """A model file's sidecar that is missing, not JSON, or has a missing or wrong key; the
     one-line message names the file and the key."""
@@ -301,6 +306,8 @@ def read_sidecar(model_file: str | os.PathLike) -> ModelInfo:
         data = json.loads(sidecar.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise SidecarError(f"{sidecar}: not valid JSON ({err})") from err
+    except RecursionError as err:  # json's parser recurses once per nesting level
+        raise SidecarError(f"{sidecar}: nested too deeply to be a sidecar") from err
     return ModelInfo.from_sidecar(data, path, sidecar)
 
 
@@ -343,6 +350,7 @@ def _load_onnxruntime(info: ModelInfo) -> Runner:
     import onnxruntime as ort
 
     session = ort.InferenceSession(str(info.path), providers=["CPUExecutionProvider"])
+    check_declared_inputs(info, [(i.name, i.shape) for i in session.get_inputs()])
 
     def run(inputs: Sequence[np.ndarray]) -> np.ndarray:
         feeds = dict(zip(info.input_names, inputs, strict=True))
@@ -401,6 +409,16 @@ def _load_openvino(info: ModelInfo) -> Runner:
     import openvino as ov
 
     compiled, precision = compile_openvino(info.path, info.precision)
+    check_declared_inputs(
+        info,
+        [
+            (
+                i.get_any_name(),
+                [d.get_length() if d.is_static else None for d in i.get_partial_shape()],
+            )
+            for i in compiled.inputs
+        ],
+    )
     request = compiled.create_infer_request()
     output = compiled.outputs[0]
 
@@ -552,15 +570,54 @@ class ExportedModel(DepthModel):
         return torch.from_numpy(np.concatenate(depth)).to(image.device)
 
 
+def check_declared_inputs(info: ModelInfo, declared: Sequence[tuple[str, Sequence[Any]]]) -> None:
+    """Refuse a model file whose own inputs (name and [batch, C, H, W], a dynamic axis as a
+    name or None) differ from its sidecar's, before any data is made for it.
+
+    Raises:
+        ModelFileError: naming the file, the input and both shapes.
+    """
+    names = [name for name, _ in declared]
+    if names != list(info.input_names):
+        raise ModelFileError(
+            f"model_file={info.path}: the file takes inputs {names}, its sidecar says "
+            f"{list(info.input_names)}; export it again"
+        )
+    for name, dims in declared:
+        channels = 3 if name == "image" else 1
+        batch = info.batch_size  # None: any batch, so the file's batch axis is dynamic
+        expected = [batch, channels, info.height, info.width]
+        got = [d if isinstance(d, int) and d > 0 else None for d in dims]
+        if got != expected:
+            show = ["batch" if d is None else d for d in expected]
+            raise ModelFileError(
+                f"model_file={info.path}: input {name!r} has shape "
+                f"{['batch' if d is None else d for d in got]} in the file, but its sidecar "
+                f"says {show}; export it again"
+            )
+
+
 def open_exported(info: ModelInfo) -> ExportedModel:
     """The model file ``info`` describes, loaded by its engine.
 
     Raises:
         ImportError: the engine's package is missing (naming the extra).
+        ModelFileError: the engine cannot load the file (truncated, its OpenVINO ``.bin``
+            missing or cut), or the file's inputs differ from the sidecar's.
     """
     engine = ENGINES[info.engine]
     engine.require()
-    return ExportedModel(info, engine.load(info))
+    try:
+        runner = engine.load(info)
+    except (ImportError, ModelFileError):
+        raise
+    except Exception as err:  # noqa: BLE001 - each engine raises its own types (ORT's derive
+        # from Exception only); what it says goes into the one line, the rest stays the cause
+        said = str(err).strip().splitlines()[0][:300] if str(err).strip() else type(err).__name__
+        raise ModelFileError(
+            f"model_file={info.path}: {engine.name} cannot load it ({said}); export it again"
+        ) from err
+    return ExportedModel(info, runner)
 
 
 def load_exported(
