@@ -49,9 +49,10 @@ def legacy_run_dirname(override_dirname: str) -> str:
     return _shortened(override_dirname.replace(os.sep, "_") or "default")
 
 
-def _existing(parent: str | os.PathLike, name: str, legacy: str) -> str:
-    """``legacy`` when ``parent/legacy`` is a folder and ``parent/name`` does not exist, else
-    ``name``."""
+def _found_name(parent: str | os.PathLike, override_dirname: str) -> str:
+    """The folder name of ``override_dirname`` inside ``parent``: :func:`run_dirname`, or
+    :func:`legacy_run_dirname` when only a folder of that name exists there."""
+    name, legacy = run_dirname(override_dirname), legacy_run_dirname(override_dirname)
     if legacy != name and (Path(parent) / legacy).is_dir() and not (Path(parent) / name).exists():
         return legacy
     return name
@@ -60,15 +61,13 @@ def _existing(parent: str | os.PathLike, name: str, legacy: str) -> str:
 def run_dir(parent: str, override_dirname: str) -> str:
     """``parent/<run_dirname>`` (``hydra.run.dir``), or the folder an earlier release named
     after the same overrides when only that one exists."""
-    name = run_dirname(override_dirname)
-    return f"{parent}/{_existing(parent, name, legacy_run_dirname(override_dirname))}"
+    return f"{parent}/{_found_name(parent, override_dirname)}"
 
 
 def job_subdir(sweep_dir: str, override_dirname: str) -> str:
     """A sweep job's folder name inside ``sweep_dir`` (``hydra.sweep.subdir``), or the one an
     earlier release gave the same job when only that one exists."""
-    name = run_dirname(override_dirname)
-    return _existing(sweep_dir, name, legacy_run_dirname(override_dirname))
+    return _found_name(sweep_dir, override_dirname)
 
 
 def sweep_dir(parent: str, config_name: str, override_dirname: str) -> str:
@@ -88,5 +87,4 @@ def sweep_dir(parent: str, config_name: str, override_dirname: str) -> str:
         return f"{parent}/default"
     if not override_dirname:
         return named
-    name = run_dirname(override_dirname)
-    return f"{named}/{_existing(named, name, legacy_run_dirname(override_dirname))}"
+    return f"{named}/{_found_name(named, override_dirname)}"
