@@ -28,6 +28,7 @@ from fusion_depth.runner.protocol import (
 )
 from fusion_depth.runner.run_folder import PER_IMAGE_FILE, provenance
 from fusion_depth.utils.atomic import write_json_atomic
+from fusion_depth.utils.schema import is_number
 
 METRICS_FILE = "metrics.json"
 
@@ -322,7 +323,7 @@ def read_finished(output_dir: str | os.PathLike) -> RunRecord | None:
 
 
 def _is_score(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    return is_number(value) and math.isfinite(value)
 
 
 def check_scores(record: RunRecord) -> None:
