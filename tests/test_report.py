@@ -14,7 +14,13 @@ import pytest
 from PIL import Image
 
 from fusion_depth.metrics.depth import METRIC_KEYS
-from fusion_depth.report import build_table, group_runs, main, paired_differences
+from fusion_depth.report import (
+    build_table,
+    group_runs,
+    main,
+    paired_differences,
+    read_figure_description,
+)
 from fusion_depth.runner.record import load_runs
 from fusion_depth.utils.atomic import write_json_atomic
 
@@ -373,6 +379,34 @@ def test_plot_of_single_seeds_and_bad_extension(tmp_path, capsys) -> None:
     assert (tmp_path / "p.pdf").read_bytes().startswith(b"%PDF")
     assert main([str(tmp_path), "--plot", str(tmp_path / "p.xyz")]) == 2
     assert "--plot " in capsys.readouterr().err and not (tmp_path / "p.xyz").exists()
+
+
+def test_plot_carries_its_command_and_values_and_repeats(grid, capsys, tmp_path) -> None:
+    """An SVG or PNG figure names the command that drew it and holds the plotted values (the
+    seed means and stds of the table), and drawing it again writes the same bytes."""
+    root, runs = grid
+    night = np.arange(NUM_IMAGES) % 2 == 1
+    for suffix in ("svg", "png"):
+        out = tmp_path / "figures" / f"by_condition.{suffix}"
+        argv = [str(root), "--by", "condition", "--plot", str(out)]
+        assert main(argv) == 0
+        first = out.read_bytes()
+        description = read_figure_description(out)
+        assert description["command"] == shlex.join(["python", "-m", "fusion_depth.report", *argv])
+        (panel,) = description["panels"]
+        assert panel["categories"][:3] == ["all", "day", "night"]
+        series = {s["name"]: s for s in panel["series"]}
+        rgb = series["RGB / L1"]
+        per_seed = [runs["rgb", seed][night].mean() for seed in (1, 2, 3)]
+        night_column = panel["categories"].index("night")
+        assert rgb["heights"][night_column] == pytest.approx(np.mean(per_seed), rel=1e-5)
+        assert rgb["errors"][night_column] == pytest.approx(np.std(per_seed, ddof=1), rel=1e-5)
+        assert main(argv) == 0
+        assert out.read_bytes() == first, suffix
+    capsys.readouterr()
+    with pytest.raises(ValueError, match="no description written by report --plot"):
+        Image.new("RGB", (4, 4)).save(tmp_path / "plain.png")
+        read_figure_description(tmp_path / "plain.png")
 
 
 @pytest.mark.slow

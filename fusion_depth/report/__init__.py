@@ -30,7 +30,13 @@ from fusion_depth.report.groups import (
     group_runs,
     key_label,
 )
-from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
+from fusion_depth.report.plots import (
+    PLOT_METRICS,
+    plot_by,
+    plot_comparisons,
+    plot_groups,
+    read_figure_description,
+)
 
 __all__ = [
     "ALL",
@@ -57,6 +63,7 @@ __all__ = [
     "plot_by",
     "plot_comparisons",
     "plot_groups",
+    "read_figure_description",
     "log_wandb",
     "main",
     "table_cells",

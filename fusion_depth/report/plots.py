@@ -1,7 +1,15 @@
-"""Bar charts of a sweep (``report --plot``): Matplotlib, imported only when a plot is drawn."""
+"""Bar charts of a sweep (``report --plot``): Matplotlib, imported only when a plot is drawn.
+
+A figure carries what it shows as text: its metadata (``Description`` in SVG and PNG,
+``Subject`` in PDF) holds the command that drew it and the plotted values as JSON
+(:func:`figure_description`). A docs page's figure can so be checked against the run records
+it was drawn from on any Matplotlib version; on the same version the bytes repeat too (no date
+is written, and SVG ids are salted with a constant).
+"""
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,9 +39,59 @@ if TYPE_CHECKING:  # Matplotlib is imported by the plots only: a table should pr
 
 PLOT_METRICS = ("rmse", "abs_rel", "delta1")
 
+# The metadata key that holds figure_description(), per format (PDF has no Description).
+_DESCRIPTION_KEY = {"svg": "Description", "png": "Description", "pdf": "Subject"}
+# No creation date, so that drawing the same values again writes the same bytes.
+_NO_DATE = {"svg": {"Date": None}, "pdf": {"CreationDate": None}}
 
-def _save_figure_atomic(fig: Figure, out: str | os.PathLike) -> Path:
-    """Save next to ``out`` then rename, so a viewer or sync never picks up half a PNG."""
+
+def _value(x: Any) -> float | None:
+    """A plotted number as the description stores it: 6 significant digits, None for a gap."""
+    x = float(x)
+    return None if np.isnan(x) else float(f"{x:.6g}")
+
+
+def figure_description(command: str | None, panels: Sequence[dict]) -> str:
+    """The text a figure carries in its metadata: ``command`` (None: not drawn by the CLI) and
+    each panel's title, categories and series (name, bar heights, error bars), as JSON."""
+    return json.dumps({"command": command, "panels": list(panels)}, ensure_ascii=False)
+
+
+def read_figure_description(path: str | os.PathLike) -> dict:
+    """The :func:`figure_description` an SVG or PNG made by ``report --plot`` carries, parsed.
+
+    Raises:
+        ValueError: ``path`` is not an SVG or PNG, or carries no such description.
+    """
+    path = Path(path)
+    text = None
+    if path.suffix.lower() == ".svg":
+        from xml.etree import ElementTree
+
+        node = ElementTree.parse(path).find(".//{http://purl.org/dc/elements/1.1/}description")
+        text = None if node is None else node.text
+    elif path.suffix.lower() == ".png":
+        from PIL import Image
+
+        with Image.open(path) as image:
+            text = image.info.get("Description")
+    else:
+        raise ValueError(f"{path}: expected an .svg or .png figure")
+    try:
+        description = json.loads(text or "")
+    except json.JSONDecodeError:
+        description = None
+    if not isinstance(description, dict) or "panels" not in description:
+        raise ValueError(f"{path}: no description written by report --plot in its metadata")
+    return description
+
+
+def _save_figure_atomic(
+    fig: Figure, out: str | os.PathLike, panels: Sequence[dict], command: str | None
+) -> Path:
+    """Save next to ``out`` then rename, so a viewer or sync never picks up half a PNG. The
+    figure's metadata gets :func:`figure_description` where the format has a field for it."""
+    from matplotlib import rc_context
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     out = Path(out)
@@ -45,20 +103,28 @@ def _save_figure_atomic(fig: Figure, out: str | os.PathLike) -> Path:
             f"--plot {out}: expected a file name ending in one of "
             f"{', '.join('.' + f for f in sorted(formats))}"
         )
-    write_atomic(
-        out,
-        lambda tmp: canvas.print_figure(tmp, format=fmt, dpi=150, bbox_inches="tight"),
-        suffix=f".{fmt}",
-    )
+    metadata = dict(_NO_DATE.get(fmt, {}))
+    if fmt in _DESCRIPTION_KEY:
+        metadata[_DESCRIPTION_KEY[fmt]] = figure_description(command, panels)
+
+    def write(tmp: Path) -> None:
+        with rc_context({"svg.hashsalt": "fusion-depth"}):
+            canvas.print_figure(
+                tmp, format=fmt, dpi=150, bbox_inches="tight", metadata=metadata or None
+            )
+
+    write_atomic(out, write, suffix=f".{fmt}")
     return out
 
 
 def _grouped_bars(
     ax: Axes,
+    title: str,
     categories: Sequence[str],
     series: Sequence[tuple[str, Sequence[float], Any]],
-) -> None:
-    """Bars of each series side by side over each category; ``yerr`` None draws no error bar."""
+) -> dict:
+    """Bars of each series side by side over each category; ``yerr`` None draws no error bar.
+    Returns the panel as :func:`figure_description` stores it."""
     width = 0.8 / max(len(series), 1)
     x = np.arange(len(categories))
     for k, (name, heights, yerr) in enumerate(series):
@@ -66,6 +132,19 @@ def _grouped_bars(
         ax.bar(x + offset, heights, width, yerr=yerr, capsize=3, label=name)
     ax.set_xticks(x, categories, rotation=30 if len(categories) > 4 else 0)
     ax.grid(axis="y", alpha=0.3)
+    ax.set_title(title)
+    return {
+        "title": title,
+        "categories": list(categories),
+        "series": [
+            {
+                "name": name,
+                "heights": [_value(h) for h in heights],
+                "errors": None if yerr is None else np.vectorize(_value)(yerr).tolist(),
+            }
+            for name, heights, yerr in series
+        ],
+    }
 
 
 def _std_errors(cells: Sequence[tuple[float, float | None] | None]) -> np.ndarray | None:
@@ -78,9 +157,13 @@ def _direction(metric: str) -> str:
 
 
 def plot_groups(
-    groups: Sequence[dict], out: str | os.PathLike, metrics: Sequence[str] = PLOT_METRICS
+    groups: Sequence[dict],
+    out: str | os.PathLike,
+    metrics: Sequence[str] = PLOT_METRICS,
+    command: str | None = None,
 ) -> Path:
-    """One subplot per metric: bars per fusion mode over each loss, error bars = seed std."""
+    """One subplot per metric: bars per fusion mode over each loss, error bars = seed std.
+    ``command``: the command line the figure's metadata names (:func:`figure_description`)."""
     from matplotlib.figure import Figure
 
     if not groups:
@@ -93,6 +176,7 @@ def plot_groups(
     categories = list(dict.fromkeys(category(g) for g in groups))
     fusions = list(dict.fromkeys(g["fusion"] for g in groups))
     fig = Figure(figsize=(1.2 + 3.6 * len(metrics), 3.6), layout="constrained")
+    panels = []
     for n, metric in enumerate(metrics):
         ax = fig.add_subplot(1, len(metrics), n + 1)
         series = []
@@ -107,11 +191,11 @@ def plot_groups(
                     cells.append(mean_std(values))
             heights = [np.nan if c is None else c[0] for c in cells]
             series.append((key_label("fusion", fusion), heights, _std_errors(cells)))
-        _grouped_bars(ax, categories, series)
-        ax.set_title(f"{metric_label(metric)} ({_direction(metric)})")
+        title = f"{metric_label(metric)} ({_direction(metric)})"
+        panels.append(_grouped_bars(ax, title, categories, series))
         if n == 0:
             ax.legend(fontsize="small")
-    return _save_figure_atomic(fig, out)
+    return _save_figure_atomic(fig, out, panels, command)
 
 
 def plot_by(
@@ -120,9 +204,10 @@ def plot_by(
     by: str,
     metric: str = "rmse",
     first: Sequence[str] = (),
+    command: str | None = None,
 ) -> Path:
     """``metric`` per condition (or bin; ``first`` first): one bar per group, error bars = seed
-    std."""
+    std. ``command``: as :func:`plot_groups`'s."""
     from matplotlib.figure import Figure
 
     columns, stats = by_column_stats(groups, by, metric, first)
@@ -134,15 +219,18 @@ def plot_by(
         row = [cells[c] for c in columns]
         heights = [np.nan if c is None else c[0] for c in row]
         series.append((" / ".join(identity_cells(g, extra)), heights, _std_errors(row)))
-    _grouped_bars(ax, columns, series)
-    ax.set_title(f"{metric_label(metric)} by {by} ({_direction(metric)})")
+    title = f"{metric_label(metric)} by {by} ({_direction(metric)})"
+    panel = _grouped_bars(ax, title, columns, series)
     ax.legend(fontsize="small")
     fig.set_layout_engine("constrained")
-    return _save_figure_atomic(fig, out)
+    return _save_figure_atomic(fig, out, [panel], command)
 
 
-def plot_comparisons(comparisons: Sequence[Comparison], out: str | os.PathLike) -> Path:
-    """Mean differences against the baseline with their bootstrap intervals as error bars."""
+def plot_comparisons(
+    comparisons: Sequence[Comparison], out: str | os.PathLike, command: str | None = None
+) -> Path:
+    """Mean differences against the baseline with their bootstrap intervals as error bars.
+    ``command``: as :func:`plot_groups`'s."""
     from matplotlib.figure import Figure
 
     if not comparisons:
@@ -160,12 +248,12 @@ def plot_comparisons(comparisons: Sequence[Comparison], out: str | os.PathLike) 
         name = " / ".join(identity_cells(c.group, extra))
         name += f" vs {c.baseline_label}"
         series.append((name, heights, np.array([low, high])))
-    _grouped_bars(ax, columns, series)
-    ax.axhline(0.0, color="black", linewidth=0.8)
     c0 = comparisons[0]
-    ax.set_title(
+    title = (
         f"Δ{metric_label(c0.metric)} vs baseline, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
     )
+    panel = _grouped_bars(ax, title, columns, series)
+    ax.axhline(0.0, color="black", linewidth=0.8)
     ax.legend(fontsize="small")
     fig.set_layout_engine("constrained")
-    return _save_figure_atomic(fig, out)
+    return _save_figure_atomic(fig, out, [panel], command)
