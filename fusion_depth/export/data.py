@@ -154,7 +154,7 @@ def compare_accuracy(
     """What running ``exported`` instead of ``reference`` (the checkpoint's network, PyTorch
     fp32) costs on the validation split, image by image.
 
-    Both are scored by the default evaluation protocol (``conf/eval/default.yaml``: the
+    Both are scored by the default evaluation protocol (``conf/eval/paper.yaml``: the
     dataset's depth range, per-image averaging, no crop, no flip TTA). For each metric of
     :data:`ACCURACY_METRICS` (RMSE in metres, δ1 as a fraction), the block holds both models'
     headline values and the mean per-image difference (exported − reference: positive ΔRMSE

@@ -6,6 +6,8 @@ comparable with published ones):
 * A pixel is scored iff ``min_depth < target < max_depth`` (NaN targets are never valid).
 * Predictions are clamped to ``[min_depth, max_depth]`` before scoring, as monodepth2 and the KITTI
   evaluation scripts do; this bounds the relative/log/inverse errors of degenerate predictions.
+  ``clamp=False`` scores the raw prediction (RadarNet's evaluation); ``min_depth`` may then be 0
+  (every target above 0 counts).
 * Averaging is per image by default (KITTI, monodepth2): each metric is averaged over the valid
   pixels of one image, then over images. ``averaging="pooled"`` (DenseDepth) averages over every
   valid pixel of the set at once, so large images and dense ground truth weigh more. Images
@@ -48,6 +50,7 @@ __all__ = [
     "METRIC_KEYS",
     "METRIC_LABELS",
     "METRIC_LATEX",
+    "RELATIVE_TO",
     "TABLE_METRICS",
     "DepthMetrics",
     "compute_depth_metrics",
@@ -75,10 +78,19 @@ METRIC_KEYS: tuple[str, ...] = (
 HIGHER_IS_BETTER: dict[str, bool] = {k: k.startswith("delta") for k in METRIC_KEYS}
 """Per-metric optimisation direction (e.g. for checkpoint ``mode``): only the deltas go up."""
 
-# Display names: the paper's (Sec. 4.2: ARD, SRD, RMSE, δ) where it names a metric, otherwise
-# the key in capitals; and the same names for LaTeX tables.
-_PAPER_NAMES = {"abs_rel": "ARD", "sq_rel": "SRD", "delta1": "δ1", "delta2": "δ2", "delta3": "δ3"}
-METRIC_LABELS: dict[str, str] = {k: _PAPER_NAMES.get(k, k.upper()) for k in METRIC_KEYS}
+# Display names: the paper's (Sec. 4.2: ARD, SRD, RMSE, δ) where it names a metric, the KITTI
+# depth-completion benchmark's for the inverse ones, otherwise the key in capitals; and the same
+# names for LaTeX tables.
+_NAMES = {
+    "abs_rel": "ARD",
+    "sq_rel": "SRD",
+    "delta1": "δ1",
+    "delta2": "δ2",
+    "delta3": "δ3",
+    "irmse": "iRMSE",
+    "imae": "iMAE",
+}
+METRIC_LABELS: dict[str, str] = {k: _NAMES.get(k, k.upper()) for k in METRIC_KEYS}
 """Column header of each metric in printed tables (``abs_rel`` → ``ARD``, ``delta1`` → ``δ1``)."""
 METRIC_LATEX: dict[str, str] = {
     k: rf"$\delta_{k[-1]}$" if k.startswith("delta") else METRIC_LABELS[k] for k in METRIC_KEYS
@@ -94,6 +106,9 @@ _ROOT_KEYS = frozenset({"rmse", "rmse_log", "irmse"})
 _ROOT_MASK = torch.tensor([k in _ROOT_KEYS for k in METRIC_KEYS])
 
 AVERAGING: tuple[str, ...] = ("per_image", "pooled")
+RELATIVE_TO: tuple[str, ...] = ("ground_truth", "prediction")
+"""What ARD and SRD divide by: the ground truth (Eigen et al.), or the prediction (DenseDepth's
+utils.py, which calls ``compute_errors(predictions, gt)`` with its arguments swapped)."""
 
 # Evaluation crops as (top, bottom, left, right) fractions of the full frame: Garg et al. (ECCV
 # 2016) and Eigen et al. (NIPS 2014), with the constants of the monodepth2/KITTI scripts.
@@ -104,10 +119,12 @@ EVAL_CROPS: dict[str, tuple[float, float, float, float] | None] = {
 }
 
 
-def _check_range(min_depth: float, max_depth: float) -> None:
-    if not 0 < min_depth < max_depth:
+def _check_range(min_depth: float, max_depth: float, clamp: bool = True) -> None:
+    """A clamped prediction must stay positive, so clamping needs ``min_depth > 0``."""
+    if not (0 < min_depth if clamp else 0 <= min_depth) or not min_depth < max_depth:
+        floor = "0 < min_depth" if clamp else "0 <= min_depth"
         raise ValueError(
-            f"need 0 < min_depth < max_depth, got min_depth={min_depth}, max_depth={max_depth}"
+            f"need {floor} < max_depth, got min_depth={min_depth}, max_depth={max_depth}"
         )
 
 
@@ -162,29 +179,40 @@ def crop_mask(
 
 
 def depth_error_sums(
-    pred: Tensor, target: Tensor, valid: Tensor, min_depth: float, max_depth: float
+    pred: Tensor,
+    target: Tensor,
+    valid: Tensor,
+    min_depth: float,
+    max_depth: float,
+    clamp: bool = True,
+    relative_to: str = "ground_truth",
 ) -> tuple[Tensor, Tensor]:
     """Per-image sums of each metric's per-pixel term over ``valid`` pixels, and their count.
 
     Returns float64 ``sums`` ``(B, K)`` in :data:`METRIC_KEYS` order (the squared error for the
     root metrics) and ``counts`` ``(B,)``. Every averaging follows from these: per image
     ``sums / counts``, pooled ``sums.sum(0) / counts.sum()`` (see :func:`metrics_from_sums`).
-    Predictions are clamped to ``[min_depth, max_depth]`` first.
+    Predictions are clamped to ``[min_depth, max_depth]`` first, unless ``clamp`` is False: then
+    they are scored as they are, and a prediction of 0 or less gives an infinite or undefined
+    inverse and log error, as it would in the reference code that does not clamp. ARD and SRD
+    divide by ``relative_to`` (:data:`RELATIVE_TO`).
     """
     d, gt = _flatten(pred, target)
     valid = valid.reshape(d.shape) & torch.isfinite(gt) & (gt > 0)
     # Invalid pixels get a harmless value so that log/divisions stay finite; torch.where below
     # keeps these placeholders out of every sum.
-    d = d.clamp(min_depth, max_depth)
+    if clamp:
+        d = d.clamp(min_depth, max_depth)
     gt = torch.where(valid, gt, d)
     err = d - gt
     sq = err * err
     ratio = torch.maximum(d / gt, gt / d)
     log_err = torch.log(d) - torch.log(gt)
     inv_err = 1000.0 / d - 1000.0 / gt
+    base = gt if relative_to == "ground_truth" else d
     terms = {
-        "abs_rel": err.abs() / gt,
-        "sq_rel": sq / gt,
+        "abs_rel": err.abs() / base,
+        "sq_rel": sq / base,
         "rmse": sq,
         "rmse_log": log_err * log_err,
         "mae": err.abs(),
@@ -207,7 +235,7 @@ def metrics_from_sums(sums: Tensor, counts: Tensor) -> Tensor:
 
 
 def per_image_depth_metrics(
-    pred: Tensor, target: Tensor, min_depth: float, max_depth: float
+    pred: Tensor, target: Tensor, min_depth: float, max_depth: float, clamp: bool = True
 ) -> tuple[dict[str, Tensor], Tensor]:
     """Every metric for each image of a batch, vectorised with masked sums.
 
@@ -217,6 +245,7 @@ def per_image_depth_metrics(
             ``(min_depth, max_depth)`` (0 or NaN placeholders included).
         min_depth: the evaluation range's lower end in metres (see module docstring).
         max_depth: its upper end (the cap) in metres.
+        clamp: clamp predictions to ``[min_depth, max_depth]`` first (see module docstring).
 
     Returns:
         ``(values, has_valid)``: ``values[key]`` is a float64 ``(B,)`` tensor for each key of
@@ -224,9 +253,9 @@ def per_image_depth_metrics(
         least one valid pixel. Images without one get 0 for every metric (never NaN) and must be
         skipped using ``has_valid``.
     """
-    _check_range(min_depth, max_depth)
+    _check_range(min_depth, max_depth, clamp)
     valid = (target > min_depth) & (target < max_depth)
-    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth)
+    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth, clamp)
     has_valid = counts > 0
     values = metrics_from_sums(sums, counts.clamp_min(1))
     values = torch.where(has_valid[:, None], values, torch.zeros_like(values))
@@ -252,6 +281,12 @@ def _check_averaging(averaging: str) -> str:
     if averaging not in AVERAGING:
         raise ValueError(f"eval.averaging={averaging!r}: expected one of {list(AVERAGING)}")
     return averaging
+
+
+def _check_relative_to(relative_to: str) -> str:
+    if relative_to not in RELATIVE_TO:
+        raise ValueError(f"eval.relative_to={relative_to!r}: expected one of {list(RELATIVE_TO)}")
+    return relative_to
 
 
 def scored_mask(
@@ -282,16 +317,30 @@ def compute_depth_metrics(
     averaging: str = "per_image",
     crop: str = "none",
     frame_box: Tensor | None = None,
+    clamp: bool = True,
+    relative_to: str = "ground_truth",
 ) -> dict[str, float]:
     """Metrics of one batch as Python floats (functional twin of DepthMetrics, one cap).
 
+    Args:
+        pred: predicted depth in metres, ``(B, 1, H, W)`` or ``(B, H, W)``.
+        target: ground-truth depth in metres, same shape; 0 or NaN where there is none.
+        min_depth: a pixel counts iff ``min_depth < target < max_depth`` (metres).
+        max_depth: the cap, in metres.
+        averaging: ``per_image`` or ``pooled`` (:data:`AVERAGING`).
+        crop: a key of :data:`EVAL_CROPS`; ``frame_box`` places it (:func:`crop_mask`).
+        clamp: clamp predictions to ``[min_depth, max_depth]`` first.
+        relative_to: what ARD and SRD divide by (:data:`RELATIVE_TO`).
+
     Raises:
-        ValueError: if shapes differ, or if no image has a pixel inside ``(min_depth, max_depth)``.
+        ValueError: if shapes differ, an option is unknown, or no image has a pixel inside
+            ``(min_depth, max_depth)``.
     """
-    _check_range(min_depth, max_depth)
+    _check_range(min_depth, max_depth, clamp)
     _check_averaging(averaging)
+    _check_relative_to(relative_to)
     valid = scored_mask(target, min_depth, max_depth, crop, frame_box)
-    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth)
+    sums, counts = depth_error_sums(pred, target, valid, min_depth, max_depth, clamp, relative_to)
     out = _aggregate(sums, counts, averaging)
     if out is None:
         raise ValueError(f"no image has a valid ground-truth pixel in ({min_depth}, {max_depth})")
@@ -338,6 +387,8 @@ class DepthMetrics(Metric):
         averaging: str = "per_image",
         crop: str = "none",
         distance_bins: Sequence[float] | None = None,
+        clamp: bool = True,
+        relative_to: str = "ground_truth",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
@@ -345,7 +396,9 @@ class DepthMetrics(Metric):
         if not caps:
             raise ValueError("max_depth: expected a depth cap or a non-empty list of caps")
         for cap in caps:
-            _check_range(min_depth, cap)
+            _check_range(min_depth, cap, clamp)
+        self.clamp = bool(clamp)
+        self.relative_to = _check_relative_to(relative_to)
         self.min_depth = float(min_depth)
         self.caps = sorted({float(c) for c in caps})
         self.max_depth = self.caps[-1]  # the headline cap
@@ -425,7 +478,10 @@ class DepthMetrics(Metric):
             for lo, hi in self.bins
         ]
         sums, counts = zip(
-            *(depth_error_sums(pred, target, m, self.min_depth, cap) for m, cap in regions),
+            *(
+                depth_error_sums(pred, target, m, self.min_depth, cap, self.clamp, self.relative_to)
+                for m, cap in regions
+            ),
             strict=True,
         )
         self.image_sums.append(torch.stack(sums, dim=1))

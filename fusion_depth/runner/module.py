@@ -136,8 +136,8 @@ class DepthModule(L.LightningModule):
         if protocol is None:
             protocol = EvalProtocol.from_config(evaluation, net.min_depth, net.max_depth)
         self.protocol = protocol
-        self.val_metrics = self.protocol.metrics(self.conditions)
-        self.test_metrics = self.protocol.metrics(self.conditions)
+        self.val_metrics = self.protocol.scorer(self.conditions)
+        self.test_metrics = self.protocol.scorer(self.conditions)
         self._test_result: EvaluationResult | None = None  # the last test stage's, see run_test
         self._latencies: list[float] = []
         self._test_input: tuple[int, tuple[int, ...]] = (0, (0, 0))  # batch size, image size

@@ -23,6 +23,7 @@ from fusion_depth.metrics.depth import (
     EVAL_CROPS,
     METRIC_KEYS,
     METRIC_LABELS,
+    RELATIVE_TO,
     TABLE_METRICS,
     DepthMetrics,
 )
@@ -32,13 +33,36 @@ from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
 from fusion_depth.utils.tables import format_table
 
-# (metric key, column header) of the printed tables.
-TABLE_COLUMNS: tuple[tuple[str, str], ...] = tuple((k, METRIC_LABELS[k]) for k in TABLE_METRICS)
+UNITS: tuple[str, ...] = ("m", "mm")
+"""Units a table prints RMSE, MAE and SRD in (``eval.units``); metrics.json holds metres."""
+# Metrics whose value is a length (SRD: squared metres over metres): scaled by eval.units.
+_LENGTH_METRICS = frozenset({"rmse", "mae", "sq_rel"})
+
+
+def metric_in_units(key: str, value: float, units: str) -> float:
+    """``value`` of metric ``key`` (as metrics.json holds it: metres, 1/km) in ``units``."""
+    return value * 1000.0 if units == "mm" and key in _LENGTH_METRICS else value
+
+
+def metric_header(key: str, units: str) -> str:
+    """A table's column header of ``key`` in ``units``: ``RMSE``, ``RMSE (mm)``, ``iMAE (1/km)``."""
+    if key in _LENGTH_METRICS and units == "mm":
+        return f"{METRIC_LABELS[key]} (mm)"
+    if key in ("irmse", "imae"):
+        return f"{METRIC_LABELS[key]} (1/km)"
+    return METRIC_LABELS[key]
 
 
 @dataclass(frozen=True)
 class EvalProtocol:
-    """How predictions are scored (the ``eval`` config group; see ``conf/eval/default.yaml``)."""
+    """How predictions are scored: the ``eval`` config group, one preset per published protocol
+    (``conf/eval/<preset>.yaml``, see docs/guides/evaluation.md).
+
+    ``preset`` names it; ``clamp`` says whether predictions are clamped to ``[min_depth,
+    cap]`` before scoring; ``relative_to`` what ARD and SRD divide by; ``units`` and ``metrics``
+    are the printed tables' units and columns, in the reference's order (metrics.json always
+    holds every metric, in metres and 1/km).
+    """
 
     min_depth: float
     max_depth: tuple[float, ...]
@@ -47,6 +71,11 @@ class EvalProtocol:
     flip_tta: bool = False
     upsample: str = "bilinear"
     bin_width: float | None = 10.0
+    preset: str = "paper"
+    clamp: bool = True
+    relative_to: str = "ground_truth"
+    units: str = "m"
+    metrics: tuple[str, ...] = TABLE_METRICS
 
     @classmethod
     def from_config(
@@ -64,6 +93,15 @@ class EvalProtocol:
             raise ValueError(
                 f"eval.upsample={cfg['upsample']!r}: expected one of {list(UPSAMPLING)}"
             )
+        if cfg.get("units", "m") not in UNITS:
+            raise ValueError(f"eval.units={cfg['units']!r}: expected one of {list(UNITS)}")
+        metrics = tuple(cfg.get("metrics") or TABLE_METRICS)
+        unknown = [k for k in metrics if k not in METRIC_KEYS]
+        if unknown:
+            raise ValueError(
+                f"eval.metrics: unknown metric {unknown[0]!r} (expected some of "
+                f"{', '.join(METRIC_KEYS)})"
+            )
         protocol = cls(
             min_depth=float(cfg["min_depth"] if cfg.get("min_depth") is not None else min_depth),
             max_depth=tuple(sorted(float(c) for c in caps)),
@@ -72,8 +110,13 @@ class EvalProtocol:
             flip_tta=bool(cfg.get("flip_tta", False)),
             upsample=cfg.get("upsample", "bilinear"),
             bin_width=None if bin_width is None else float(bin_width),
+            preset=str(cfg.get("preset", "paper")),
+            clamp=bool(cfg.get("clamp", True)),
+            relative_to=cfg.get("relative_to", "ground_truth"),
+            units=cfg.get("units", "m"),
+            metrics=metrics,
         )
-        protocol.metrics()  # validates the depth range, crop and averaging names
+        protocol.scorer()  # validates the depth range, crop and averaging names
         return protocol
 
     @property
@@ -85,7 +128,7 @@ class EvalProtocol:
         edges = [float(x) for x in np.arange(0.0, cap, self.bin_width)]
         return [*edges, cap]
 
-    def metrics(self, conditions: Sequence[str] | None = None) -> DepthMetrics:
+    def scorer(self, conditions: Sequence[str] | None = None) -> DepthMetrics:
         """A fresh DepthMetrics scoring by this protocol."""
         return DepthMetrics(
             min_depth=self.min_depth,
@@ -94,11 +137,14 @@ class EvalProtocol:
             averaging=self.averaging,
             crop=self.crop,
             distance_bins=self.distance_bins,
+            clamp=self.clamp,
+            relative_to=self.relative_to,
         )
 
     def as_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["max_depth"] = list(self.max_depth)
+        out["metrics"] = list(self.metrics)
         out["distance_bins"] = self.distance_bins
         return out
 
@@ -174,35 +220,35 @@ def write_per_image(path: str | os.PathLike, rows: Sequence[Mapping[str, Any]]) 
     write_text_atomic(path, out.getvalue())
 
 
-def _rows(groups: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
-    return [
-        [
-            name,
-            *(f"{m[k]:.3f}" for k, _ in TABLE_COLUMNS),
-            str(m["num_images"]),
-            str(m["num_pixels"]),
-        ]
-        for name, m in groups.items()
-    ]
-
-
 def results_tables(result: EvaluationResult) -> str:
     """Markdown tables of a test stage's result: per condition, per distance bin, per cap, and
-    the latency line."""
+    the latency line. Columns are the protocol's ``metrics`` in its ``units``."""
+    protocol = result.protocol
 
-    header = [name for _, name in TABLE_COLUMNS] + ["Images", "Pixels"]
-    head_cap = f"{result.protocol.max_depth[-1]:g}"
+    def rows(groups: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
+        return [
+            [
+                name,
+                *(f"{metric_in_units(k, m[k], protocol.units):.3f}" for k in protocol.metrics),
+                str(m["num_images"]),
+                str(m["num_pixels"]),
+            ]
+            for name, m in groups.items()
+        ]
+
+    header = [metric_header(k, protocol.units) for k in protocol.metrics] + ["Images", "Pixels"]
+    head_cap = f"{protocol.max_depth[-1]:g}"
     parts = [
-        format_table(["Condition", *header], _rows({"all": result.overall, **result.by_condition}))
+        format_table(["Condition", *header], rows({"all": result.overall, **result.by_condition}))
     ]
     if result.by_distance:
         parts.append(
-            format_table([f"Distance (m, cap {head_cap})", *header], _rows(result.by_distance))
+            format_table([f"Distance (m, cap {head_cap})", *header], rows(result.by_distance))
         )
     if len(result.by_cap) > 1:
         parts.append(
             format_table(
-                ["Cap (m)", *header], _rows({f"< {k}": v for k, v in result.by_cap.items()})
+                ["Cap (m)", *header], rows({f"< {k}": v for k, v in result.by_cap.items()})
             )
         )
     latency = result.latency or {}
@@ -252,13 +298,24 @@ def config_schema(cfg: DictConfig) -> Schema:
     floor = config_value(cfg, "eval.min_depth")
     floor = cfg.dataset.min_depth if floor in (None, ABSENT) else floor
     positive_metres = Rule(lambda v: is_number(v) and v > 0, "a positive number of metres")
+    # Without clamping, min_depth 0 scores every target above 0 (RadarNet's gt > 0).
+    clamp = config_value(cfg, "eval.clamp") is not False
+    min_depth = positive_metres if clamp else Rule(lambda v: is_number(v) and v >= 0, "0 or more")
     return {
+        "eval.preset": Rule(lambda v: isinstance(v, str) and v != "", "the preset's name"),
+        "eval.clamp": BOOLEAN,
+        "eval.relative_to": one_of(*RELATIVE_TO),
+        "eval.units": one_of(*UNITS),
+        "eval.metrics": Rule(
+            lambda v: isinstance(v, list) and v and all(k in METRIC_KEYS for k in v),
+            f"a list of metrics from {', '.join(METRIC_KEYS)}",
+        ),
         "eval.crop": one_of(*EVAL_CROPS),
         "eval.averaging": one_of(*AVERAGING),
         "eval.upsample": one_of(*UPSAMPLING),
         "eval.flip_tta": BOOLEAN,
         "eval.bin_width": positive_metres.or_null("no distance breakdown"),
-        "eval.min_depth": positive_metres.or_null("dataset.min_depth"),
+        "eval.min_depth": min_depth.or_null("dataset.min_depth"),
         "eval.max_depth": Rule(
             lambda v: (
                 v is None

@@ -55,7 +55,7 @@ def score_sparse_input(
     Raises:
         ValueError: the sparse input covers no ground-truth pixel the protocol scores.
     """
-    covered, every = protocol.metrics(conditions), protocol.metrics(conditions)
+    covered, every = protocol.scorer(conditions), protocol.scorer(conditions)
     for index in range(len(dataset)):
         sample = dataset[index]
         sparse, depth = sample["sparse"][None], sample["depth"][None]

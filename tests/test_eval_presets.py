@@ -1,0 +1,188 @@
+"""Each evaluation preset (``eval=<name>``) scores as its reference code does: which pixels count,
+clamping, units, averaging, crop, what ARD divides by. Small frames hit every convention; the
+expected values are worked out by hand from the pixel lists below, not by the library."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fusion_depth.config import validate_config
+from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, results_tables
+from tests.helpers import compose_config
+
+H, W = 375, 1242  # a KITTI frame: the Garg crop keeps rows 153..370, columns 44..1196
+ROW, GARG_TOP = 200, 153
+
+# Image A: (row, col, ground truth m, prediction m). Image B has no ground truth at all.
+# Image C: one pixel. The dataset (procedural) scores 0.5 < gt < 80 by default.
+BEYOND_CAP = (ROW, 600, 45.0, 70.0)  # predicts 70 m where the truth is 45 m (under a 50 m cap)
+AT_CAP = (ROW, 601, 50.0, 40.0)  # truth exactly at the 50 m cap: not scored under it
+NO_GT = (ROW, 602, 0.0, 10.0)  # 0 = no measurement, never scored
+NAN_GT = (ROW, 603, math.nan, 10.0)  # NaN, never scored
+ABOVE_CROP = (GARG_TOP - 1, 600, 20.0, 22.0)  # one row above the Garg crop
+CROP_EDGE = (GARG_TOP, 600, 10.0, 8.0)  # the crop's first row
+FAR = (ROW, 604, 85.0, 90.0)  # beyond 80 m
+NEAR = (ROW, 605, 0.5, 0.3)  # at procedural's min_depth 0.5 (not above it), above 1e-3 and 0
+OVERSHOOT = (ROW, 606, 60.0, 100.0)  # a prediction above 80 m: clamped to 80 where clamping
+ONLY = (ROW, 600, 30.0, 33.0)  # image C
+
+IMAGE_A = [BEYOND_CAP, AT_CAP, NO_GT, NAN_GT, ABOVE_CROP, CROP_EDGE, FAR, NEAR, OVERSHOOT]
+
+
+def _frames() -> tuple[torch.Tensor, torch.Tensor]:
+    pred = torch.full((3, 1, H, W), 5.0, dtype=torch.float64)
+    target = torch.zeros((3, 1, H, W), dtype=torch.float64)
+    for image, pixels in ((0, IMAGE_A), (2, [ONLY])):
+        for row, col, gt, d in pixels:
+            target[image, 0, row, col] = gt
+            pred[image, 0, row, col] = d
+    return pred, target
+
+
+def _score(preset: str, tmp_path, *overrides: str) -> EvaluationResult:
+    cfg = compose_config([f"eval={preset}", *overrides], tmp_path)
+    validate_config(cfg)
+    protocol = EvalProtocol.from_config(cfg.eval, cfg.dataset.min_depth, cfg.dataset.max_depth)
+    metrics = protocol.scorer()
+    pred, target = _frames()
+    metrics.update(pred, target, index=torch.arange(3))
+    return EvaluationResult.from_metrics(protocol, metrics, latency={})
+
+
+def _image_errors(pairs: list[tuple[float, float]]) -> dict[str, float]:
+    """One image's metrics from its scored (gt, prediction) pairs, written out directly."""
+    gt = np.array([g for g, _ in pairs])
+    d = np.array([p for _, p in pairs])
+    ratio = np.maximum(d / gt, gt / d)
+    return {
+        "mae": np.mean(np.abs(d - gt)),
+        "rmse": np.sqrt(np.mean((d - gt) ** 2)),
+        "imae": np.mean(np.abs(1000 / d - 1000 / gt)),
+        "irmse": np.sqrt(np.mean((1000 / d - 1000 / gt) ** 2)),
+        "abs_rel": np.mean(np.abs(d - gt) / gt),
+        "sq_rel": np.mean((d - gt) ** 2 / gt),
+        "rmse_log": np.sqrt(np.mean((np.log(d) - np.log(gt)) ** 2)),
+        "delta1": np.mean(ratio < 1.25),
+        "delta2": np.mean(ratio < 1.25**2),
+        "delta3": np.mean(ratio < 1.25**3),
+        "log10": np.mean(np.abs(np.log10(d) - np.log10(gt))),
+    }
+
+
+def _per_image_mean(images: list[list[tuple[float, float]]]) -> dict[str, float]:
+    each = [_image_errors(pairs) for pairs in images]
+    return {k: float(np.mean([e[k] for e in each])) for k in each[0]}
+
+
+def _columns(table: str) -> list[str]:
+    """The metric columns of a printed table's first header (between Condition and Images)."""
+    cells = [c.strip() for c in table.splitlines()[0].strip("|").split("|")]
+    return cells[1 : cells.index("Images")]
+
+
+def _check(result: dict, expected: dict, keys) -> None:
+    for key in keys:
+        assert result[key] == pytest.approx(expected[key], rel=1e-9), key
+
+
+def test_radarnet_scores_the_raw_prediction_per_cap_in_mm(tmp_path) -> None:
+    """nesl/radar-camera-fusion-depth: 0 < gt < cap (strict), no clamp, per image, mm and 1/km,
+    caps 50, 70 and 80 in one pass; the empty image is skipped."""
+    result = _score("radarnet", tmp_path)
+    assert result.protocol.clamp is False and result.protocol.min_depth == 0.0
+    at_50 = [(45.0, 70.0), (20.0, 22.0), (10.0, 8.0), (0.5, 0.3)]  # 50 m is not < 50
+    at_80 = [*at_50, (50.0, 40.0), (60.0, 100.0)]  # 100 m is scored as it is (no clamp)
+    c = [(30.0, 33.0)]
+    _check(result.by_cap["50"], _per_image_mean([at_50, c]), ["mae", "rmse", "imae", "irmse"])
+    _check(
+        result.by_cap["70"], _per_image_mean([at_50 + [(50.0, 40.0), (60.0, 100.0)], c]), ["mae"]
+    )
+    _check(result.overall, _per_image_mean([at_80, c]), ["mae", "rmse", "imae", "irmse"])
+    assert result.overall["num_images"] == 2  # image B (no ground truth) is skipped
+    # The issue's example: 70 m predicted where the truth is 45 m costs 25 m here, not 5 m.
+    only = _score("radarnet", tmp_path, "eval.max_depth=[50]")
+    assert only.per_image[0]["mae"] == pytest.approx(np.mean([25.0, 2.0, 2.0, 0.2]))
+    # The printed table: its columns, order and units (mm, 1/km).
+    table = results_tables(result)
+    assert _columns(table) == ["MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)"]
+    assert f"{1000 * _per_image_mean([at_80, c])['mae']:.3f}" in table.splitlines()[2]
+
+
+def test_paper_clamps_to_the_dataset_range(tmp_path) -> None:
+    """The platform's own scoring: dataset.min_depth 0.5 < gt < 80, clamped, per image."""
+    result = _score("paper", tmp_path)
+    a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0)]  # 100 → 80
+    _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), ["rmse", "abs_rel", "delta1"])
+    # The same 70 m prediction under a 50 m cap, clamped: a 5 m error, as the issue says.
+    capped = _score("paper", tmp_path, "eval.max_depth=50")
+    a50 = [(45.0, 50.0), (20.0, 22.0), (10.0, 8.0)]
+    _check(capped.overall, _per_image_mean([a50, [(30.0, 33.0)]]), ["mae", "rmse"])
+    assert _columns(results_tables(result)) == ["RMSE", "ARD", "SRD", "MAE", "δ1", "δ2", "δ3"]
+
+
+def test_eigen_is_monodepth2s(tmp_path) -> None:
+    """monodepth2 on the Eigen split: 1e-3 < gt < 80, clamped to [1e-3, 80], the Garg crop
+    (row 152 out, row 153 in), per image, abs_rel sq_rel rmse rmse_log a1 a2 a3."""
+    result = _score("eigen", tmp_path)
+    a = [(45.0, 70.0), (50.0, 40.0), (10.0, 8.0), (0.5, 0.3), (60.0, 80.0)]
+    keys = ["abs_rel", "sq_rel", "rmse", "rmse_log", "delta1", "delta2", "delta3"]
+    _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), keys)
+    columns = ["ARD", "SRD", "RMSE", "RMSE_LOG", "δ1", "δ2", "δ3"]
+    assert _columns(results_tables(result)) == columns
+
+
+def test_kitti_dc_counts_every_measured_pixel(tmp_path) -> None:
+    """The KITTI devkit: every gt > 0 counts with no cap (85 m included), no clamp, per image,
+    printed as MAE RMSE iMAE iRMSE in mm and 1/km."""
+    result = _score("kitti_dc", tmp_path)
+    a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (85.0, 90.0), (0.5, 0.3)]
+    a.append((60.0, 100.0))
+    _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), ["mae", "rmse", "imae", "irmse"])
+    assert _columns(results_tables(result)) == [
+        "MAE (mm)",
+        "RMSE (mm)",
+        "iMAE (1/km)",
+        "iRMSE (1/km)",
+    ]
+
+
+def test_densedepth_pools_and_divides_by_the_prediction(tmp_path) -> None:
+    """DenseDepth's utils.py: clamped to the model's range, every pixel of every image pooled,
+    rel divided by the prediction (its swapped compute_errors arguments), a1 a2 a3 rel rms
+    log_10, with flip TTA."""
+    result = _score("densedepth", tmp_path)
+    assert result.protocol.flip_tta is True and result.protocol.averaging == "pooled"
+    pooled = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0), (30.0, 33.0)]
+    expected = _image_errors(pooled)
+    gt, d = np.array(pooled).T
+    expected["abs_rel"] = np.mean(np.abs(d - gt) / d)
+    _check(result.overall, expected, ["delta1", "delta2", "delta3", "abs_rel", "rmse", "log10"])
+    assert _columns(results_tables(result)) == ["δ1", "δ2", "δ3", "ARD", "RMSE", "LOG10"]
+
+
+def test_a_key_overrides_the_preset_and_the_record_says_so(tmp_path) -> None:
+    result = _score("radarnet", tmp_path, "eval.clamp=true", "eval.min_depth=0.1")
+    record = result.protocol.as_dict()
+    assert record["preset"] == "radarnet" and record["clamp"] is True
+    assert record["units"] == "mm" and record["metrics"] == ["mae", "rmse", "imae", "irmse"]
+    a80 = [(45.0, 70.0), (20.0, 22.0), (10.0, 8.0), (0.5, 0.3), (50.0, 40.0), (60.0, 80.0)]
+    _check(result.overall, _per_image_mean([a80, [(30.0, 33.0)]]), ["mae"])
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("eval.units=km", "eval.units"),
+        ("eval.metrics=[rmse,abs_err]", "eval.metrics"),
+        ("eval.relative_to=pred", "eval.relative_to"),
+        ("eval.min_depth=0", "eval.min_depth"),  # 0 needs eval.clamp=false
+    ],
+)
+def test_bad_preset_keys_are_refused_by_name(tmp_path, override, message) -> None:
+    cfg = compose_config(["eval=paper", override], tmp_path)
+    with pytest.raises(ValueError, match=message):
+        validate_config(cfg)
