@@ -381,6 +381,76 @@ def test_plot_of_single_seeds_and_bad_extension(tmp_path, capsys) -> None:
     assert "--plot " in capsys.readouterr().err and not (tmp_path / "p.xyz").exists()
 
 
+RADARNET = {
+    "preset": "radarnet",
+    "min_depth": 0.0,
+    "max_depth": [50.0, 70.0, 80.0],
+    "clamp": False,
+    "units": "mm",
+    "metrics": ["mae", "rmse", "imae", "irmse"],
+}
+
+
+def _write_radarnet_run(root, name, fusion, seed, mae_by_cap: dict[str, float]) -> None:
+    def scores(mae: float) -> dict:
+        return {k: 0.1 for k in METRIC_KEYS} | {"mae": mae, "imae": 2 * mae, "num_images": 10}
+
+    write_json_atomic(
+        root / name / "metrics.json",
+        {
+            "status": "ok",
+            "run": {
+                "dataset": "nuscenes",
+                "sensor": "radar",
+                "backbone": "densenet169",
+                "fusion": fusion,
+                "loss": "l1",
+                "seed": seed,
+                "overrides": [f"fusion={fusion}", f"seed={seed}", "eval=radarnet"],
+            },
+            "protocol": RADARNET,
+            "test": scores(mae_by_cap["80"]),
+            "test_by_cap": {cap: scores(mae) for cap, mae in mae_by_cap.items()},
+        },
+    )
+
+
+def test_a_preset_prints_in_its_units_and_order_one_row_per_cap(tmp_path, capsys) -> None:
+    """Runs scored with eval=radarnet: MAE RMSE iMAE iRMSE, MAE and RMSE in mm, a row per cap
+    (as RadarNet's tables), the best per cap in bold; CSV keeps metres."""
+    _write_radarnet_run(tmp_path, "a1", "rgb", 1, {"50": 2.0, "70": 3.0, "80": 4.0})
+    _write_radarnet_run(tmp_path, "a2", "rgb", 2, {"50": 2.2, "70": 3.2, "80": 4.2})
+    _write_radarnet_run(tmp_path, "b1", "concat", 1, {"50": 1.5, "70": 3.5, "80": 4.5})
+    assert main([str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert header[-5:] == ["Cap (m)", "MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)"]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    assert [(r[0], r[header.index("Cap (m)")]) for r in rows] == [
+        ("RGB", "50"), ("RGB", "70"), ("RGB", "80"),
+        ("RGB-Fusion", "50"), ("RGB-Fusion", "70"), ("RGB-Fusion", "80"),
+    ]  # fmt: skip
+    mae = header.index("MAE (mm)")
+    assert rows[0][mae] == "2100.000 ± 141.421"  # mean and std of 2.0, 2.2 m, in mm
+    assert rows[3][mae] == "**1500.000**" and rows[0][mae].count("**") == 0  # best at 50 m
+    assert rows[2][mae].startswith("**4100.000")  # best at 80 m
+    assert rows[0][header.index("iMAE (1/km)")].startswith("4.200 ±")  # 1/km: not scaled
+    assert main([str(tmp_path), "--by", "cap", "--metric", "mae"]) == 0
+    assert "MAE (mm) (50)" in capsys.readouterr().out
+    assert main([str(tmp_path), "--format", "csv"]) == 0
+    csv_rows = _csv(capsys)
+    assert float(csv_rows[0]["mae_mean"]) == pytest.approx(2.1)  # CSV: recorded metres
+
+
+def test_runs_of_different_presets_are_not_tabulated_together(tmp_path, capsys) -> None:
+    _write_radarnet_run(tmp_path, "a", "rgb", 1, {"50": 2.0, "70": 3.0, "80": 4.0})
+    _write_run(tmp_path, "b", "rgb", "l1", 1, rmse=1.0)  # a record from before presets: paper
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "different evaluation presets" in err and "eval=radarnet" in err and "eval=paper" in err
+    assert "a/metrics.json" in err and "b/metrics.json" in err
+
+
 def test_plot_carries_its_command_and_values_and_repeats(grid, capsys, tmp_path) -> None:
     """An SVG or PNG figure names the command that drew it and holds the plotted values (the
     seed means and stds of the table), and drawing it again writes the same bytes."""

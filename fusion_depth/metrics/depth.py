@@ -52,11 +52,14 @@ __all__ = [
     "METRIC_LATEX",
     "RELATIVE_TO",
     "TABLE_METRICS",
+    "UNITS",
     "DepthMetrics",
     "compute_depth_metrics",
     "crop_mask",
     "scored_mask",
     "depth_error_sums",
+    "metric_header",
+    "metric_in_units",
     "metrics_from_sums",
     "per_image_depth_metrics",
 ]
@@ -99,6 +102,30 @@ METRIC_LATEX: dict[str, str] = {
 TABLE_METRICS: tuple[str, ...] = ("rmse", "abs_rel", "sq_rel", "mae", "delta1", "delta2", "delta3")
 """The metrics printed tables show, in the paper's order (RMSE, ARD, SRD, δ1–δ3) with MAE after
 SRD; ``metrics.json`` and ``per_image.csv`` hold all of :data:`METRIC_KEYS`."""
+
+
+UNITS: tuple[str, ...] = ("m", "mm")
+"""Units a table prints RMSE, MAE and SRD in (``eval.units``); metrics.json holds metres."""
+# Metrics whose value is a length (SRD: squared metres over metres): scaled by the units.
+_LENGTH_METRICS = frozenset({"rmse", "mae", "sq_rel"})
+
+
+def metric_in_units(key: str, value: float, units: str) -> float:
+    """``value`` of metric ``key`` (as metrics.json holds it: metres, 1/km) in ``units``."""
+    return value * 1000.0 if units == "mm" and key in _LENGTH_METRICS else value
+
+
+def metric_header(key: str, units: str = "m", latex: bool = False) -> str:
+    """A table's column header of ``key`` in ``units``: ``RMSE``, ``RMSE (mm)``, ``iMAE (1/km)``
+    (LaTeX: :data:`METRIC_LATEX`'s name); a key that is no metric, as it is."""
+    names = METRIC_LATEX if latex else METRIC_LABELS
+    if key not in names:
+        return key.replace("_", r"\_") if latex else key
+    if key in _LENGTH_METRICS and units == "mm":
+        return f"{names[key]} (mm)"
+    if key in ("irmse", "imae"):
+        return f"{names[key]} (1/km)"
+    return names[key]
 
 
 # Metrics that are square roots of a mean: their per-pixel sum holds the squared error.

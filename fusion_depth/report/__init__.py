@@ -22,13 +22,14 @@ from fusion_depth.report.compare import (
 from fusion_depth.report.groups import (
     ALL,
     BY_SECTIONS,
-    COLUMNS,
     HARD_CONDITIONS,
+    Preset,
     build_by_table,
     build_table,
     by_column_stats,
     group_runs,
     key_label,
+    runs_preset,
 )
 from fusion_depth.report.plots import (
     PLOT_METRICS,
@@ -41,13 +42,14 @@ from fusion_depth.report.plots import (
 __all__ = [
     "ALL",
     "BY_SECTIONS",
-    "COLUMNS",
+    "Preset",
     "build_by_table",
     "build_table",
     "by_column_stats",
     "group_runs",
     "HARD_CONDITIONS",
     "key_label",
+    "runs_preset",
     "build_model_report",
     "default_baseline",
     "COMPARE_KEYS",

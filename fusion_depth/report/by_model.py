@@ -20,6 +20,7 @@ from fusion_depth.models._registry import DEFAULT_MODEL
 from fusion_depth.report.compare import Comparison, build_comparison_table, csv_cells
 from fusion_depth.report.groups import (
     HARD_CONDITIONS,
+    Preset,
     build_by_table,
     by_column_stats,
     identity_cells,
@@ -48,9 +49,10 @@ def build_model_report(
     metric: str = "rmse",
     fmt: str = "markdown",
     first: Sequence[str] = HARD_CONDITIONS,
+    preset: Preset | None = None,
 ) -> str:
     """The ``--by model`` report of grouped runs and their ``comparisons`` (None or empty: the
-    first table only).
+    first table only), in the units of ``preset`` (CSV: the recorded units).
 
     Markdown and LaTeX: the per-condition table (``metric`` mean ± std over seeds, a Model
     column, the columns in ``first`` first), a blank line, then the comparison table. CSV: one
@@ -58,9 +60,9 @@ def build_model_report(
     """
     if fmt == "csv":
         return _merged_csv(groups, comparisons or (), metric, first)
-    parts = [build_by_table(groups, SECTION, metric, fmt, first=first, show=_SHOW)]
+    parts = [build_by_table(groups, SECTION, metric, fmt, first=first, show=_SHOW, preset=preset)]
     if comparisons:
-        parts.append(build_comparison_table(comparisons, fmt, show=_SHOW))
+        parts.append(build_comparison_table(comparisons, fmt, show=_SHOW, preset=preset))
     return "\n\n".join(parts)
 
 

@@ -88,6 +88,7 @@ from fusion_depth.report.groups import (
     build_table,
     column_keys,
     group_runs,
+    runs_preset,
 )
 from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
 from fusion_depth.runner.record import METRICS_FILE, load_runs
@@ -281,6 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.first:
             _check_first(runs, section, args.first)
         first = args.first or (HARD_CONDITIONS if by_model else ())
+        preset = runs_preset(runs)
         groups = group_runs(runs)
         baseline = args.compare or (default_baseline(groups) if by_model else None)
         comparisons = None
@@ -297,12 +299,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         def render(fmt: str) -> str:
             if by_model:
-                return build_model_report(groups, comparisons, metric, fmt, first)
+                return build_model_report(groups, comparisons, metric, fmt, first, preset)
             if comparisons is not None:
-                return build_comparison_table(comparisons, fmt)
+                return build_comparison_table(comparisons, fmt, preset=preset)
             if args.by:
-                return build_by_table(groups, args.by, metric, fmt, first=first)
-            return build_table(groups, fmt)
+                return build_by_table(groups, args.by, metric, fmt, first=first, preset=preset)
+            return build_table(groups, fmt, preset)
 
         table = render(args.format)
         print(table)

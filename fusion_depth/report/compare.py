@@ -23,10 +23,10 @@ import numpy as np
 from fusion_depth.metrics.bootstrap import BootstrapResult, paired_bootstrap
 from fusion_depth.report.groups import (
     ALL,
+    Preset,
     identity_cells,
     identity_columns,
     key_label,
-    metric_label,
     put_first,
     tex_escape,
 )
@@ -450,17 +450,29 @@ def csv_cells(result: BootstrapResult | None) -> list[str]:
     ]
 
 
+def _interval_text(preset: Preset, metric: str, result: BootstrapResult) -> str:
+    """``+mean [+low, +high]`` in the preset's units, 3 decimals."""
+    mean, low, high = (preset.value(metric, v) for v in (result.mean, result.low, result.high))
+    return f"{mean:+.3f} [{low:+.3f}, {high:+.3f}]"
+
+
 def build_comparison_table(
-    comparisons: Sequence[Comparison], fmt: str = "markdown", show: Collection[str] = ()
+    comparisons: Sequence[Comparison],
+    fmt: str = "markdown",
+    show: Collection[str] = (),
+    preset: Preset | None = None,
 ) -> str:
     """Mean per-image difference and CI per compared group; significant cells are marked.
 
     A cell is significant (bold, and listed in the ``Significant`` column) when its interval
     excludes 0. The sign is other − baseline: negative is better for errors, positive for δ.
-    ``show``: identity columns to show even when every compared group has the same value.
+    ``show``: identity columns to show even when every compared group has the same value;
+    ``preset``: the units of the cells (:func:`~fusion_depth.report.groups.runs_preset`; CSV
+    keeps the recorded units).
     """
     if not comparisons:
         raise ValueError("no comparisons to tabulate")
+    preset = preset or Preset()
     columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
     metric, level = comparisons[0].metric, comparisons[0].level
     extra = comparison_identity_columns(comparisons, show)
@@ -475,7 +487,7 @@ def build_comparison_table(
         ]
         header.append("level")
     else:
-        label = ("$\\Delta$" if latex else "Δ") + metric_label(metric, latex)
+        label = ("$\\Delta$" if latex else "Δ") + preset.label(metric, latex)
         pct = f"{100 * level:g}\\%" if latex else f"{100 * level:g}%"
         header += [f"{label} ({tex_escape(c) if latex else c}, {pct} CI)" for c in columns]
         header.append("Significant")
@@ -492,7 +504,7 @@ def build_comparison_table(
             if fmt == "csv":
                 row += csv_cells(r)
             else:
-                row.append("–" if r is None else f"{r.mean:+.3f} [{r.low:+.3f}, {r.high:+.3f}]")
+                row.append("–" if r is None else _interval_text(preset, metric, r))
         if fmt == "csv":
             row.append(f"{level:g}")
         elif columns == [ALL]:

@@ -13,19 +13,67 @@ from __future__ import annotations
 
 import statistics
 from collections.abc import Collection, Sequence
+from dataclasses import dataclass
 
 from fusion_depth.losses.depth_loss import PIXEL_LOSS_LABELS
-from fusion_depth.metrics.depth import HIGHER_IS_BETTER, METRIC_LABELS, METRIC_LATEX, TABLE_METRICS
+from fusion_depth.metrics.depth import (
+    HIGHER_IS_BETTER,
+    METRIC_KEYS,
+    TABLE_METRICS,
+    metric_header,
+    metric_in_units,
+)
 from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
 
-# (metric key, column header, LaTeX header, better) of the tables, from the metrics' own tables.
-COLUMNS = tuple(
-    (k, METRIC_LABELS[k], METRIC_LATEX[k], max if HIGHER_IS_BETTER[k] else min)
-    for k in TABLE_METRICS
-)
+
+@dataclass(frozen=True)
+class Preset:
+    """How the runs were scored, as a table prints them: the evaluation preset (``eval=``), its
+    columns in order and its units. ``metrics.json`` records them under ``protocol``; a record
+    written before presets existed is ``paper``'s. See :func:`runs_preset`."""
+
+    name: str = "paper"
+    metrics: tuple[str, ...] = TABLE_METRICS
+    units: str = "m"
+
+    def value(self, metric: str, value: float) -> float:
+        """``value`` (metres, 1/km, as recorded) in this preset's units."""
+        return metric_in_units(metric, value, self.units)
+
+    def label(self, metric: str, latex: bool = False) -> str:
+        """The column header of ``metric``: its table name with this preset's unit."""
+        return metric_header(metric, self.units, latex)
+
+
+def runs_preset(runs: Sequence[RunRecord]) -> Preset:
+    """The :class:`Preset` every run was scored with.
+
+    Raises:
+        ValueError: the runs were scored under different presets (a table would put numbers
+            that mean different things side by side); names a run of each.
+    """
+    found: dict[Preset, RunRecord] = {}
+    for run in runs:
+        protocol = run.protocol or {}
+        preset = Preset(
+            name=str(protocol.get("preset", "paper")),
+            metrics=tuple(protocol.get("metrics") or TABLE_METRICS),
+            units=str(protocol.get("units", "m")),
+        )
+        found.setdefault(preset, run)
+    if len(found) > 1:
+        named = "; ".join(f"eval={p.name} ({r.path})" for p, r in found.items())
+        raise ValueError(
+            f"the runs were scored under different evaluation presets: {named}. Report one "
+            "preset at a time, or score them again with one (python -m fusion_depth.evaluate "
+            "ckpt_path=<folder> eval=<preset>)"
+        )
+    return next(iter(found), Preset())
+
+
 # Overrides that already have a column or are averaged over (``model=`` chooses the network,
 # as does ``model.net.name=``; other ``model.*`` keys are settings).
 _IDENTITY_KEYS = {"dataset", "model", "model.net.name", "backbone", "fusion", "loss", "seed"}
@@ -96,13 +144,11 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     result = []
     for key in sorted(groups, key=order):
         members = groups[key]
-        stats = {}
-        for metric, *_ in COLUMNS:
-            values = [m.test[metric] for m in members]
-            stats[metric] = (
-                statistics.fmean(values),
-                statistics.stdev(values) if len(values) > 1 else None,
-            )
+        stats = {
+            metric: mean_std([m.test[metric] for m in members])
+            for metric in METRIC_KEYS
+            if all(metric in m.test for m in members)
+        }
         dataset, sensor, model, backbone, loss, fusion, setting, engine = key
         result.append(
             {
@@ -149,40 +195,93 @@ def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
     ]
 
 
-def build_table(groups: Sequence[dict], fmt: str = "markdown") -> str:
-    """The paper's table (Modality, Loss, RMSE, ARD, SRD, δ1–δ3) for grouped runs."""
+def _cell_text(preset: Preset, metric: str, cell: tuple[float, float | None]) -> str:
+    """``mean ± std`` (or the mean of a single seed) in the preset's units, 3 decimals."""
+    mean, std = (None if v is None else preset.value(metric, v) for v in cell)
+    return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
+
+
+def _table_caps(groups: Sequence[dict]) -> list[str]:
+    """The depth caps a table gives rows to: every cap of ``test_by_cap`` (by value) when some
+    run scored several in one pass (``eval=radarnet``); none otherwise."""
+    runs = [r for g in groups for r in g["runs"]]
+    if not any(len(r.test_by_cap or {}) > 1 for r in runs):
+        return []
+    caps = {cap for r in runs for cap in r.test_by_cap or {}}
+    return sorted(caps, key=float)
+
+
+def _cap_stats(group: dict, cap: str | None) -> dict[str, tuple[float, float | None]]:
+    """A group's metric → (mean, std over seeds) at ``cap`` (None: the headline); a metric some
+    run lacks at that cap is left out."""
+    if cap is None:
+        return group["stats"]
+    sections = [(r.test_by_cap or {}).get(cap) for r in group["runs"]]
+    if any(s is None for s in sections):
+        return {}
+    return {
+        metric: mean_std([s[metric] for s in sections])
+        for metric in METRIC_KEYS
+        if all(metric in s for s in sections)
+    }
+
+
+def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | None = None) -> str:
+    """The paper's table for grouped runs: Modality, Loss, then the preset's metrics in its
+    order and units (``paper``: RMSE, ARD, SRD, MAE, δ1–δ3 in metres; ``radarnet``: MAE, RMSE in
+    mm, iMAE, iRMSE in 1/km). When the runs scored several caps in one pass, a Cap column and
+    one row per cap, as RadarNet's tables have; the best of each column is marked per cap."""
     if not groups:
         raise ValueError("no runs to tabulate")
+    preset = preset or Preset()
     extra = identity_columns(groups)
     show_n = any(g["n"] > 1 for g in groups)
+    caps = _table_caps(groups)
     latex = fmt == "latex"
     header = [name for name, _ in extra] + ["Modality", "Loss"]
     if show_n:
         header.append("Seeds")
+    if caps:
+        header.append("Cap (m)")
     first_metric = len(header)
-    header += [tex if latex else name for _, name, tex, _ in COLUMNS]
-    if fmt == "csv":
-        header = header[:first_metric] + [f"{k}_{s}" for k, *_ in COLUMNS for s in ("mean", "std")]
-    rows, bold = [], set()
+    if fmt == "csv":  # CSV is data: recorded units (metres, 1/km), as metrics.json
+        header += [f"{k}_{s}" for k in preset.metrics for s in ("mean", "std")]
+    else:
+        header += [preset.label(k, latex) for k in preset.metrics]
+    rows: list[list[str]] = []
+    row_stats: list[tuple[str | None, dict]] = []
     for g in groups:
-        row = identity_cells(g, extra)
-        if show_n:
-            row.append(str(g["n"]))
-        for metric, *_ in COLUMNS:
-            mean, std = g["stats"][metric]
-            if fmt == "csv":
-                row += [f"{mean:.6g}", "" if std is None else f"{std:.6g}"]
-            else:
-                row.append(f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}")
-        rows.append(row)
+        for cap in caps or [None]:
+            stats = _cap_stats(g, cap)
+            row = identity_cells(g, extra)
+            if show_n:
+                row.append(str(g["n"]))
+            if cap is not None:
+                row.append(cap)
+            for metric in preset.metrics:
+                cell = stats.get(metric)
+                if cell is None:
+                    row += ["", ""] if fmt == "csv" else ["–"]
+                    continue
+                if fmt == "csv":
+                    row += [f"{cell[0]:.6g}", _fmt_std(cell[1])]
+                else:
+                    row.append(_cell_text(preset, metric, cell))
+            rows.append(row)
+            row_stats.append((cap, stats))
+    bold = set()
     if fmt != "csv":
-        for j, (metric, _, _, better) in enumerate(COLUMNS):
-            target = better(g["stats"][metric][0] for g in groups)
-            bold |= {
-                (i, first_metric + j)
-                for i, g in enumerate(groups)
-                if round(g["stats"][metric][0], 3) == round(target, 3)
-            }
+        for j, metric in enumerate(preset.metrics):
+            better = max if higher_is_better(metric) else min
+            for cap in caps or [None]:
+                cells = [
+                    (i, preset.value(metric, st[metric][0]))
+                    for i, (c, st) in enumerate(row_stats)
+                    if c == cap and metric in st
+                ]
+                if cells:
+                    target = round(better(v for _, v in cells), 3)
+                    bold |= {(i, first_metric + j) for i, v in cells if round(v, 3) == target}
     return format_table(header, rows, fmt, bold)
 
 
@@ -209,12 +308,10 @@ def higher_is_better(metric: str) -> bool:
     return HIGHER_IS_BETTER.get(metric, False)
 
 
-def metric_label(metric: str, latex: bool = False) -> str:
-    """The paper's name of a metric (RMSE, ARD, δ1...), or its key when the paper has none."""
-    for key, name, tex, _ in COLUMNS:
-        if key == metric:
-            return tex if latex else name
-    return tex_escape(metric) if latex else metric
+def metric_label(metric: str, latex: bool = False, units: str = "m") -> str:
+    """The table name of a metric (RMSE, ARD, δ1, iMAE (1/km), RMSE (mm) in ``units`` mm...),
+    or its key when it is no metric."""
+    return metric_header(metric, units, latex)
 
 
 def tex_escape(text: str) -> str:
@@ -293,12 +390,15 @@ def build_by_table(
     *,
     first: Sequence[str] = (),
     show: Collection[str] = (),
+    preset: Preset | None = None,
 ) -> str:
     """One metric per condition (distance bin, depth cap): where does a fusion mode help?
 
     ``first``: columns to put first (after ``all``); ``show``: identity columns to show even
-    when every group has the same value (``("model",)`` for ``--by model``).
+    when every group has the same value (``("model",)`` for ``--by model``); ``preset``: the
+    units the cells are in (:func:`runs_preset`; CSV keeps the recorded units).
     """
+    preset = preset or Preset()
     if not groups:
         raise ValueError("no runs to tabulate")
     columns, stats = by_column_stats(groups, by, metric, first)
@@ -310,7 +410,7 @@ def build_by_table(
         header += [f"{metric}_{c}_{s}" for c in columns for s in ("mean", "std")]
     else:
         latex = fmt == "latex"
-        label = metric_label(metric, latex)
+        label = preset.label(metric, latex)
         header += [f"{label} ({tex_escape(c) if latex else c})" for c in columns]
     rows = []
     for g, cells in zip(groups, stats, strict=True):
@@ -322,14 +422,17 @@ def build_by_table(
             elif cell is None:
                 row.append("–")
             else:
-                mean, std = cell
-                row.append(f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}")
+                row.append(_cell_text(preset, metric, cell))
         rows.append(row)
     bold = set()
     if fmt != "csv":
         better = max if higher_is_better(metric) else min
         for j, column in enumerate(columns):
-            means = [(i, s[column][0]) for i, s in enumerate(stats) if s[column] is not None]
+            means = [
+                (i, preset.value(metric, s[column][0]))
+                for i, s in enumerate(stats)
+                if s[column] is not None
+            ]
             if means:
                 target = round(better(m for _, m in means), 3)
                 bold |= {(i, first + j) for i, m in means if round(m, 3) == target}

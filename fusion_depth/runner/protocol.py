@@ -22,35 +22,18 @@ from fusion_depth.metrics.depth import (
     AVERAGING,
     EVAL_CROPS,
     METRIC_KEYS,
-    METRIC_LABELS,
     RELATIVE_TO,
     TABLE_METRICS,
+    UNITS,
     DepthMetrics,
+    metric_header,
+    metric_in_units,
 )
 from fusion_depth.models.inference import UPSAMPLING
 from fusion_depth.runner.speed import cpu_model
 from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
 from fusion_depth.utils.tables import format_table
-
-UNITS: tuple[str, ...] = ("m", "mm")
-"""Units a table prints RMSE, MAE and SRD in (``eval.units``); metrics.json holds metres."""
-# Metrics whose value is a length (SRD: squared metres over metres): scaled by eval.units.
-_LENGTH_METRICS = frozenset({"rmse", "mae", "sq_rel"})
-
-
-def metric_in_units(key: str, value: float, units: str) -> float:
-    """``value`` of metric ``key`` (as metrics.json holds it: metres, 1/km) in ``units``."""
-    return value * 1000.0 if units == "mm" and key in _LENGTH_METRICS else value
-
-
-def metric_header(key: str, units: str) -> str:
-    """A table's column header of ``key`` in ``units``: ``RMSE``, ``RMSE (mm)``, ``iMAE (1/km)``."""
-    if key in _LENGTH_METRICS and units == "mm":
-        return f"{METRIC_LABELS[key]} (mm)"
-    if key in ("irmse", "imae"):
-        return f"{METRIC_LABELS[key]} (1/km)"
-    return METRIC_LABELS[key]
 
 
 @dataclass(frozen=True)
