@@ -18,6 +18,7 @@ from fusion_depth.errors import ConfigError
 from fusion_depth.optim.schedules import (
     SCHEDULE_ARGUMENTS,
     SCHEDULES,
+    Constant,
     WarmupCosine,
     create_schedule,
     schedule_arguments,
@@ -100,7 +101,9 @@ def test_create_schedule_builds_the_named_schedule_with_its_own_arguments() -> N
     cosine = create_schedule(_optimizer(), "cosine", total_steps=10, warmup_fraction=0.2)
     assert isinstance(cosine, WarmupCosine)
     assert (cosine.total_steps, cosine.warmup_steps, cosine.final_lr_ratio) == (10, 2, 0.01)
-    assert set(SCHEDULES) == {"step", "cosine"}
+    constant = create_schedule(_optimizer(), "constant")
+    assert isinstance(constant, Constant)
+    assert set(SCHEDULES) == {"step", "cosine", "constant"}
 
 
 @pytest.mark.parametrize(
@@ -179,3 +182,62 @@ def test_a_cosine_schedule_saved_mid_run_resumes_on_the_same_learning_rates(tmp_
         create_schedule(_optimizer(), "cosine", total_steps=12, warmup_fraction=0.25), 12
     )
     assert before[:5] + after == pytest.approx(reference)
+
+
+def _lr_by_epoch(cfg, epochs: int) -> list[float]:
+    """The learning rate of each epoch under ``cfg``'s optimizer and schedule, as built."""
+    optimizer = instantiate(cfg.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
+    scheduler = instantiate(cfg.scheduler)(optimizer=optimizer)
+    rates = []
+    for _ in range(epochs):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    return rates
+
+
+def test_each_model_brings_its_published_recipe(make_config) -> None:
+    """model=sparse_to_dense trains as sparse-to-dense.pytorch's main.py does (SGD 0.01, momentum
+    0.9, weight decay 1e-4, lr_init * 0.1 ** (epoch // 5), batch 8, 15 epochs); model=radarnet as
+    the FusionNet script (Adam 1e-3, no decay, one rate, batch 16, 450 epochs)."""
+    s2d = make_config("model=sparse_to_dense")
+    validate_config(s2d)
+    optimizer = instantiate(s2d.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
+    assert isinstance(optimizer, torch.optim.SGD)
+    group = optimizer.param_groups[0]
+    assert (group["momentum"], group["weight_decay"], group["nesterov"]) == (0.9, 1e-4, False)
+    expected = [0.01 * 0.1 ** (epoch // 5) for epoch in range(15)]
+    assert _lr_by_epoch(s2d, 15) == pytest.approx(expected)
+    assert (s2d.data.batch_size, s2d.trainer.max_epochs) == (8, 15)
+
+    radarnet = make_config("model=radarnet", "fusion=concat")
+    validate_config(radarnet)
+    assert instantiate(radarnet.optimizer)(
+        params=[torch.nn.Parameter(torch.zeros(1))]
+    ).__class__ is (torch.optim.Adam)
+    assert _lr_by_epoch(radarnet, 12) == pytest.approx([1e-3] * 12)
+    assert radarnet.optimizer.weight_decay == 0.0
+    assert (radarnet.data.batch_size, radarnet.trainer.max_epochs) == (16, 450)
+
+
+@pytest.mark.parametrize("model", ["densedepth", "sparse_to_dense", "radarnet"])
+def test_experiment_paper_puts_every_model_under_the_papers_recipe(make_config, model) -> None:
+    cfg = make_config(f"model={model}", "fusion=concat", "experiment=paper")
+    validate_config(cfg)
+    optimizer = instantiate(cfg.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
+    assert type(optimizer) is torch.optim.Adam and optimizer.param_groups[0]["lr"] == 1e-4
+    assert _lr_by_epoch(cfg, 15) == pytest.approx([1e-4 * 0.2 ** (e // 7) for e in range(15)])
+    assert (cfg.data.batch_size, cfg.trainer.max_epochs) == (2, 20)
+
+
+def test_the_command_line_and_a_datasets_recipe_win_over_a_models(make_config) -> None:
+    cfg = make_config(
+        "model=sparse_to_dense", "optimizer=adamw", "data.batch_size=4", "trainer.max_epochs=3"
+    )
+    validate_config(cfg)
+    optimizer = instantiate(cfg.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
+    assert type(optimizer) is torch.optim.AdamW
+    assert (cfg.data.batch_size, cfg.trainer.max_epochs) == (4, 3)
+    default = make_config()  # model=densedepth on the built-in dataset: its own recipe
+    assert (default.optimizer.lr, default.scheduler.name) == (3e-3, "cosine")
+    assert (default.data.batch_size, default.trainer.max_epochs) == (16, 22)

@@ -1,6 +1,7 @@
 """Learning-rate schedules: the paper's per-epoch ``StepLR`` (``scheduler=step``), the per-step
-:class:`WarmupCosine` (``scheduler=cosine``), and :func:`create_schedule`, which builds either by
-name (``scheduler=for_densedepth``, so that a dataset's recipe can name its schedule).
+:class:`WarmupCosine` (``scheduler=cosine``), :class:`Constant` (RadarNet's), and
+:func:`create_schedule`, which builds any of them by name (``scheduler=for_<model>``, so that a
+model or a dataset's recipe can name its schedule).
 
 A schedule here declares ``interval = "step"`` and takes ``total_steps``, which the module
 passes: the run's optimizer steps (``trainer.estimated_stepping_batches``), so it follows
@@ -81,7 +82,28 @@ class WarmupCosine(LambdaLR):
 
 # The schedules a config may name (create_schedule's ``name``): the paper's StepLR, stepped per
 # epoch, and the warm-up + cosine one, stepped per optimizer step.
-SCHEDULES: dict[str, type[LRScheduler]] = {"step": StepLR, "cosine": WarmupCosine}
+def _unchanged(epoch: int) -> float:
+    return 1.0
+
+
+class Constant(LambdaLR):
+    """The optimizer's learning rate throughout: RadarNet's reference schedule (one rate for all
+    of ``--learning_schedule``, nesl/radar-camera-fusion-depth, src/fusionnet_main.py lines
+    332-341, with bash/train_fusionnet_nuscenes.sh's single rate).
+
+    Args:
+        optimizer: its ``lr`` is the rate.
+    """
+
+    def __init__(self, optimizer: torch.optim.Optimizer) -> None:
+        super().__init__(optimizer, _unchanged)
+
+
+SCHEDULES: dict[str, type[LRScheduler]] = {
+    "step": StepLR,
+    "cosine": WarmupCosine,
+    "constant": Constant,
+}
 # Arguments the module passes itself, never a config's.
 _PASSED_BY_MODULE = ("self", "optimizer", "total_steps", "last_epoch")
 # Every schedule's config arguments, which create_schedule takes (None: unset).
