@@ -313,12 +313,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.plot:
             command = command_line(argv)
             if comparisons:
-                plot_comparisons(comparisons, args.plot, command)
+                plot_comparisons(comparisons, args.plot, command, preset)
             elif section:
-                plot_by(groups, args.plot, section, metric, first, command)
+                plot_by(groups, args.plot, section, metric, first, command, preset)
             else:
                 metrics = [args.metric] if args.metric else PLOT_METRICS
-                plot_groups(groups, args.plot, metrics, command)
+                plot_groups(groups, args.plot, metrics, command, preset)
         if args.wandb:
             log_wandb(args.directory, *table_cells(render("csv")))
     except (OSError, ValueError) as err:

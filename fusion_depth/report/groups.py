@@ -279,7 +279,7 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | 
                     for i, (c, st) in enumerate(row_stats)
                     if c == cap and metric in st
                 ]
-                if cells:
+                if len(cells) > 1:  # a best needs something to beat
                     target = round(better(v for _, v in cells), 3)
                     bold |= {(i, first_metric + j) for i, v in cells if round(v, 3) == target}
     return format_table(header, rows, fmt, bold)
@@ -433,7 +433,7 @@ def build_by_table(
                 for i, s in enumerate(stats)
                 if s[column] is not None
             ]
-            if means:
+            if len(means) > 1:  # a best needs something to beat
                 target = round(better(m for _, m in means), 3)
                 bold |= {(i, first + j) for i, m in means if round(m, 3) == target}
     return format_table(header, rows, fmt, bold)

@@ -20,13 +20,13 @@ import numpy as np
 from fusion_depth.report.compare import Comparison, comparison_identity_columns
 from fusion_depth.report.groups import (
     ALL,
+    Preset,
     by_column_stats,
     higher_is_better,
     identity_cells,
     identity_columns,
     key_label,
     mean_std,
-    metric_label,
     run_metric,
 )
 from fusion_depth.utils.atomic import write_atomic
@@ -152,6 +152,16 @@ def _std_errors(cells: Sequence[tuple[float, float | None] | None]) -> np.ndarra
     return None if np.isnan(stds).all() else np.nan_to_num(stds)
 
 
+def _in_units(
+    preset: Preset, metric: str, cell: tuple[float, float | None] | None
+) -> tuple[float, float | None] | None:
+    """A (mean, std) cell in the preset's units."""
+    if cell is None:
+        return None
+    mean, std = cell
+    return preset.value(metric, mean), None if std is None else preset.value(metric, std)
+
+
 def _direction(metric: str) -> str:
     return "higher is better" if higher_is_better(metric) else "lower is better"
 
@@ -161,9 +171,12 @@ def plot_groups(
     out: str | os.PathLike,
     metrics: Sequence[str] = PLOT_METRICS,
     command: str | None = None,
+    preset: Preset | None = None,
 ) -> Path:
     """One subplot per metric: bars per fusion mode over each loss, error bars = seed std.
-    ``command``: the command line the figure's metadata names (:func:`figure_description`)."""
+    ``command``: the command line the figure's metadata names (:func:`figure_description`);
+    ``preset``: the units of the bars (:func:`~fusion_depth.report.groups.runs_preset`)."""
+    preset = preset or Preset()
     from matplotlib.figure import Figure
 
     if not groups:
@@ -188,10 +201,10 @@ def plot_groups(
                     cells.append(None)
                 else:
                     values = [run_metric(r, None, ALL, metric) for r in g["runs"]]
-                    cells.append(mean_std(values))
+                    cells.append(_in_units(preset, metric, mean_std(values)))
             heights = [np.nan if c is None else c[0] for c in cells]
             series.append((key_label("fusion", fusion), heights, _std_errors(cells)))
-        title = f"{metric_label(metric)} ({_direction(metric)})"
+        title = f"{preset.label(metric)} ({_direction(metric)})"
         panels.append(_grouped_bars(ax, title, categories, series))
         if n == 0:
             ax.legend(fontsize="small")
@@ -205,9 +218,11 @@ def plot_by(
     metric: str = "rmse",
     first: Sequence[str] = (),
     command: str | None = None,
+    preset: Preset | None = None,
 ) -> Path:
     """``metric`` per condition (or bin; ``first`` first): one bar per group, error bars = seed
-    std. ``command``: as :func:`plot_groups`'s."""
+    std. ``command``, ``preset``: as :func:`plot_groups`'s."""
+    preset = preset or Preset()
     from matplotlib.figure import Figure
 
     columns, stats = by_column_stats(groups, by, metric, first)
@@ -216,10 +231,10 @@ def plot_by(
     ax = fig.add_subplot()
     series = []
     for g, cells in zip(groups, stats, strict=True):
-        row = [cells[c] for c in columns]
+        row = [_in_units(preset, metric, cells[c]) for c in columns]
         heights = [np.nan if c is None else c[0] for c in row]
         series.append((" / ".join(identity_cells(g, extra)), heights, _std_errors(row)))
-    title = f"{metric_label(metric)} by {by} ({_direction(metric)})"
+    title = f"{preset.label(metric)} by {by} ({_direction(metric)})"
     panel = _grouped_bars(ax, title, columns, series)
     ax.legend(fontsize="small")
     fig.set_layout_engine("constrained")
@@ -227,10 +242,14 @@ def plot_by(
 
 
 def plot_comparisons(
-    comparisons: Sequence[Comparison], out: str | os.PathLike, command: str | None = None
+    comparisons: Sequence[Comparison],
+    out: str | os.PathLike,
+    command: str | None = None,
+    preset: Preset | None = None,
 ) -> Path:
     """Mean differences against the baseline with their bootstrap intervals as error bars.
-    ``command``: as :func:`plot_groups`'s."""
+    ``command``, ``preset``: as :func:`plot_groups`'s."""
+    preset = preset or Preset()
     from matplotlib.figure import Figure
 
     if not comparisons:
@@ -242,15 +261,16 @@ def plot_comparisons(
     series = []
     for c in comparisons:
         results = [c.results.get(col) for col in columns]
-        heights = [np.nan if r is None else r.mean for r in results]
-        low = [0.0 if r is None else r.mean - r.low for r in results]
-        high = [0.0 if r is None else r.high - r.mean for r in results]
+        m = c.metric
+        heights = [np.nan if r is None else preset.value(m, r.mean) for r in results]
+        low = [0.0 if r is None else preset.value(m, r.mean - r.low) for r in results]
+        high = [0.0 if r is None else preset.value(m, r.high - r.mean) for r in results]
         name = " / ".join(identity_cells(c.group, extra))
         name += f" vs {c.baseline_label}"
         series.append((name, heights, np.array([low, high])))
     c0 = comparisons[0]
     title = (
-        f"Δ{metric_label(c0.metric)} vs baseline, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
+        f"Δ{preset.label(c0.metric)} vs baseline, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
     )
     panel = _grouped_bars(ax, title, columns, series)
     ax.axhline(0.0, color="black", linewidth=0.8)
