@@ -240,6 +240,62 @@ def test_a_split_file_selects_the_test_frames_and_their_drives_leave_train(kitti
     assert len(kept) == 6
 
 
+def _write_selection(root: Path) -> dict[str, tuple]:
+    """The depth-completion benchmark's val_selection_cropped layout, as KITTI's
+    data_depth_selection.zip unpacks it, with two frames; returns id → (image, gt, velodyne)."""
+    folder = root / "depth_selection" / "val_selection_cropped"
+    truth = {}
+    for k, (camera, frame) in enumerate((("image_02", "0000000005"), ("image_03", "0000000177"))):
+        image, gt, velo = _frame_arrays(20 + k)
+        drive = "2011_09_26_drive_0002_sync"
+        _write_u16(
+            folder / "groundtruth_depth" / f"{drive}_groundtruth_depth_{frame}_{camera}.png", gt
+        )
+        _write_u16(folder / "velodyne_raw" / f"{drive}_velodyne_raw_{frame}_{camera}.png", velo)
+        (folder / "image").mkdir(parents=True, exist_ok=True)
+        Image.fromarray(image).save(folder / "image" / f"{drive}_image_{frame}_{camera}.png")
+        truth[f"val_selection_cropped/{drive}/{camera}/{frame}"] = (image, gt, velo)
+    return truth
+
+
+def test_the_selected_validation_set_is_the_test_split(kitti_data) -> None:
+    """dataset.test_split=val_selection_cropped tests on the benchmark's selected frames, read
+    from depth_selection/ (images included, no raw drive needed); train and val stay KITTI's."""
+    truth = _write_selection(kitti_data["root"])
+    before = _dataset_files(kitti_data)
+    test = _dataset(kitti_data, "test", test_split="val_selection_cropped")
+    assert _ids(test) == list(truth)
+    for i, frame_id in enumerate(_ids(test)):
+        image, gt, velodyne = truth[frame_id]
+        sample = test[i]
+        np.testing.assert_array_equal(sample["depth"][0, :H, :W].numpy(), gt / 256.0)
+        np.testing.assert_array_equal(sample["sparse"][0, :H, :W].numpy(), velodyne / 256.0)
+        rgb = np.round(sample["image"].numpy().transpose(1, 2, 0) * 255).astype(np.uint8)
+        np.testing.assert_array_equal(rgb[:H, :W], image)
+        assert sample["frame_box"].tolist() == [0, 0, H, W]  # the cropped frame itself
+    val = _dataset(kitti_data, "val", test_split="val_selection_cropped")
+    assert _ids(val) == [f for f in kitti_data["truth"] if f.startswith("val/")]
+    assert test.split_dir != val.split_dir
+    assert _dataset_files(kitti_data) == before, "the dataset folders were written to"
+    # The plain test split is still KITTI's val, in a cache of its own.
+    assert _ids(_dataset(kitti_data, "test")) == _ids(val)
+
+
+def test_the_selected_set_is_refused_by_name_when_missing_or_doubly_given(kitti_data) -> None:
+    with pytest.raises(FileNotFoundError, match=r"depth_selection/val_selection_cropped/"):
+        _dataset(kitti_data, "test", test_split="val_selection_cropped")
+    with pytest.raises(ValueError, match=r"dataset.test_split='val_selected'"):
+        _dataset(kitti_data, "test", test_split="val_selected")
+    with pytest.raises(ValueError, match=r"both name the test frames"):
+        _dataset(kitti_data, "test", test_split="val_selection_cropped", split_file="x.txt")
+    truth = _write_selection(kitti_data["root"])
+    stray = kitti_data["root"] / "depth_selection" / "val_selection_cropped" / "groundtruth_depth"
+    (stray / "notes.png").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"notes.png: not a selected-frame name"):
+        _dataset(kitti_data, "test", test_split="val_selection_cropped")
+    assert truth
+
+
 def test_train_stride_keeps_every_nth_frame_of_each_drive_and_camera(kitti_data) -> None:
     train = _dataset(kitti_data, "train", train_stride=2)
     assert [f.split("/", 1)[1] for f in _ids(train)] == [
@@ -285,7 +341,7 @@ def _break(data: dict, how: str) -> tuple[dict, type, str]:
         return {"raw_root": raw.parent / "no_raw"}, FileNotFoundError, r"raw_root=.*no_raw"
     if how == "missing image":
         image.unlink()
-        return {}, FileNotFoundError, rf"1 of 6 frames have no raw RGB image.*\n  {image}"
+        return {}, FileNotFoundError, rf"1 of 6 frames have no RGB image.*\n  {image}"
     if how == "missing velodyne frame":
         velodyne.unlink()
         return {}, FileNotFoundError, rf"no velodyne_raw depth PNG.*\n  {velodyne}"

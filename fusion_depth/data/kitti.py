@@ -12,6 +12,11 @@ with ``<drive>`` like ``2011_09_26_drive_0001_sync``, ``<date>`` its first 10 ch
 ``<frame>`` a 10-digit index. Depth PNGs are uint16 holding metres x 256, 0 = no measurement.
 ``image_02`` is the left colour camera, ``image_03`` the right; both are used.
 
+The benchmark's selected validation set, ``test_split="val_selection_cropped"``, is read from
+``<root>/depth_selection/val_selection_cropped/`` as KITTI publishes it (data_depth_selection.zip):
+``groundtruth_depth/``, ``velodyne_raw/`` and ``image/`` each hold one PNG per frame, named
+``<drive>_<kind>_<frame>_image_0{2,3}.png``; its 1,000 frames are already cut to 1216 x 352.
+
 Splits. ``train`` and ``val`` are KITTI's own, every frame of both cameras (``train_stride``
 keeps every n-th frame of each drive and camera for training: 10 gives the paper's ~9k frames
 instead of ~86k). KITTI publishes no test ground truth, so ``test`` is ``val`` (prepared once,
@@ -19,7 +24,10 @@ shared). With ``split_file`` the test split is the frames that file lists instea
 Eigen et al. test frames that have annotated depth), found in either ``train`` or ``val``; with
 ``exclude_test_drives`` (default) their drives are dropped from ``train`` so the network never
 trains on a test scene. ``val`` stays KITTI's: it only selects the checkpoint, and many of its
-drives are Eigen test drives, so dropping them would leave little of it.
+drives are Eigen test drives, so dropping them would leave little of it. With
+``test_split="val_selection_cropped"`` the test split is the depth-completion benchmark's 1,000
+selected validation frames (the devkit's, scored with ``eval=kitti_dc``); each sample's
+``frame_box`` is then the cropped frame itself, as the original frame's size is not published.
 
 A split file has one frame per line, either
 
@@ -77,6 +85,9 @@ CAMERAS: dict[str, str] = {"l": "image_02", "r": "image_03"}
 CONDITION = "day"
 ANNOTATED = "data_depth_annotated"
 VELODYNE = "data_depth_velodyne"
+SELECTION = "val_selection_cropped"  # the benchmark's 1,000 selected validation frames
+SELECTION_FOLDER = Path("depth_selection", SELECTION)
+TEST_SPLITS: tuple[str, ...] = ("val", SELECTION)  # what test is without a split file
 KITTI_VERSION = 1  # bump when the frame processing changes, so old caches are not reused
 # Evaluation crops as fractions of the full frame, (top, bottom, left, right), as monodepth2
 # writes them: Garg et al.'s (ECCV 2016) and Eigen et al.'s (NIPS 2014).
@@ -84,6 +95,7 @@ _DRIVE = r"\d{4}_\d{2}_\d{2}_drive_\d{4}_sync"
 _DRIVE_RE = re.compile(rf"^{_DRIVE}$")
 _EIGEN_LINE = re.compile(rf"^(?:\d{{4}}_\d{{2}}_\d{{2}}/)?({_DRIVE})$")
 _PATH_LINE = re.compile(rf"(?:^|/)({_DRIVE})/(?:.*/)?(image_0[23])/(?:.*/)?(\d+)(?:\.png)?$")
+_SELECTION_NAME = re.compile(rf"^({_DRIVE})_groundtruth_depth_(\d{{10}})_(image_0[23])\.png$")
 _SHOWN = 5  # how many missing files an error message lists
 
 log = logging.getLogger(__name__)
@@ -93,7 +105,7 @@ log = logging.getLogger(__name__)
 class KittiFrame:
     """One camera frame: where its three files are."""
 
-    subset: str  # the data_depth_* folder holding it: train | val
+    subset: str  # the data_depth_* folder holding it: train | val, or val_selection_cropped
     drive: str  # e.g. 2011_09_26_drive_0001_sync
     camera: str  # image_02 | image_03
     frame: str  # 10 digits
@@ -107,15 +119,26 @@ class KittiFrame:
         subset, drive, camera, frame = frame_id.split("/")
         return cls(subset, drive, camera, frame)
 
+    def _selected(self, root: Path, kind: str) -> Path:
+        """A file of the selected validation set: ``<kind>/<drive>_<kind>_<frame>_<camera>.png``."""
+        name = f"{self.drive}_{kind}_{self.frame}_{self.camera}.png"
+        return root / SELECTION_FOLDER / kind / name
+
     def groundtruth(self, root: Path) -> Path:
+        if self.subset == SELECTION:
+            return self._selected(root, "groundtruth_depth")
         folder = root / ANNOTATED / self.subset / self.drive / "proj_depth" / "groundtruth"
         return folder / self.camera / f"{self.frame}.png"
 
     def velodyne(self, root: Path) -> Path:
+        if self.subset == SELECTION:
+            return self._selected(root, "velodyne_raw")
         folder = root / VELODYNE / self.subset / self.drive / "proj_depth" / "velodyne_raw"
         return folder / self.camera / f"{self.frame}.png"
 
-    def image(self, raw_root: Path) -> Path:
+    def image(self, root: Path, raw_root: Path) -> Path:
+        if self.subset == SELECTION:
+            return self._selected(root, "image")
         return raw_root / self.drive[:10] / self.drive / self.camera / "data" / f"{self.frame}.png"
 
 
@@ -174,6 +197,27 @@ def list_subset(root: Path, subset: str) -> list[KittiFrame]:
             ]
     if not frames:
         raise ValueError(f"{folder}: no annotated depth PNGs; expected {folder}/{expected}")
+    return frames
+
+
+def list_selection(root: Path) -> list[KittiFrame]:
+    """The selected validation set's frames (``val_selection_cropped``), in name order."""
+    folder = root / SELECTION_FOLDER / "groundtruth_depth"
+    expected = "<drive>_groundtruth_depth_<frame>_image_0{2,3}.png"
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"{folder}: missing; dataset.test_split={SELECTION} reads KITTI's "
+            f"data_depth_selection.zip unpacked into dataset.root: {folder}/{expected}"
+        )
+    frames = []
+    for png in sorted(folder.glob("*.png")):
+        match = _SELECTION_NAME.match(png.name)
+        if match is None:
+            raise ValueError(f"{png}: not a selected-frame name; expected {expected}")
+        drive, frame, camera = match.groups()
+        frames.append(KittiFrame(SELECTION, drive, camera, frame))
+    if not frames:
+        raise ValueError(f"{folder}: no ground-truth PNGs; expected {folder}/{expected}")
     return frames
 
 
@@ -240,7 +284,7 @@ def check_files(frames: Sequence[KittiFrame], root: Path, raw_root: Path, split:
     for what, locate in (
         ("annotated depth PNG", lambda f: f.groundtruth(root)),
         ("velodyne_raw depth PNG", lambda f: f.velodyne(root)),
-        ("raw RGB image", lambda f: f.image(raw_root)),
+        ("RGB image", lambda f: f.image(root, raw_root)),
     ):
         missing = [locate(f) for f in frames if not locate(f).is_file()]
         if missing:
@@ -300,7 +344,7 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
     frame gets its filled ground truth."""
     s = settings
     paths = {
-        "image": frame.image(s.raw_root),
+        "image": frame.image(s.root, s.raw_root),
         "groundtruth": frame.groundtruth(s.root),
         "velodyne_raw": frame.velodyne(s.root),
     }
@@ -369,6 +413,7 @@ class KittiDepth(PreparedDataset):
         train_stride: int = 1,
         seed: int = 0,
         on_error: OnError = "raise",
+        test_split: str = "val",
     ) -> None:
         check_size(height, width)  # before the options, as the other datasets do
         if sparse_points is not None and (int(sparse_points) != sparse_points or sparse_points < 1):
@@ -384,6 +429,16 @@ class KittiDepth(PreparedDataset):
             raise ValueError(
                 f"dataset.train_stride={train_stride}: expected an integer >= 1 (every n-th frame)"
             )
+        if test_split not in TEST_SPLITS:
+            raise ValueError(
+                f"dataset.test_split={test_split!r}: expected one of {', '.join(TEST_SPLITS)}"
+            )
+        if test_split != "val" and split_file is not None:
+            raise ValueError(
+                f"dataset.test_split={test_split} and dataset.split_file={split_file} both name "
+                "the test frames; give one"
+            )
+        self.test_split = test_split
         self.raw_root = Path(raw_root).expanduser().resolve()
         self.sparse_points = None if sparse_points is None else int(sparse_points)
         self.fill = fill
@@ -403,7 +458,11 @@ class KittiDepth(PreparedDataset):
 
     def list_frames(self) -> FrameList:
         frames = split_frames(
-            self.root, self.split_path, self.exclude_test_drives, self.train_stride
+            self.root,
+            self.split_path,
+            self.exclude_test_drives,
+            self.train_stride,
+            self.test_split,
         )
         by_id = {name: {f.id: f for f in split} for name, split in frames.items()}
         return FrameList(by_id, _digest(frames))
@@ -421,12 +480,15 @@ class KittiDepth(PreparedDataset):
             "split_file": None if self.split_path is None else str(self.split_path),
             "exclude_test_drives": self.exclude_test_drives,
             "train_stride": self.train_stride,
+            **({"test_split": self.test_split} if self.test_split != "val" else {}),
             "frames": listed.files,
         }
 
     def split_folder(self, split: str) -> str:
-        # Without a split file the test split is the val split: the same frames, prepared once.
-        return "val" if split == "test" and self.split_path is None else split
+        # Without a split file or the selected set, the test split is the val split: the same
+        # frames, prepared once.
+        same = split == "test" and self.split_path is None and self.test_split == "val"
+        return "val" if same else split
 
     def check_frames(self, split: str, frames: dict[str, KittiFrame]) -> None:
         check_files(list(frames.values()), self.root, self.raw_root, split)
@@ -448,7 +510,11 @@ class KittiDepth(PreparedDataset):
 
 
 def split_frames(
-    root: Path, split_file: Path | None, exclude_test_drives: bool = True, train_stride: int = 1
+    root: Path,
+    split_file: Path | None,
+    exclude_test_drives: bool = True,
+    train_stride: int = 1,
+    test_split: str = "val",
 ) -> dict[str, list[KittiFrame]]:
     """The frames of every split (see the module docstring for what each one holds)."""
     train, val = (list_subset(root, subset) for subset in SUBSETS)
@@ -457,6 +523,9 @@ def split_frames(
         for _, sequence in groupby(train, key=lambda f: (f.drive, f.camera))
         for frame in list(sequence)[::train_stride]
     ]
+    if test_split == SELECTION:
+        # The selected frames are KITTI val frames: no train drive is among them.
+        return {"train": train, "val": val, "test": list_selection(root)}
     if split_file is None:
         return {"train": train, "val": val, "test": val}
     test = locate_listed(root, parse_split_file(split_file), split_file)
