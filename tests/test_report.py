@@ -140,9 +140,11 @@ def _write_image_run(
     per_image=True,
     model=None,
     backbone="densenet169",
+    protocol=None,
 ):
     """A run with per-image RMSE ``rmse`` (one value per image) and consistent aggregates;
-    ``model`` None: a record written before runs named their model."""
+    ``model`` None: a record written before runs named their model; ``protocol``: the record's
+    (default: a preset-less one, i.e. ``eval=paper``'s)."""
     rmse = np.asarray(rmse, dtype=float)
     conditions = conditions or [_condition(i) for i in range(len(rmse))]
     identity = {"model": model} if model is not None else {}
@@ -171,7 +173,7 @@ def _write_image_run(
                 "overrides": [*model_override, f"fusion={fusion}", f"loss={loss}", f"seed={seed}"],
             },
             "split": split,
-            "protocol": {"min_depth": 0.5, "max_depth": [80.0], "crop": "none"},
+            "protocol": protocol or {"min_depth": 0.5, "max_depth": [80.0], "crop": "none"},
             "test": metrics(np.ones(len(rmse), bool)),
             "test_by_condition": {c: metrics(cond == c) for c in dict.fromkeys(conditions)},
             # Distance bins listed out of order on purpose: the table sorts them by range.
@@ -440,6 +442,19 @@ def test_a_preset_prints_in_its_units_and_order_one_row_per_cap(tmp_path, capsys
     assert main([str(tmp_path), "--format", "csv"]) == 0
     csv_rows = _csv(capsys)
     assert float(csv_rows[0]["mae_mean"]) == pytest.approx(2.1)  # CSV: recorded metres
+
+
+def test_paired_differences_print_in_the_presets_units(tmp_path, capsys) -> None:
+    """Under eval=radarnet a difference in RMSE is printed in mm, as its tables are."""
+    base = np.linspace(4.0, 6.0, NUM_IMAGES)
+    _write_image_run(tmp_path, "rgb", "rgb", 1, base, protocol=RADARNET)
+    _write_image_run(tmp_path, "concat", "concat", 1, base - 0.25, protocol=RADARNET)
+    assert main([str(tmp_path), "--compare", "fusion=rgb", "--resamples", "200"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    column = header.index("ΔRMSE (mm) (all, 95% CI)")
+    cell = [c.strip() for c in lines[2].strip("|").split("|")][column]
+    assert cell.startswith("**-250.000 [-250.000, -250.000]")  # -0.25 m on every image
 
 
 def test_runs_of_different_presets_are_not_tabulated_together(tmp_path, capsys) -> None:
