@@ -28,9 +28,38 @@ CROP_EDGE = (GARG_TOP, 600, 10.0, 8.0)  # the crop's first row
 FAR = (ROW, 604, 85.0, 90.0)  # beyond 80 m
 NEAR = (ROW, 605, 0.5, 0.3)  # at procedural's min_depth 0.5 (not above it), above 1e-3 and 0
 OVERSHOOT = (ROW, 606, 60.0, 100.0)  # a prediction above 80 m: clamped to 80 where clamping
+UNDERSHOOT = (ROW, 607, 10.0, 1e-4)  # below every clamp's floor (1e-3 m, 0.5 m)
+TINY_GT = (ROW, 608, 5e-4, 0.01)  # ground truth below eigen's 1e-3 m, above 0
+VERY_FAR = (ROW, 609, 200.0, 70.0)  # beyond every cap but kitti_dc's
+# The Garg crop's other edges, where int() and round() of the fractions differ: rows 153..370
+# (371.96 → 371 out) and columns 44..1196 (44.65 → 44 in, 1196.99 → 1197 out).
+BOTTOM_IN, BOTTOM_OUT = (370, 610, 12.0, 11.0), (371, 611, 12.0, 14.0)
+LEFT_OUT, LEFT_IN = (ROW, 43, 15.0, 16.0), (ROW, 44, 15.0, 13.0)
+RIGHT_IN, RIGHT_OUT = (ROW, 1196, 25.0, 24.0), (ROW, 1197, 25.0, 27.0)
 ONLY = (ROW, 600, 30.0, 33.0)  # image C
 
-IMAGE_A = [BEYOND_CAP, AT_CAP, NO_GT, NAN_GT, ABOVE_CROP, CROP_EDGE, FAR, NEAR, OVERSHOOT]
+IMAGE_A = [
+    BEYOND_CAP,
+    AT_CAP,
+    NO_GT,
+    NAN_GT,
+    ABOVE_CROP,
+    CROP_EDGE,
+    FAR,
+    NEAR,
+    OVERSHOOT,
+    UNDERSHOOT,
+    TINY_GT,
+    VERY_FAR,
+    BOTTOM_IN,
+    BOTTOM_OUT,
+    LEFT_OUT,
+    LEFT_IN,
+    RIGHT_IN,
+    RIGHT_OUT,
+]
+# The pixels no crop, cap below 85 m or floor above 5e-4 m leaves out, as (gt, prediction).
+UNCROPPED = [(12.0, 11.0), (12.0, 14.0), (15.0, 16.0), (15.0, 13.0), (25.0, 24.0), (25.0, 27.0)]
 
 
 def _frames() -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,41 +123,54 @@ def test_radarnet_scores_the_raw_prediction_per_cap_in_mm(tmp_path) -> None:
     caps 50, 70 and 80 in one pass; the empty image is skipped."""
     result = _score("radarnet", tmp_path)
     assert result.protocol.clamp is False and result.protocol.min_depth == 0.0
-    at_50 = [(45.0, 70.0), (20.0, 22.0), (10.0, 8.0), (0.5, 0.3)]  # 50 m is not < 50
+    # 50 m is not < 50; 1e-4 m and 5e-4 m ground truth are scored as they are.
+    at_50 = [(45.0, 70.0), (20.0, 22.0), (10.0, 8.0), (0.5, 0.3), (10.0, 1e-4), (5e-4, 0.01)]
+    at_50 += UNCROPPED
     at_80 = [*at_50, (50.0, 40.0), (60.0, 100.0)]  # 100 m is scored as it is (no clamp)
     c = [(30.0, 33.0)]
     _check(result.by_cap["50"], _per_image_mean([at_50, c]), ["mae", "rmse", "imae", "irmse"])
-    _check(
-        result.by_cap["70"], _per_image_mean([at_50 + [(50.0, 40.0), (60.0, 100.0)], c]), ["mae"]
-    )
-    _check(result.overall, _per_image_mean([at_80, c]), ["mae", "rmse", "imae", "irmse"])
+    _check(result.by_cap["70"], _per_image_mean([at_80, c]), ["mae"])
+    overall = _per_image_mean([at_80, c])
+    _check(result.overall, overall, ["mae", "rmse", "imae", "irmse"])
     assert result.overall["num_images"] == 2  # image B (no ground truth) is skipped
     # The issue's example: 70 m predicted where the truth is 45 m costs 25 m here, not 5 m.
     only = _score("radarnet", tmp_path, "eval.max_depth=[50]")
-    assert only.per_image[0]["mae"] == pytest.approx(np.mean([25.0, 2.0, 2.0, 0.2]))
-    # The printed table: its columns, order and units (mm, 1/km).
+    errors = [abs(d - gt) for gt, d in at_50]
+    assert only.per_image[0]["mae"] == pytest.approx(np.mean(errors)) and errors[0] == 25.0
+    # The printed table: its columns, order and units (mm; 1/km as recorded).
     table = results_tables(result)
     assert _columns(table) == ["MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)"]
-    assert f"{1000 * _per_image_mean([at_80, c])['mae']:.3f}" in table.splitlines()[2]
+    row = [c.strip() for c in table.splitlines()[2].strip("|").split("|")]
+    assert row[0] == "all"
+    assert row[1:5] == [
+        f"{1000 * overall['mae']:.3f}",
+        f"{1000 * overall['rmse']:.3f}",
+        f"{overall['imae']:.3f}",
+        f"{overall['irmse']:.3f}",
+    ]
 
 
 def test_paper_clamps_to_the_dataset_range(tmp_path) -> None:
-    """The platform's own scoring: dataset.min_depth 0.5 < gt < 80, clamped, per image."""
+    """The platform's own scoring: dataset.min_depth 0.5 < gt < 80, clamped to [0.5, 80], per
+    image."""
     result = _score("paper", tmp_path)
-    a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0)]  # 100 → 80
+    a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0), (10.0, 0.5)]
+    a += UNCROPPED  # 100 → 80 and 1e-4 → 0.5 above
     _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), ["rmse", "abs_rel", "delta1"])
     # The same 70 m prediction under a 50 m cap, clamped: a 5 m error, as the issue says.
     capped = _score("paper", tmp_path, "eval.max_depth=50")
-    a50 = [(45.0, 50.0), (20.0, 22.0), (10.0, 8.0)]
+    a50 = [(45.0, 50.0), (20.0, 22.0), (10.0, 8.0), (10.0, 0.5), *UNCROPPED]
     _check(capped.overall, _per_image_mean([a50, [(30.0, 33.0)]]), ["mae", "rmse"])
     assert _columns(results_tables(result)) == ["RMSE", "ARD", "SRD", "MAE", "δ1", "δ2", "δ3"]
 
 
 def test_eigen_is_monodepth2s(tmp_path) -> None:
     """monodepth2 on the Eigen split: 1e-3 < gt < 80, clamped to [1e-3, 80], the Garg crop
-    (row 152 out, row 153 in), per image, abs_rel sq_rel rmse rmse_log a1 a2 a3."""
+    (rows 153..370, columns 44..1196: each edge in and out), per image, abs_rel sq_rel rmse
+    rmse_log a1 a2 a3."""
     result = _score("eigen", tmp_path)
-    a = [(45.0, 70.0), (50.0, 40.0), (10.0, 8.0), (0.5, 0.3), (60.0, 80.0)]
+    a = [(45.0, 70.0), (50.0, 40.0), (10.0, 8.0), (0.5, 0.3), (60.0, 80.0), (10.0, 1e-3)]
+    a += [(12.0, 11.0), (15.0, 13.0), (25.0, 24.0)]  # inside the crop's bottom, left, right
     keys = ["abs_rel", "sq_rel", "rmse", "rmse_log", "delta1", "delta2", "delta3"]
     _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), keys)
     columns = ["ARD", "SRD", "RMSE", "RMSE_LOG", "δ1", "δ2", "δ3"]
@@ -136,11 +178,11 @@ def test_eigen_is_monodepth2s(tmp_path) -> None:
 
 
 def test_kitti_dc_counts_every_measured_pixel(tmp_path) -> None:
-    """The KITTI devkit: every gt > 0 counts with no cap (85 m included), no clamp, per image,
-    printed as MAE RMSE iMAE iRMSE in mm and 1/km."""
+    """The KITTI devkit: every gt > 0 counts with no cap (85 m and 200 m included), no clamp,
+    per image, printed as MAE RMSE iMAE iRMSE in mm and 1/km."""
     result = _score("kitti_dc", tmp_path)
     a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (85.0, 90.0), (0.5, 0.3)]
-    a.append((60.0, 100.0))
+    a += [(60.0, 100.0), (10.0, 1e-4), (5e-4, 0.01), (200.0, 70.0), *UNCROPPED]
     _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), ["mae", "rmse", "imae", "irmse"])
     assert _columns(results_tables(result)) == [
         "MAE (mm)",
@@ -156,7 +198,8 @@ def test_densedepth_pools_and_divides_by_the_prediction(tmp_path) -> None:
     log_10, with flip TTA."""
     result = _score("densedepth", tmp_path)
     assert result.protocol.flip_tta is True and result.protocol.averaging == "pooled"
-    pooled = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0), (30.0, 33.0)]
+    pooled = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0), (10.0, 0.5)]
+    pooled += [*UNCROPPED, (30.0, 33.0)]  # both images' pixels in one set
     expected = _image_errors(pooled)
     gt, d = np.array(pooled).T
     expected["abs_rel"] = np.mean(np.abs(d - gt) / d)
@@ -170,6 +213,7 @@ def test_a_key_overrides_the_preset_and_the_record_says_so(tmp_path) -> None:
     assert record["preset"] == "radarnet" and record["clamp"] is True
     assert record["units"] == "mm" and record["metrics"] == ["mae", "rmse", "imae", "irmse"]
     a80 = [(45.0, 70.0), (20.0, 22.0), (10.0, 8.0), (0.5, 0.3), (50.0, 40.0), (60.0, 80.0)]
+    a80 += [(10.0, 0.1), *UNCROPPED]  # clamped to [0.1, 80]; 5e-4 m is below the new floor
     _check(result.overall, _per_image_mean([a80, [(30.0, 33.0)]]), ["mae"])
 
 
@@ -186,3 +230,18 @@ def test_bad_preset_keys_are_refused_by_name(tmp_path, override, message) -> Non
     cfg = compose_config(["eval=paper", override], tmp_path)
     with pytest.raises(ValueError, match=message):
         validate_config(cfg)
+
+
+def test_a_prediction_of_zero_or_less_unclamped_is_wrong_not_undefined() -> None:
+    """Without clamping, MAE and RMSE score a prediction ≤ 0 as it is; δ counts it wrong and
+    the log errors stay finite (they see 1 µm), so a record of it can still be reported."""
+    from fusion_depth.metrics.depth import compute_depth_metrics
+
+    pred = torch.tensor([[[-1.0, 20.0]]], dtype=torch.float64)
+    target = torch.tensor([[[10.0, 20.0]]], dtype=torch.float64)
+    out = compute_depth_metrics(pred, target, 0.0, 80.0, clamp=False)
+    assert out["mae"] == pytest.approx(11.0 / 2)
+    assert out["delta1"] == 0.5  # the -1 m pixel is wrong, the 20 m one right
+    assert math.isfinite(out["rmse_log"]) and math.isfinite(out["log10"])
+    expected_log = math.sqrt((math.log(1e-6) - math.log(10.0)) ** 2 / 2)
+    assert out["rmse_log"] == pytest.approx(expected_log)

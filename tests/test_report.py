@@ -444,6 +444,22 @@ def test_a_preset_prints_in_its_units_and_order_one_row_per_cap(tmp_path, capsys
     assert float(csv_rows[0]["mae_mean"]) == pytest.approx(2.1)  # CSV: recorded metres
 
 
+def test_seeds_scored_differently_are_not_averaged(tmp_path, capsys) -> None:
+    """Two seeds under one preset name, one scored with eval.clamp=true: refused, naming the
+    key (evaluate does not list eval.* among a run's overrides)."""
+    _write_radarnet_run(tmp_path, "a", "rgb", 1, {"50": 2.0, "70": 3.0, "80": 4.0})
+    _write_radarnet_run(tmp_path, "b", "rgb", 2, {"50": 2.0, "70": 3.0, "80": 4.0})
+    record = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    record["protocol"] = {**record["protocol"], "clamp": True, "bin_width": 5.0}
+    write_json_atomic(tmp_path / "b" / "metrics.json", record)
+    assert main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "scored differently (protocol clamp False vs True)" in err
+    record["protocol"]["clamp"] = False  # a breakdown-only key may differ
+    write_json_atomic(tmp_path / "b" / "metrics.json", record)
+    assert main([str(tmp_path)]) == 0
+
+
 def test_paired_differences_print_in_the_presets_units(tmp_path, capsys) -> None:
     """Under eval=radarnet a difference in RMSE is printed in mm, as its tables are."""
     base = np.linspace(4.0, 6.0, NUM_IMAGES)

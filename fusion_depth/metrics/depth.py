@@ -4,8 +4,8 @@ Conventions (those of Eigen et al., the KITTI benchmark and monodepth2, so that 
 comparable with published ones):
 
 * A pixel is scored iff ``min_depth < target < max_depth`` (NaN targets are never valid).
-* Predictions are clamped to ``[min_depth, max_depth]`` before scoring, as monodepth2 and the KITTI
-  evaluation scripts do; this bounds the relative/log/inverse errors of degenerate predictions.
+* Predictions are clamped to ``[min_depth, max_depth]`` before scoring, as monodepth2's evaluation
+  does; this bounds the relative/log/inverse errors of degenerate predictions.
   ``clamp=False`` scores the raw prediction (RadarNet's evaluation); ``min_depth`` may then be 0
   (every target above 0 counts).
 * Averaging is per image by default (KITTI, monodepth2): each metric is averaged over the valid
@@ -29,8 +29,9 @@ Metrics, with ``d`` the prediction and ``d*`` the ground truth, means over valid
   convention.
 
 Note on ARD/SRD: the paper's formulas divide by the *prediction*; that is a typo. Eigen et al., whom
-the paper cites, and every public evaluation code divide by the ground truth, which is what is done
-here.
+the paper cites, and the evaluation code of monodepth2 and the KITTI devkit divide by the ground
+truth, which is what is done here by default. DenseDepth's ``utils.py`` passes its arguments
+swapped and so divides by the prediction: ``relative_to="prediction"`` (``eval=densedepth``).
 """
 
 from __future__ import annotations
@@ -128,6 +129,9 @@ def metric_header(key: str, units: str = "m", latex: bool = False) -> str:
     return names[key]
 
 
+# What δ and the log errors take an unclamped prediction of 0 or less as: 1 µm.
+_SMALLEST_DEPTH = 1e-6
+
 # Metrics that are square roots of a mean: their per-pixel sum holds the squared error.
 _ROOT_KEYS = frozenset({"rmse", "rmse_log", "irmse"})
 _ROOT_MASK = torch.tensor([k in _ROOT_KEYS for k in METRIC_KEYS])
@@ -220,9 +224,11 @@ def depth_error_sums(
     root metrics) and ``counts`` ``(B,)``. Every averaging follows from these: per image
     ``sums / counts``, pooled ``sums.sum(0) / counts.sum()`` (see :func:`metrics_from_sums`).
     Predictions are clamped to ``[min_depth, max_depth]`` first, unless ``clamp`` is False: then
-    they are scored as they are, and a prediction of 0 or less gives an infinite or undefined
-    inverse and log error, as it would in the reference code that does not clamp. ARD and SRD
-    divide by ``relative_to`` (:data:`RELATIVE_TO`).
+    MAE, RMSE and the inverse errors score them as they are, as RadarNet's code does (a
+    prediction of 0 gives an infinite inverse error there too); δ and the log errors, which
+    those references do not compute, take a prediction of 0 or less as 1 µm, so it is wrong
+    by every threshold and its log error stays finite. ARD and SRD divide by ``relative_to``
+    (:data:`RELATIVE_TO`).
     """
     d, gt = _flatten(pred, target)
     valid = valid.reshape(d.shape) & torch.isfinite(gt) & (gt > 0)
@@ -233,8 +239,11 @@ def depth_error_sums(
     gt = torch.where(valid, gt, d)
     err = d - gt
     sq = err * err
-    ratio = torch.maximum(d / gt, gt / d)
-    log_err = torch.log(d) - torch.log(gt)
+    # An unclamped prediction of 0 or less is wrong by every ratio: δ and the log errors see
+    # it as 1 µm (the references that do not clamp compute neither).
+    positive = d.clamp_min(_SMALLEST_DEPTH) if not clamp else d
+    ratio = torch.maximum(positive / gt, gt / positive)
+    log_err = torch.log(positive) - torch.log(gt)
     inv_err = 1000.0 / d - 1000.0 / gt
     base = gt if relative_to == "ground_truth" else d
     terms = {

@@ -105,6 +105,39 @@ def _setting(run: RunRecord) -> str:
     return " ".join(sorted(keys))
 
 
+# Protocol keys that only shape the breakdowns, not the headline scores a row averages.
+_BREAKDOWN_ONLY = frozenset({"distance_bins", "bin_width"})
+# What a record written before a protocol key existed was scored with (eval=paper's values).
+_PROTOCOL_DEFAULTS = {
+    "preset": "paper",
+    "clamp": True,
+    "relative_to": "ground_truth",
+    "units": "m",
+    "metrics": list(TABLE_METRICS),
+}
+
+
+def _check_same_scoring(members: Sequence[RunRecord]) -> None:
+    """Runs averaged into one row must have been scored alike: a key of ``eval`` given on one
+    run's command line (``evaluate ... eval.clamp=true``) is not among its overrides, so the
+    recorded protocol is compared instead.
+
+    Raises:
+        ValueError: two runs of the row differ in a protocol key, naming both and the key.
+    """
+    first = members[0]
+    for run in members[1:]:
+        a, b = first.protocol or {}, run.protocol or {}
+        for key in sorted((set(a) | set(b)) - _BREAKDOWN_ONLY):
+            x, y = (p.get(key, _PROTOCOL_DEFAULTS.get(key)) for p in (a, b))
+            if x != y:
+                raise ValueError(
+                    f"{first.path} and {run.path} differ only in their seed but were scored "
+                    f"differently (protocol {key} {x!r} vs {y!r}); a row averages runs scored "
+                    "alike: score them again with one protocol"
+                )
+
+
 def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     """Groups of runs (:func:`fusion_depth.runner.record.load_runs`) that differ only in seed,
     in the paper's order (models in the model table's order, then loss, then modality). Each
@@ -144,6 +177,7 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     result = []
     for key in sorted(groups, key=order):
         members = groups[key]
+        _check_same_scoring(members)
         stats = {
             metric: mean_std([m.test[metric] for m in members])
             for metric in METRIC_KEYS
