@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import compose_config
 
 from fusion_depth.config import validate_config
 from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, results_tables
-from tests.helpers import compose_config
 
 H, W = 375, 1242  # a KITTI frame: the Garg crop keeps rows 153..370, columns 44..1196
 ROW, GARG_TOP = 200, 153

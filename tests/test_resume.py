@@ -552,3 +552,21 @@ def test_a_lock_file_that_is_a_link_or_a_folder_is_refused(tmp_path) -> None:
     (folder / ".run.lock").mkdir(parents=True)
     with pytest.raises(RunLockedError, match=r"\.run\.lock: cannot be used as the run's lock"):
         RunLock(folder).__enter__()
+
+
+def test_a_key_added_since_at_the_value_that_computes_as_before_is_no_change() -> None:
+    """A run folder from before the evaluation presets lacks eval.preset, eval.clamp, ...: at
+    eval=paper's values they score as that run did, so it resumes; at another value it is
+    another run."""
+    stored = {"eval": {"crop": "none"}, "model": {"evaluation": {"crop": "none"}}}
+    now = {
+        "eval": {"crop": "none", "preset": "paper", "clamp": True, "units": "m"},
+        "model": {"evaluation": {"crop": "none", "relative_to": "ground_truth"}},
+    }
+    assert config_changes(stored, now) == []
+    now["eval"]["clamp"] = False
+    now["model"]["evaluation"]["relative_to"] = "prediction"
+    assert config_changes(stored, now) == [
+        "eval.clamp: absent → False",
+        "model.evaluation.relative_to: absent → 'prediction'",
+    ]

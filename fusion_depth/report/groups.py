@@ -25,6 +25,7 @@ from fusion_depth.metrics.depth import (
 )
 from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
+from fusion_depth.runner.protocol import BEFORE_PRESETS
 from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
 
@@ -107,14 +108,6 @@ def _setting(run: RunRecord) -> str:
 
 # Protocol keys that only shape the breakdowns, not the headline scores a row averages.
 _BREAKDOWN_ONLY = frozenset({"distance_bins", "bin_width"})
-# What a record written before a protocol key existed was scored with (eval=paper's values).
-_PROTOCOL_DEFAULTS = {
-    "preset": "paper",
-    "clamp": True,
-    "relative_to": "ground_truth",
-    "units": "m",
-    "metrics": list(TABLE_METRICS),
-}
 
 
 def _check_same_scoring(members: Sequence[RunRecord]) -> None:
@@ -129,7 +122,7 @@ def _check_same_scoring(members: Sequence[RunRecord]) -> None:
     for run in members[1:]:
         a, b = first.protocol or {}, run.protocol or {}
         for key in sorted((set(a) | set(b)) - _BREAKDOWN_ONLY):
-            x, y = (p.get(key, _PROTOCOL_DEFAULTS.get(key)) for p in (a, b))
+            x, y = (p.get(key, BEFORE_PRESETS.get(key)) for p in (a, b))
             if x != y:
                 raise ValueError(
                     f"{first.path} and {run.path} differ only in their seed but were scored "

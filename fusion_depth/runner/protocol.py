@@ -35,6 +35,16 @@ from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
 from fusion_depth.utils.tables import format_table
 
+BEFORE_PRESETS: dict[str, Any] = {
+    "preset": "paper",
+    "clamp": True,
+    "relative_to": "ground_truth",
+    "units": "m",
+    "metrics": list(TABLE_METRICS),
+}
+"""The protocol keys added with the presets, with the values that score as every protocol
+written before them did: a record or run config without them means these."""
+
 
 @dataclass(frozen=True)
 class EvalProtocol:

@@ -24,6 +24,7 @@ from typing import Any
 import yaml
 from hydra.errors import CompactHydraException
 
+from fusion_depth.runner.protocol import BEFORE_PRESETS
 from fusion_depth.runner.record import METRICS_FILE, RunIdentity, read_finished
 from fusion_depth.runner.run_folder import (
     FAILURE_FILE,
@@ -169,6 +170,14 @@ def finished_results(output_dir: Path) -> dict | None:
     return record.to_json() if record is not None else None
 
 
+# Config keys added since a run folder may have been written, with the value that computes as
+# the run did without them: a stored config that lacks one of these is the same run.
+_ADDED_KEYS: dict[str, Any] = {
+    f"{block}.{key}": value
+    for block in ("eval", "model.evaluation")
+    for key, value in BEFORE_PRESETS.items()
+}
+
 # Where a run's folder and the dataset cache are: not part of what it computes, so a run folder
 # that was moved, or a cache that moved, still resumes.
 _PLACES = {"output_dir": "<run folder>", "cache_dir": "<cache>"}
@@ -205,7 +214,9 @@ def config_changes(
     """What differs between a run config a run folder recorded and this run's, as
     ``key: stored → current`` (``absent`` for a missing key), sorted by key.
 
-    Keys that do not change what a run computes are left out: ``excluded`` ones (the override
+    Keys that do not change what a run computes are left out: a key added since, that the
+    stored config lacks, at the value that computes as before (:data:`_ADDED_KEYS`: the
+    evaluation presets' keys at ``eval=paper``'s values); ``excluded`` ones (the override
     keys of ``hydra.job.config.override_dirname.exclude_keys``, with everything below them) and
     ``paths``; the run folder and the dataset cache, wherever a value names them, count as the
     same place (each config's own ``paths.output_dir`` and ``paths.cache_dir``). Both are
@@ -217,6 +228,8 @@ def config_changes(
     changes = []
     for key in sorted(old.keys() | new.keys()):
         before, after = old.get(key, absent), new.get(key, absent)
+        if before is absent and key in _ADDED_KEYS and after == _ADDED_KEYS[key]:
+            continue  # a key added later, at the value that computes as before
         if before != after:
             shown = ["absent" if v is absent else repr(v) for v in (before, after)]
             changes.append(f"{key}: {shown[0]} → {shown[1]}")
