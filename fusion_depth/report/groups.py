@@ -335,12 +335,6 @@ def higher_is_better(metric: str) -> bool:
     return HIGHER_IS_BETTER.get(metric, False)
 
 
-def metric_label(metric: str, latex: bool = False, units: str = "m") -> str:
-    """The table name of a metric (RMSE, ARD, δ1, iMAE (1/km), RMSE (mm) in ``units`` mm...),
-    or its key when it is no metric."""
-    return metric_header(metric, units, latex)
-
-
 def tex_escape(text: str) -> str:
     return text.replace("_", r"\_")
 
