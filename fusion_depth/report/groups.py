@@ -48,6 +48,15 @@ class Preset:
         """The column header of ``metric``: its table name with this preset's unit."""
         return metric_header(metric, self.units, latex)
 
+    def cell(
+        self, metric: str, cell: tuple[float, float | None] | None
+    ) -> tuple[float, float | None] | None:
+        """A (mean, std over seeds) cell in this preset's units; None stays None."""
+        if cell is None:
+            return None
+        mean, std = cell
+        return self.value(metric, mean), None if std is None else self.value(metric, std)
+
 
 def runs_preset(runs: Sequence[RunRecord]) -> Preset:
     """The :class:`Preset` every run was scored with.
@@ -60,9 +69,9 @@ def runs_preset(runs: Sequence[RunRecord]) -> Preset:
     for run in runs:
         protocol = run.protocol or {}
         preset = Preset(
-            name=str(protocol.get("preset", "paper")),
-            metrics=tuple(protocol.get("metrics") or TABLE_METRICS),
-            units=str(protocol.get("units", "m")),
+            name=str(protocol.get("preset", BEFORE_PRESETS["preset"])),
+            metrics=tuple(protocol.get("metrics") or BEFORE_PRESETS["metrics"]),
+            units=str(protocol.get("units", BEFORE_PRESETS["units"])),
         )
         found.setdefault(preset, run)
     if len(found) > 1:
@@ -171,11 +180,7 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
     for key in sorted(groups, key=order):
         members = groups[key]
         _check_same_scoring(members)
-        stats = {
-            metric: mean_std([m.test[metric] for m in members])
-            for metric in METRIC_KEYS
-            if all(metric in m.test for m in members)
-        }
+        stats = _metric_stats([m.test for m in members])
         dataset, sensor, model, backbone, loss, fusion, setting, engine = key
         result.append(
             {
@@ -222,10 +227,30 @@ def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
     ]
 
 
+def _metric_stats(sections: Sequence[dict]) -> dict[str, tuple[float, float | None]]:
+    """Metric → (mean, std over seeds) of one metrics dict per run, for every metric all of
+    them hold."""
+    return {
+        metric: mean_std([s[metric] for s in sections])
+        for metric in METRIC_KEYS
+        if all(metric in s for s in sections)
+    }
+
+
 def _cell_text(preset: Preset, metric: str, cell: tuple[float, float | None]) -> str:
     """``mean ± std`` (or the mean of a single seed) in the preset's units, 3 decimals."""
-    mean, std = (None if v is None else preset.value(metric, v) for v in cell)
+    mean, std = preset.cell(metric, cell)
     return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
+
+
+def _best_rows(metric: str, values: Sequence[tuple[int, float]]) -> set[int]:
+    """The rows holding the best of ``(row, value)`` pairs at 3 decimals; none when fewer than
+    two values compete (a best needs something to beat)."""
+    if len(values) < 2:
+        return set()
+    better = max if higher_is_better(metric) else min
+    target = round(better(v for _, v in values), 3)
+    return {i for i, v in values if round(v, 3) == target}
 
 
 def _table_caps(groups: Sequence[dict]) -> list[str]:
@@ -244,13 +269,7 @@ def _cap_stats(group: dict, cap: str | None) -> dict[str, tuple[float, float | N
     if cap is None:
         return group["stats"]
     sections = [(r.test_by_cap or {}).get(cap) for r in group["runs"]]
-    if any(s is None for s in sections):
-        return {}
-    return {
-        metric: mean_std([s[metric] for s in sections])
-        for metric in METRIC_KEYS
-        if all(metric in s for s in sections)
-    }
+    return {} if any(s is None for s in sections) else _metric_stats(sections)
 
 
 def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | None = None) -> str:
@@ -299,16 +318,13 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | 
     bold = set()
     if fmt != "csv":
         for j, metric in enumerate(preset.metrics):
-            better = max if higher_is_better(metric) else min
             for cap in caps or [None]:
                 cells = [
                     (i, preset.value(metric, st[metric][0]))
                     for i, (c, st) in enumerate(row_stats)
                     if c == cap and metric in st
                 ]
-                if len(cells) > 1:  # a best needs something to beat
-                    target = round(better(v for _, v in cells), 3)
-                    bold |= {(i, first_metric + j) for i, v in cells if round(v, 3) == target}
+                bold |= {(i, first_metric + j) for i in _best_rows(metric, cells)}
     return format_table(header, rows, fmt, bold)
 
 
@@ -447,16 +463,13 @@ def build_by_table(
         rows.append(row)
     bold = set()
     if fmt != "csv":
-        better = max if higher_is_better(metric) else min
         for j, column in enumerate(columns):
             means = [
                 (i, preset.value(metric, s[column][0]))
                 for i, s in enumerate(stats)
                 if s[column] is not None
             ]
-            if len(means) > 1:  # a best needs something to beat
-                target = round(better(m for _, m in means), 3)
-                bold |= {(i, first + j) for i, m in means if round(m, 3) == target}
+            bold |= {(i, first + j) for i in _best_rows(metric, means)}
     return format_table(header, rows, fmt, bold)
 
 

@@ -152,16 +152,6 @@ def _std_errors(cells: Sequence[tuple[float, float | None] | None]) -> np.ndarra
     return None if np.isnan(stds).all() else np.nan_to_num(stds)
 
 
-def _in_units(
-    preset: Preset, metric: str, cell: tuple[float, float | None] | None
-) -> tuple[float, float | None] | None:
-    """A (mean, std) cell in the preset's units."""
-    if cell is None:
-        return None
-    mean, std = cell
-    return preset.value(metric, mean), None if std is None else preset.value(metric, std)
-
-
 def _direction(metric: str) -> str:
     return "higher is better" if higher_is_better(metric) else "lower is better"
 
@@ -201,7 +191,7 @@ def plot_groups(
                     cells.append(None)
                 else:
                     values = [run_metric(r, None, ALL, metric) for r in g["runs"]]
-                    cells.append(_in_units(preset, metric, mean_std(values)))
+                    cells.append(preset.cell(metric, mean_std(values)))
             heights = [np.nan if c is None else c[0] for c in cells]
             series.append((key_label("fusion", fusion), heights, _std_errors(cells)))
         title = f"{preset.label(metric)} ({_direction(metric)})"
@@ -231,7 +221,7 @@ def plot_by(
     ax = fig.add_subplot()
     series = []
     for g, cells in zip(groups, stats, strict=True):
-        row = [_in_units(preset, metric, cells[c]) for c in columns]
+        row = [preset.cell(metric, cells[c]) for c in columns]
         heights = [np.nan if c is None else c[0] for c in row]
         series.append((" / ".join(identity_cells(g, extra)), heights, _std_errors(row)))
     title = f"{preset.label(metric)} by {by} ({_direction(metric)})"
