@@ -21,6 +21,7 @@ from fusion_depth.report import (
     paired_differences,
     read_figure_description,
 )
+from fusion_depth.runner.protocol import BEFORE_PRESETS
 from fusion_depth.runner.record import load_runs
 from fusion_depth.utils.atomic import write_json_atomic
 
@@ -458,6 +459,25 @@ def test_seeds_scored_differently_are_not_averaged(tmp_path, capsys) -> None:
     record["protocol"]["clamp"] = False  # a breakdown-only key may differ
     write_json_atomic(tmp_path / "b" / "metrics.json", record)
     assert main([str(tmp_path)]) == 0
+
+
+def test_a_record_from_before_the_presets_pairs_with_one_scored_by_eval_paper(
+    tmp_path, capsys
+) -> None:
+    """A baseline written before the presets (no eval.preset, eval.clamp, ... in its protocol)
+    scored as eval=paper does: --compare pairs it with a new eval=paper run, and still refuses
+    one scored otherwise."""
+    base = np.linspace(4.0, 6.0, NUM_IMAGES)
+    _write_image_run(tmp_path, "rgb", "rgb", 1, base)  # the earlier release's protocol keys
+    paper = {"min_depth": 0.5, "max_depth": [80.0], "crop": "none", **BEFORE_PRESETS}
+    _write_image_run(tmp_path, "concat", "concat", 1, base - 0.25, protocol=paper)
+    assert main([str(tmp_path), "--compare", "fusion=rgb", "--resamples", "200"]) == 0
+    assert "-0.250 [-0.250, -0.250]" in capsys.readouterr().out
+    _write_image_run(
+        tmp_path, "concat", "concat", 1, base - 0.25, protocol={**paper, "clamp": False}
+    )
+    assert main([str(tmp_path), "--compare", "fusion=rgb", "--resamples", "200"]) == 2
+    assert "protocol clamp True vs False" in capsys.readouterr().err
 
 
 def test_paired_differences_print_in_the_presets_units(tmp_path, capsys) -> None:

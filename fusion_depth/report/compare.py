@@ -30,6 +30,7 @@ from fusion_depth.report.groups import (
     put_first,
     tex_escape,
 )
+from fusion_depth.runner.protocol import protocol_differences
 from fusion_depth.runner.record import RunRecord
 from fusion_depth.runner.run_folder import PER_IMAGE_FILE
 from fusion_depth.utils.tables import format_table
@@ -144,11 +145,10 @@ def _check_same_images(ref: RunRecord, ref_pi: PerImage, run: RunRecord, pi: Per
         if a != b:
             raise refuse(f"{what} {a!r} vs {b!r}")
     if ref.protocol is not None and run.protocol is not None:
-        keys = (set(ref.protocol) | set(run.protocol)) - _AGGREGATION_ONLY
-        for key in sorted(keys):
-            a, b = ref.protocol.get(key), run.protocol.get(key)
-            if a != b:
-                raise refuse(f"protocol {key} {a!r} vs {b!r}")
+        differences = protocol_differences(ref.protocol, run.protocol, _AGGREGATION_ONLY)
+        if differences:
+            key, a, b = differences[0]
+            raise refuse(f"protocol {key} {a!r} vs {b!r}")
     _, i, j = np.intersect1d(ref_pi.index, pi.index, assume_unique=True, return_indices=True)
     differ = ref_pi.condition[i] != pi.condition[j]
     if differ.any():

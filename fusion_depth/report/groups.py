@@ -25,7 +25,7 @@ from fusion_depth.metrics.depth import (
 )
 from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
-from fusion_depth.runner.protocol import BEFORE_PRESETS
+from fusion_depth.runner.protocol import BEFORE_PRESETS, protocol_differences
 from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
 
@@ -129,15 +129,14 @@ def _check_same_scoring(members: Sequence[RunRecord]) -> None:
     """
     first = members[0]
     for run in members[1:]:
-        a, b = first.protocol or {}, run.protocol or {}
-        for key in sorted((set(a) | set(b)) - _BREAKDOWN_ONLY):
-            x, y = (p.get(key, BEFORE_PRESETS.get(key)) for p in (a, b))
-            if x != y:
-                raise ValueError(
-                    f"{first.path} and {run.path} differ only in their seed but were scored "
-                    f"differently (protocol {key} {x!r} vs {y!r}); a row averages runs scored "
-                    "alike: score them again with one protocol"
-                )
+        differences = protocol_differences(first.protocol, run.protocol, _BREAKDOWN_ONLY)
+        if differences:
+            key, x, y = differences[0]
+            raise ValueError(
+                f"{first.path} and {run.path} differ only in their seed but were scored "
+                f"differently (protocol {key} {x!r} vs {y!r}); a row averages runs scored "
+                "alike: score them again with one protocol"
+            )
 
 
 def group_runs(runs: Sequence[RunRecord]) -> list[dict]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -44,6 +44,21 @@ BEFORE_PRESETS: dict[str, Any] = {
 }
 """The protocol keys added with the presets, with the values that score as every protocol
 written before them did: a record or run config without them means these."""
+
+
+def protocol_differences(
+    a: Mapping[str, Any] | None, b: Mapping[str, Any] | None, ignore: Collection[str] = ()
+) -> list[tuple[str, Any, Any]]:
+    """``(key, value in a, value in b)`` for each key two recorded protocols (metrics.json's
+    ``protocol``) score differently by, sorted; ``ignore``d keys left out. A key a protocol
+    written before the presets lacks means its :data:`BEFORE_PRESETS` value."""
+    a, b = a or {}, b or {}
+    differences = []
+    for key in sorted((set(a) | set(b)) - set(ignore)):
+        x, y = (p.get(key, BEFORE_PRESETS.get(key)) for p in (a, b))
+        if x != y:
+            differences.append((key, x, y))
+    return differences
 
 
 @dataclass(frozen=True)
