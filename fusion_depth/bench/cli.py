@@ -48,8 +48,18 @@ from fusion_depth.bench.stages import BENCH_ENGINES, STAGES, run_bench
 from fusion_depth.config import CONF_DIR
 from fusion_depth.config.hydra_main import unknown_key_message
 from fusion_depth.errors import ConfigError
+from fusion_depth.runner.bench_record import (
+    ENGINE_HEADER,
+    SPEED_HEADER,
+    engine_rows,
+    floor_note,
+    settings_line,
+    speed_notes,
+    speed_rows,
+)
 from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.utils.console import quiet_known_noise
+from fusion_depth.utils.tables import format_table
 
 quiet_known_noise()
 
@@ -71,79 +81,14 @@ def compose_train_config(overrides: Sequence[str]) -> DictConfig:
     return cfg
 
 
-def _fmt(value: float | None, digits: int = 3) -> str:
-    return "–" if value is None else f"{value:.{digits}f}"
-
-
-def _ratio(value: float | None) -> str:
-    return "–" if value is None else f"{value:.2f}×"
-
-
-def format_table(result: dict[str, Any]) -> str:
-    """The result as a markdown table with a settings line above it."""
-    s, machine = result["settings"], result["machine"]
-    where = machine["gpu"] or f"{machine['cpu']}, {machine['torch_threads']} threads"
-    lines = [
-        f"{s['backbone']} · fusion={s['fusion']} · {s['height']}×{s['width']} · "
-        f"train batch {s['batch_size']} · {s['device']} ({where})",
-        "",
-        "| run | infer median (s) | infer p95 (s) | infer GFLOP/s | of matmul peak "
-        "| train samples/s | train GFLOP/s | peak memory (MB) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    peak = result.get("peak_gflops")
-    infer_flops = result.get("infer_gflop_per_frame")
-    train_flops = result.get("train_gflop_per_step")
-
-    def row(name: str, infer: dict | None, train: dict | None, peak_gflops: float | None) -> str:
-        latency = infer["latency_s_median"] if infer else None
-        gflops = infer_flops / latency if infer_flops and latency else None
-        share = f"{100 * gflops / peak_gflops:.0f} %" if gflops and peak_gflops else "–"
-        train_gflops = train_flops / train["step_s_median"] if train and train_flops else None
-        memory = max((d["peak_memory_mb"] for d in (infer, train) if d), default=None)
-        return (
-            f"| {name} | {_fmt(latency)} | {_fmt(infer and infer['latency_s_p95'])} "
-            f"| {_fmt(gflops, 1)} | {share} | {_fmt(train and train['samples_per_s'], 2)} "
-            f"| {_fmt(train_gflops, 1)} | {_fmt(memory, 0)} |"
-        )
-
-    speed = f"{s['precision']}{', channels-last' if s['channels_last'] else ''}"
-    speed += f", compiled ({s['compile_mode']})" if s["compile"] else ", eager"
-    lines.append(row(speed, result.get("infer"), result.get("train"), peak))
-    if "baseline_infer" in result or "baseline_train" in result:
-        lines.append(
-            row(
-                "32-true, eager, contiguous (baseline)",
-                result.get("baseline_infer"),
-                result.get("baseline_train"),
-                result.get("baseline_peak_gflops"),
-            )
-        )
-        lines.append(
-            f"| speed-up | {_ratio(result.get('infer_speedup'))} | | | "
-            f"| {_ratio(result.get('train_speedup'))} | | |"
-        )
-    notes = []
-    if peak:
-        notes.append(f"matrix-product peak {peak:.0f} GFLOP/s ({s['precision']})")
-    if result.get("baseline_peak_gflops"):
-        notes.append(f"{result['baseline_peak_gflops']:.0f} GFLOP/s (fp32)")
-    if infer_flops:
-        notes.append(f"{infer_flops:.1f} GFLOP per frame")
-    if train_flops:
-        notes.append(f"{train_flops:.1f} GFLOP per training step")
-    if "data" in result:
-        d = result["data"]
-        notes.append(
-            f"data ({d['dataset']} {d['split']}): {d['samples_per_s_per_worker']:.1f} samples/s "
-            f"per loader worker ({d['workers']}), to floats + augmentation on "
-            f"{d['augment_device']} {d['augment_samples_per_s']:.1f} samples/s, together "
-            f"{d['pipeline_samples_per_s']:.1f} samples/s"
-        )
+def format_result(result: dict[str, Any]) -> str:
+    """The result as Markdown: a settings line, the speed table and its notes, and with several
+    engines the engines table (:mod:`fusion_depth.runner.bench_record`)."""
+    lines = [settings_line(result), "", format_table(SPEED_HEADER, speed_rows(result))]
+    notes = speed_notes(result)
     if notes:
-        lines += ["", "; ".join(notes)]
-    engines = result.get("engines") or {}
-    if len(engines) > 1:
+        lines += ["", notes]
+    if len(result.get("engines") or {}) > 1:
         lines += ["", *format_engines(result)]
     return "\n".join(lines)
 
@@ -151,29 +96,7 @@ def format_table(result: dict[str, Any]) -> str:
 def format_engines(result: dict[str, Any]) -> list[str]:
     """The ``--engines`` table: each engine's batch-1 latency, its latency over the FLOP floor
     and its speed-up over PyTorch, with a line saying what the floor is."""
-    lines = [
-        "| engine | computes in | batch-1 latency, median (p95) | latency / FLOP floor "
-        "| speed-up over torch | export (s) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for name, e in result["engines"].items():
-        floor = e["latency_over_floor"]
-        lines.append(
-            f"| {name} | {e['computes']} | {_fmt(e['latency_s_median'])} s "
-            f"({_fmt(e['latency_s_p95'])}) | {_ratio(floor)} | {_ratio(e['speedup'])} "
-            f"| {_fmt(e.get('export_s'), 0)} |"
-        )
-    floor_s, peak = result.get("infer_floor_s"), result.get("peak_gflops")
-    if floor_s:
-        lines += [
-            "",
-            f"FLOP floor {floor_s:.3f} s: {result['infer_gflop_per_frame']:.1f} GFLOP per frame at "
-            f"the {result['settings']['precision']} matrix-product peak, {peak:.0f} GFLOP/s "
-            "(latency / floor 1.00× = at the floor)",
-        ]
-    else:
-        lines += ["", "no FLOP floor: the peak stage did not run (--only peak,infer)"]
-    return lines
+    return [format_table(ENGINE_HEADER, engine_rows(result)), "", floor_note(result)]
 
 
 def bench_parser() -> argparse.ArgumentParser:
@@ -238,7 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except (ValueError, FileNotFoundError, ImportError) as err:
         parser.error(str(err))
-    print(format_table(result))
+    print(format_result(result))
     if args.json:
         write_json_atomic(args.json, result)
         print(f"\nwrote {args.json}")

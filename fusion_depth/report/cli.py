@@ -49,6 +49,14 @@ Options:
                                  that names the command (Markdown ``<!-- -->``, LaTeX ``%``;
                                  CSV has no header line): a table a docs page includes, made
                                  from run records rather than typed.
+  --bench {speed,engines}        tabulate the ``bench.json`` files below the directory (what
+                                 ``python -m fusion_depth.bench --json`` writes) instead of the
+                                 metrics: ``speed``, a row per record's run (and its eager fp32
+                                 baseline and speed-ups); ``engines``, a row per engine of each
+                                 record run with ``--engines``. Rows are led by the record's
+                                 folder and what it measured. ``--plot`` draws latency and
+                                 samples/s (speed) or latency per engine, median to p95
+                                 (engines). Not with --by, --compare, --metric, --first or --wandb.
   --wandb                        also log the table as a W&B Table (project fusion-depth, job
                                  type report, named after the directory, written below it);
                                  offline unless you are logged in (``wandb sync`` uploads it).
@@ -70,6 +78,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fusion_depth.report.bench import BENCH_TABLES, build_bench_table
 from fusion_depth.report.by_model import (
     BY_MODEL,
     SECTION,
@@ -90,7 +99,15 @@ from fusion_depth.report.groups import (
     group_runs,
     runs_preset,
 )
-from fusion_depth.report.plots import PLOT_METRICS, plot_by, plot_comparisons, plot_groups
+from fusion_depth.report.plots import (
+    PLOT_METRICS,
+    plot_by,
+    plot_comparisons,
+    plot_engine_latency,
+    plot_groups,
+    plot_speed,
+)
+from fusion_depth.runner.bench_record import BENCH_FILE, load_bench_records
 from fusion_depth.runner.record import METRICS_FILE, load_runs
 from fusion_depth.utils.atomic import write_text_atomic
 
@@ -230,6 +247,12 @@ def _parser() -> argparse.ArgumentParser:
         default=0.95,
         help="confidence level of --compare (default 0.95)",
     )
+    parser.add_argument(
+        "--bench",
+        choices=BENCH_TABLES,
+        help="tabulate the bench.json records below the directory (bench --json) instead: "
+        "speed (latency, samples/s, speed-ups) or engines (latency per engine)",
+    )
     parser.add_argument("--plot", metavar="OUT.png", help="also save the grid as a bar chart")
     parser.add_argument(
         "--output",
@@ -269,9 +292,35 @@ def generated_table(table: str, fmt: str, argv: Sequence[str]) -> str:
     return f"{table}\n"
 
 
+def _bench_report(args: argparse.Namespace, argv: Sequence[str]) -> None:
+    """``--bench``: the table (and figure) of the bench records below ``args.directory``."""
+    records = load_bench_records(args.directory)
+    if not records:
+        raise ValueError(f"{args.directory}: no {BENCH_FILE} found below it")
+    table = build_bench_table(records, args.bench, args.format)
+    print(table)
+    if args.output:
+        write_text_atomic(args.output, generated_table(table, args.format, argv))
+    if args.plot:
+        plot = plot_speed if args.bench == "speed" else plot_engine_latency
+        plot(records, args.plot, command_line(argv))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.bench:
+        metrics_only = ("by", "compare", "metric", "first", "wandb")
+        given = [f"--{k}" for k in metrics_only if getattr(args, k)]
+        if given:
+            parser.error(f"--bench tabulates bench records; {given[0]} is for metrics records")
+        try:
+            _bench_report(args, argv)
+        except (OSError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
     metric = args.metric or "rmse"
     by_model = args.by == BY_MODEL
     section = SECTION if by_model else args.by  # the metrics.json breakdown of the columns

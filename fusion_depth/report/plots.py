@@ -29,6 +29,7 @@ from fusion_depth.report.groups import (
     mean_std,
     run_metric,
 )
+from fusion_depth.runner.bench_record import NamedRecord, run_label
 from fusion_depth.utils.atomic import write_atomic
 
 if TYPE_CHECKING:  # Matplotlib is imported by the plots only: a table should print at once.
@@ -267,3 +268,70 @@ def plot_comparisons(
     ax.legend(fontsize="small")
     fig.set_layout_engine("constrained")
     return _save_figure_atomic(fig, out, [panel], command)
+
+
+# --- Bench records: report --bench speed|engines --plot ----------------------------------------
+
+
+def plot_engine_latency(
+    records: Sequence[NamedRecord], out: str | os.PathLike, command: str | None = None
+) -> Path:
+    """Batch-1 latency per engine (bars: the median; whiskers: up to the p95), a bar per
+    record, in seconds; the figure's metadata names ``command`` (:func:`figure_description`).
+
+    Raises:
+        ValueError: no record holds engine timings.
+    """
+    from matplotlib.figure import Figure
+
+    timed = [(name, result["engines"]) for name, result in records if result.get("engines")]
+    if not timed:
+        raise ValueError("--plot: no record holds engine timings (run bench with --engines)")
+    engines = list(dict.fromkeys(engine for _, timings in timed for engine in timings))
+    fig = Figure(figsize=(min(16.0, 2.5 + 0.9 * len(engines) * len(timed)), 3.8))
+    ax = fig.add_subplot()
+    series = []
+    for name, timings in timed:
+        cells = [timings.get(engine) for engine in engines]
+        medians = [np.nan if c is None else c["latency_s_median"] for c in cells]
+        above = [0.0 if c is None else c["latency_s_p95"] - c["latency_s_median"] for c in cells]
+        series.append((name, medians, np.array([np.zeros(len(cells)), np.maximum(above, 0.0)])))
+    title = "batch-1 latency (s), median to p95 (lower is better)"
+    panel = _grouped_bars(ax, title, engines, series)
+    ax.legend(fontsize="small")
+    fig.set_layout_engine("constrained")
+    return _save_figure_atomic(fig, out, [panel], command)
+
+
+def plot_speed(
+    records: Sequence[NamedRecord], out: str | os.PathLike, command: str | None = None
+) -> Path:
+    """Batch-1 latency (s) and training samples/s of each record's run and, where measured, its
+    eager fp32 baseline; the figure's metadata names ``command``.
+
+    Raises:
+        ValueError: no record timed inference or training.
+    """
+    from matplotlib.figure import Figure
+
+    categories = [f"{name}: {run_label(result['settings'])}" for name, result in records]
+    panels_spec = [
+        ("batch-1 latency, median (s, lower is better)", "infer", "latency_s_median"),
+        ("training samples/s (higher is better)", "train", "samples_per_s"),
+    ]
+    fig = Figure(figsize=(min(16.0, 3.0 + 1.2 * len(records)) * 2, 3.8), layout="constrained")
+    panels = []
+    for n, (title, stage, key) in enumerate(panels_spec):
+        ax = fig.add_subplot(1, 2, n + 1)
+        series = []
+        for label, prefix in (("run", ""), ("eager fp32 baseline", "baseline_")):
+            heights = [(result.get(prefix + stage) or {}).get(key, np.nan) for _, result in records]
+            if not np.isnan(np.asarray(heights, dtype=float)).all():
+                series.append((label, heights, None))
+        if not series:
+            continue
+        panels.append(_grouped_bars(ax, title, categories, series))
+        ax.legend(fontsize="small")
+    if not panels:
+        raise ValueError("--plot: no record timed inference or training")
+    return _save_figure_atomic(fig, out, panels, command)
