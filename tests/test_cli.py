@@ -165,7 +165,7 @@ PLACEHOLDERS = {
     "<sweep>": "loss_fusion_grid",
     "<name>": "topview",
 }
-HYDRA_COMMANDS = {"train": "train", "prepare": "train", "evaluate": "evaluate",
+HYDRA_COMMANDS = {"train": "train", "prepare": "prepare", "evaluate": "evaluate",
                   "predict": "predict", "export": "export",
                   "score_sparse": "score_sparse"}  # fmt: skip
 
@@ -267,7 +267,7 @@ def test_every_documented_command_parses_and_composes(
     GlobalHydra.instance().clear()
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
         cfg = compose(config_name, overrides=single)
-    if HYDRA_COMMANDS.get(module) == "train" or module == "bench":
+    if HYDRA_COMMANDS.get(module) in ("train", "prepare") or module == "bench":
         if cfg.dataset.get("requires") and cfg.dataset.name == "nuscenes":
             cfg.dataset.requires = None  # the devkit is an optional extra
         check_config_values(cfg)

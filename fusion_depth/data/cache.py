@@ -52,11 +52,19 @@ Errors writing the cache (a full disk, no permission) are not about one frame an
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
-from collections.abc import Callable, Sequence
+import shutil
+import signal
+import socket
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -85,7 +93,7 @@ from fusion_depth.data.radar_points import (
     write_points,
 )
 from fusion_depth.utils.atomic import write_json_atomic
-from fusion_depth.utils.progress import track
+from fusion_depth.utils.progress import Progress
 
 # Bump when the cache layout changes, so old caches are not reused (3: .npy arrays, were PNGs).
 PREPARED_VERSION = 3
@@ -95,6 +103,11 @@ ON_ERROR = ("raise", "skip")  # what prepare_split does with a frame it cannot r
 OnError = Literal["raise", "skip"]
 # What make_frame raises for a frame's bad or missing files (DataFileError is a ValueError).
 FRAME_ERRORS = (ValueError, OSError)
+CLAIMS_DIR = ".claims"  # a split's frames being prepared right now, one file each
+SHARDED_FILE = ".sharded.json"  # a split a sharded prepare has started and not finished
+# A claim older than this is taken over (its process died on another machine; on this one a
+# claim is taken over as soon as its process is gone). A frame takes seconds.
+CLAIM_STALE_S = 600.0
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +183,92 @@ class SkippedFramesError(ValueError):
         return type(self), (self.reports,)
 
 
+class IncompleteSplitError(ValueError):
+    """A split a sharded prepare started is not complete yet: ``done`` of ``total`` frames are
+    in the cache. Raised by a shard once its own frames are done while others are still
+    missing, and by training on such a split (it does not prepare frames other shards own)."""
+
+    def __init__(self, split_dir: Path, done: int, total: int, num_shards: int | None) -> None:
+        self.split_dir, self.done, self.total, self.num_shards = split_dir, done, total, num_shards
+        self.splits: list[IncompleteSplitError] = [self]  # prepare_splits: every such split
+        shards = f" by {num_shards} shards" if num_shards else ""
+        super().__init__(
+            f"{split_dir}: {done} of {total} frames prepared, {total - done} missing: the split "
+            f"is being prepared{shards} and is usable once every shard has finished (run the "
+            "missing shards, or python -m fusion_depth.prepare without shards to finish it here)"
+        )
+
+    def __reduce__(self):
+        return type(self), (self.split_dir, self.done, self.total, self.num_shards)
+
+
+class CacheFullError(OSError):
+    """The disk holding the cache is full: one line naming the cache folder. The frames written
+    before are whole (each went through a temporary name), so prepare resumes once there is
+    room."""
+
+
+@dataclass(frozen=True)
+class PrepareOptions:
+    """How :func:`prepare_split` spreads its frames (``python -m fusion_depth.prepare`` sets
+    them from ``prepare.*``; training prepares with the defaults).
+
+    Args:
+        workers: processes preparing frames at once (forked: each takes the next unclaimed
+            frame). The cache is the same file for file, whatever the number.
+        shard: this process prepares the frames at positions ``shard, shard + num_shards, ...``
+            of each split.
+        num_shards: how many processes (machines, SLURM jobs) share the splits.
+        finish_sharded: prepare a split that a sharded prepare left unfinished (``prepare``
+            does); False (training) raises :class:`IncompleteSplitError` instead.
+    """
+
+    workers: int = 1
+    shard: int = 0
+    num_shards: int = 1
+    finish_sharded: bool = False
+
+    def __post_init__(self) -> None:
+        for name, value, minimum in (
+            ("workers", self.workers, 1),
+            ("num_shards", self.num_shards, 1),
+        ):
+            if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+                raise ValueError(f"prepare.{name}={value!r}: expected an integer >= {minimum}")
+        if not isinstance(self.shard, int) or not 0 <= self.shard < self.num_shards:
+            raise ValueError(
+                f"prepare.shard={self.shard!r}: expected an integer in [0, {self.num_shards}) "
+                f"(prepare.num_shards={self.num_shards})"
+            )
+
+
+_OPTIONS: ContextVar[PrepareOptions | None] = ContextVar("prepare_options", default=None)
+
+
+def current_prepare_options() -> PrepareOptions:
+    """The options of the innermost :func:`prepare_options` block (the defaults outside one)."""
+    return _OPTIONS.get() or PrepareOptions()
+
+
+@contextmanager
+def prepare_options(options: PrepareOptions) -> Iterator[PrepareOptions]:
+    """Every :func:`prepare_split` inside the block uses ``options`` (readers build their caches
+    deep inside their constructors; ``python -m fusion_depth.prepare`` wraps them in this)."""
+    token = _OPTIONS.set(options)
+    try:
+        yield options
+    finally:
+        _OPTIONS.reset(token)
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask, e.g. a SLURM allocation)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 @dataclass(frozen=True)
 class SplitJob:
     """The arguments of one :func:`prepare_split` call, for :func:`prepare_splits`."""
@@ -237,7 +336,13 @@ def prepare_split(
     """Writes every frame of ``split`` that is not there yet; returns the split folder.
 
     ``frame_ids`` must come in the same order every time (they name the files by position);
-    ``params`` are recorded in ``meta.json`` for a person to see what the cache holds.
+    ``params`` are recorded in ``meta.json`` for a person to see what the cache holds. The
+    current :class:`PrepareOptions` (:func:`prepare_options`) say which frames this process
+    prepares and with how many workers. Each frame is claimed before it is made (a file in
+    ``.claims/``), so workers, shards and separate processes on one cache each make a frame
+    once; a claim whose process is gone is taken over, and the temporary files a killed write
+    left are removed with it. Whichever process finds every frame present writes
+    ``index.json``, once.
 
     Raises:
         ValueError: ``frame_ids`` is empty, or ``on_error`` is not one of :data:`ON_ERROR`.
@@ -245,50 +350,337 @@ def prepare_split(
             fails (see the module docstring).
         SkippedFramesError: with ``on_error="skip"``, after the whole split, when frames were
             skipped; the split then has no ``index.json``.
+        IncompleteSplitError: frames other shards own are still missing.
+        CacheFullError: the cache's disk is full.
     """
     check_on_error(on_error)
+    options = current_prepare_options()
     split_dir = cache / split
     if (split_dir / INDEX_FILE).is_file():
         log.info("using the prepared %s split in %s", split, split_dir)
         return split_dir
     if not frame_ids:
         raise ValueError(f"split {split!r}: no frames to prepare (settings: {params})")
-    write_json_atomic(cache / META_FILE, {"prepared_version": PREPARED_VERSION, **params})
-    split_dir.mkdir(parents=True, exist_ok=True)
-    records = []
-    skipped: list[SkippedFrame] = []
-    done = 0
-    description = f"preparing {cache.parent.name} {split}"
-    for i, frame_id in enumerate(
-        track(frame_ids, description, unit="frames", transient=True, logger=log)
-    ):
-        stem = f"{i:06d}"
-        record = _read_record(split_dir / f"{stem}.json")
-        if record is not None and record.get("id") == frame_id:
-            records.append(record)
-            done += 1
-            continue
-        try:
-            frame = make_frame(frame_id)
-            _check_frame(frame, frame_id)
-        except FRAME_ERRORS as err:
-            if on_error == "raise":
-                raise
-            skipped.append(SkippedFrame(frame_id, one_line(err)))
-            log.warning("skipped %s: %s", frame_id, skipped[-1].reason)
-            continue
-        records.append(_write_frame(split_dir, stem, frame_id, frame))
-    if skipped:  # no index: the split stays unprepared until every frame is there
-        raise SkippedFramesError([SplitReport(split, len(frame_ids), tuple(skipped))])
-    write_json_atomic(split_dir / INDEX_FILE, {"split": split, "frames": records})
-    log.info(
-        "prepared %d %s frames into %s (%d already there from an earlier run)",
-        len(records),
-        split,
-        split_dir,
-        done,
-    )
+    with _disk_full_names(cache):
+        write_json_atomic(cache / META_FILE, {"prepared_version": PREPARED_VERSION, **params})
+        split_dir.mkdir(parents=True, exist_ok=True)
+        sharded = _read_sharded(split_dir)
+        if options.num_shards > 1:
+            write_json_atomic(split_dir / SHARDED_FILE, {"num_shards": options.num_shards})
+        elif sharded is not None and not options.finish_sharded:
+            done = len(frame_ids) - len(_missing(split_dir, frame_ids))
+            raise IncompleteSplitError(split_dir, done, len(frame_ids), sharded)
+        positions = range(options.shard, len(frame_ids), options.num_shards)
+        pending = [i for i in positions if _done_record(split_dir, i, frame_ids[i]) is None]
+        log.info(
+            "%s %s: %d of this process's %d frames to prepare, with %d worker(s)",
+            cache.parent.name,
+            split,
+            len(pending),
+            len(positions),
+            min(options.workers, max(len(pending), 1)),
+        )
+        job = _FrameJob(split_dir, tuple(frame_ids), make_frame, on_error)
+        description = f"preparing {cache.parent.name} {split}"
+        skipped: list[SkippedFrame] = []
+        while pending:
+            skipped += _prepare_frames(job, pending, options.workers, description)
+            bad = {frame.frame_id for frame in skipped}
+            pending = [
+                i
+                for i in pending
+                if frame_ids[i] not in bad and _done_record(split_dir, i, frame_ids[i]) is None
+            ]
+            if pending:  # claimed by another live process: wait for it, or for its claim to lapse
+                log.info("waiting for %d frame(s) another process is preparing", len(pending))
+                time.sleep(1.0)
+        if skipped:  # no index: the split stays unprepared until every frame is there
+            raise SkippedFramesError([SplitReport(split, len(frame_ids), tuple(skipped))])
+        missing = _missing(split_dir, frame_ids)
+        if missing:
+            raise IncompleteSplitError(
+                split_dir, len(frame_ids) - len(missing), len(frame_ids), options.num_shards
+            )
+        _write_index(split_dir, frame_ids)
     return split_dir
+
+
+@dataclass(frozen=True)
+class _FrameJob:
+    """What every worker of one split needs: where, which frames, how to make one."""
+
+    split_dir: Path
+    frame_ids: tuple[str, ...]
+    make_frame: Callable[[str], PreparedFrame]
+    on_error: OnError
+
+
+def _prepare_frames(
+    job: _FrameJob, todo: Sequence[int], workers: int, description: str
+) -> list[SkippedFrame]:
+    """Makes the frames at positions ``todo`` (claimed one by one), in this process or in
+    ``workers`` forked ones, with a progress bar or log lines; returns the skipped ones.
+
+    The first error a worker raises (with ``on_error="raise"``), an interrupt, or a worker that
+    dies stops every worker: each gets SIGTERM, which ends its write in progress by removing
+    the temporary file, as any exception does.
+    """
+    workers = min(workers, len(todo))
+    if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
+        log.warning("prepare.workers=%d: this platform cannot fork; preparing in one", workers)
+        workers = 1
+    with Progress(len(todo), description, unit="frames", transient=True, logger=log) as progress:
+        if workers <= 1:
+            return _work(job, todo, progress.advance)
+        context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
+        counter = context.Value("i", 0)
+        results = context.SimpleQueue()
+        processes = [
+            context.Process(
+                target=_worker_main, args=(job, todo, k, workers, counter, results), daemon=True
+            )
+            for k in range(workers)
+        ]
+        skipped: list[SkippedFrame] = []
+        try:
+            for process in processes:
+                process.start()
+            reported, seen = 0, 0
+            while reported < workers:
+                while not results.empty():
+                    kind, value = results.get()
+                    reported += 1
+                    if kind == "error":
+                        raise value
+                    skipped += value
+                dead = [p for p in processes if p.exitcode not in (None, 0)]
+                if dead and results.empty():
+                    raise RuntimeError(
+                        f"a prepare worker died (exit code {dead[0].exitcode}); prepare again "
+                        "to go on (finished frames are kept)"
+                    )
+                now = counter.value
+                progress.advance(now - seen)
+                seen = now
+                time.sleep(0.1)
+            progress.advance(counter.value - seen)
+        finally:
+            _stop(processes)
+        order = {frame_id: i for i, frame_id in enumerate(job.frame_ids)}
+        return sorted(skipped, key=lambda frame: order[frame.frame_id])
+
+
+def _stop(processes: Sequence[Any]) -> None:
+    """Ends the workers still running: SIGTERM (a clean stop), then SIGKILL after 10 s."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(10)
+        if process.is_alive():
+            process.kill()
+            process.join()
+
+
+def _worker_main(
+    job: _FrameJob, todo: Sequence[int], start: int, workers: int, counter: Any, results: Any
+) -> None:
+    """A worker: SIGTERM becomes SystemExit (so the write in progress removes its temporary
+    file, as on any exception), then :func:`_work` from its own place in the list, so the first
+    claims do not collide; reports ``("done", skipped)`` or ``("error", exception)``."""
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+    def advance(n: int = 1) -> None:
+        with counter.get_lock():
+            counter.value += n
+
+    offset = start * len(todo) // workers
+    try:
+        results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
+    except BaseException as err:
+        try:
+            results.put(("error", err))
+        except Exception:  # an exception that does not pickle: its message
+            results.put(("error", RuntimeError(one_line(err))))
+        raise SystemExit(1) from None
+
+
+def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> list[SkippedFrame]:
+    """Claims and makes each frame at ``todo`` that no one else has; the skipped ones."""
+    skipped = []
+    for i in todo:
+        stem = f"{i:06d}"
+        frame_id = job.frame_ids[i]
+        if not _claim(job.split_dir, stem):
+            advance()  # another process is making it (or found it broken)
+            continue
+        release = True
+        try:
+            if _done_record(job.split_dir, i, frame_id) is not None:
+                continue  # made by another process before this one claimed it
+            _remove_temporaries(job.split_dir, stem)
+            try:
+                frame = job.make_frame(frame_id)
+                _check_frame(frame, frame_id)
+            except FRAME_ERRORS as err:
+                if job.on_error == "raise":
+                    raise
+                skipped.append(SkippedFrame(frame_id, one_line(err)))
+                log.warning("skipped %s: %s", frame_id, skipped[-1].reason)
+                release = False  # the other workers leave it; a later run tries it again
+                continue
+            _write_frame(job.split_dir, stem, frame_id, frame)
+        finally:
+            if release:
+                _release(job.split_dir, stem)
+            advance()
+    return skipped
+
+
+# --- claims: which process makes a frame -------------------------------------------------------
+
+
+def _claim_text() -> str:
+    return json.dumps({"host": socket.gethostname(), "pid": os.getpid()})
+
+
+def _claim(split_dir: Path, stem: str) -> bool:
+    """Whether this process now holds ``stem``'s claim: created it, or took over one whose
+    process is gone (:func:`_stale`)."""
+    path = split_dir / CLAIMS_DIR / stem
+    path.parent.mkdir(exist_ok=True)
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            if not _stale(path):
+                return False
+            path.unlink(missing_ok=True)  # a dead claim: try once more
+            continue
+        with os.fdopen(fd, "w") as f:
+            f.write(_claim_text())
+        return True
+    return False
+
+
+def _stale(path: Path) -> bool:
+    """A claim whose process is gone: on this machine, no such pid; elsewhere, older than
+    :data:`CLAIM_STALE_S`. An unreadable claim (its writer was killed mid-write) is stale once
+    a second old. This process's own claims are left from an earlier call (a frame it found
+    broken): stale too."""
+    try:
+        age = time.time() - path.stat().st_mtime
+        owner = json.loads(path.read_text())
+    except FileNotFoundError:
+        return True
+    except (OSError, ValueError):
+        return age > 1.0
+    if not isinstance(owner, dict) or owner.get("host") != socket.gethostname():
+        return age > CLAIM_STALE_S
+    pid = owner.get("pid")
+    if pid == os.getpid():
+        return True
+    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
+def _release(split_dir: Path, stem: str) -> None:
+    path = split_dir / CLAIMS_DIR / stem
+    try:
+        if json.loads(path.read_text()) == json.loads(_claim_text()):
+            path.unlink()
+    except (OSError, ValueError):
+        pass
+
+
+def _remove_temporaries(split_dir: Path, stem: str | None = None) -> None:
+    """The hidden temporary files (``.000123.image.npy.<random>.npy``) that writes killed
+    before their rename left, of frame ``stem`` (None: of every frame)."""
+    pattern = f".{stem}.*" if stem is not None else ".[0-9]*.*"
+    for path in split_dir.glob(pattern):
+        path.unlink(missing_ok=True)
+
+
+# --- the split's state ---------------------------------------------------------------------------
+
+
+def _done_record(split_dir: Path, i: int, frame_id: str) -> dict | None:
+    record = _read_record(split_dir / f"{i:06d}.json")
+    return record if record is not None and record.get("id") == frame_id else None
+
+
+def _missing(split_dir: Path, frame_ids: Sequence[str]) -> list[int]:
+    return [
+        i for i, frame_id in enumerate(frame_ids) if _done_record(split_dir, i, frame_id) is None
+    ]
+
+
+def _read_sharded(split_dir: Path) -> int | None:
+    """The ``num_shards`` of the sharded prepare that started this split (None: none did)."""
+    try:
+        data = json.loads((split_dir / SHARDED_FILE).read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, RecursionError):
+        return 0
+    shards = data.get("num_shards") if isinstance(data, dict) else None
+    return shards if isinstance(shards, int) and not isinstance(shards, bool) else 0
+
+
+def _write_index(split_dir: Path, frame_ids: Sequence[str]) -> None:
+    """``index.json`` from the frames' records, by one process (the index claim's holder), then
+    the claims, the shard marker and any temporary file are removed: the split is then the same,
+    file for file, as one prepared in a single uninterrupted run."""
+    if not _claim(split_dir, INDEX_FILE):
+        return  # another process is writing it
+    try:
+        if (split_dir / INDEX_FILE).is_file():
+            return
+        records = [_done_record(split_dir, i, frame_id) for i, frame_id in enumerate(frame_ids)]
+        if any(record is None for record in records):
+            return  # cannot happen: every frame was there a moment ago, and frames stay
+        write_json_atomic(split_dir / INDEX_FILE, {"split": split_dir.name, "frames": records})
+        (split_dir / SHARDED_FILE).unlink(missing_ok=True)
+        _remove_temporaries(split_dir)
+        log.info("prepared %d frames into %s", len(records), split_dir)
+    finally:
+        shutil.rmtree(split_dir / CLAIMS_DIR, ignore_errors=True)
+
+
+@contextmanager
+def _disk_full_names(cache: Path) -> Iterator[None]:
+    """A write that fails for want of space becomes :class:`CacheFullError`, one line naming
+    the cache (numpy reports a full disk as ``479232 requested and 133056 written``, with no
+    errno: the free space tells)."""
+    try:
+        yield
+    except CacheFullError:
+        raise
+    except OSError as err:
+        full = err.errno in (errno.ENOSPC, errno.EDQUOT)
+        if not full and err.errno is None and "requested and" in str(err):
+            try:
+                full = shutil.disk_usage(cache).free < 64 * 2**20
+            except OSError:
+                full = False
+        if not full:
+            raise
+        raise CacheFullError(
+            errno.ENOSPC,
+            f"{cache}: the disk is full; free space there or point FUSION_DEPTH_CACHE "
+            "(paths.cache_dir) at another disk, then prepare again (finished frames are kept)",
+        ) from err
 
 
 def _write_frame(split_dir: Path, stem: str, frame_id: str, frame: PreparedFrame) -> dict:
@@ -320,9 +712,13 @@ def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> 
 
     With ``on_error="raise"`` the first broken frame raises. With ``"skip"``, a split with
     skipped frames does not stop the next ones: every split is tried, then one
-    :class:`SkippedFramesError` reports all of them (complete splits included).
+    :class:`SkippedFramesError` reports all of them (complete splits included). A split that
+    other shards have still to finish does not stop the next ones either: once every split was
+    tried, :class:`IncompleteSplitError` is raised for the first, with all of them in its
+    ``splits``.
     """
     reports: list[SplitReport] = []
+    incomplete: list[IncompleteSplitError] = []
     older = older_caches(jobs[0].cache) if jobs else []
     if older:
         log.info(
@@ -339,10 +735,16 @@ def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> 
             )
         except SkippedFramesError as err:
             reports += err.reports
+        except IncompleteSplitError as err:
+            incomplete.append(err)
+            reports.append(SplitReport(job.split, len(job.frame_ids)))
         else:
             reports.append(SplitReport(job.split, len(job.frame_ids)))
     if any(report.skipped for report in reports):
         raise SkippedFramesError(reports)
+    if incomplete:
+        incomplete[0].splits = incomplete
+        raise incomplete[0]
 
 
 def older_caches(cache: Path) -> list[Path]:

@@ -27,9 +27,32 @@ from omegaconf import DictConfig
 from fusion_depth.config import target_accepts, validate_config
 from fusion_depth.config.hydra_main import hydra_main
 from fusion_depth.data import SPLITS
-from fusion_depth.data.cache import SkippedFramesError
+from fusion_depth.data.cache import (
+    CacheFullError,
+    IncompleteSplitError,
+    PrepareOptions,
+    SkippedFramesError,
+    prepare_options,
+    usable_cores,
+)
 
 log = logging.getLogger(__name__)
+
+
+def prepare_options_of(cfg: DictConfig) -> PrepareOptions:
+    """The :class:`~fusion_depth.data.cache.PrepareOptions` of ``cfg.prepare`` (``workers:
+    auto``: every core this process may use; a config without ``prepare``, e.g. training's:
+    one worker, no shards); a bad value fails naming its key."""
+    settings = cfg.get("prepare") or {}
+    workers = settings.get("workers", 1)
+    if workers == "auto":
+        workers = usable_cores()
+    return PrepareOptions(
+        workers=workers,
+        shard=settings.get("shard", 0),
+        num_shards=settings.get("num_shards", 1),
+        finish_sharded=True,
+    )
 
 
 def prepare(cfg: DictConfig) -> dict[str, int]:
@@ -38,18 +61,25 @@ def prepare(cfg: DictConfig) -> dict[str, int]:
     Readers that prepare a cache are built with ``on_error="skip"`` (the procedural reader, which
     generates its frames, takes no such argument).
 
+    ``cfg.prepare`` (:func:`prepare_options_of`) sets the workers and this process's shard.
+
     Raises:
         SkippedFramesError: some frames could not be prepared; every other frame was. Its
             ``reports`` hold one :class:`~fusion_depth.data.cache.SplitReport` per split
             folder (KITTI's test split is its val folder). Each is also logged.
+        IncompleteSplitError: this shard's frames are all done, and other shards' are not yet
+            (its ``splits``: each split still waiting).
+        CacheFullError: the cache's disk is full.
     """
     validate_config(cfg)
+    spread = prepare_options_of(cfg)
     reader = instantiate(cfg.dataset.reader)
     options = {"on_error": "skip"} if target_accepts(cfg.dataset.reader, "on_error") else {}
     counts = {}
     for split in SPLITS:
         try:
-            dataset = reader(split=split, **options)
+            with prepare_options(spread):
+                dataset = reader(split=split, **options)
         except SkippedFramesError as err:
             # A reader prepares all of its splits when the first is built, so err covers them
             # all; building the next split would only retry (and log) the same broken frames.
@@ -70,6 +100,15 @@ def main(cfg: DictConfig) -> None:
     (after printing one line per split)."""
     try:
         counts = prepare(cfg)
+    except IncompleteSplitError as err:
+        shard = f"shard {cfg.prepare.shard} of {cfg.prepare.num_shards}"
+        print(f"{shard}: its frames are prepared; waiting for the other shards:")
+        for split in err.splits:
+            print(f"  {split.split_dir.name}: {split.done} of {split.total} frames")
+        return
+    except CacheFullError as err:
+        print(f"error: {err.strerror}", file=sys.stderr)
+        sys.exit(1)
     except SkippedFramesError as err:
         for report in err.reports:
             print(report.line())

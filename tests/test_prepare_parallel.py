@@ -1,0 +1,245 @@
+"""Preparing a split with several workers, in shards, and from several processes at once: each
+frame is made once, the cache is the same file for file as a serial prepare's, and kills, broken
+frames and a full disk leave it whole and resumable."""
+
+from __future__ import annotations
+
+import errno
+import json
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusion_depth.data import cache as cache_module
+from fusion_depth.data.cache import (
+    CLAIMS_DIR,
+    CacheFullError,
+    IncompleteSplitError,
+    PreparedFrame,
+    PrepareOptions,
+    SkippedFramesError,
+    prepare_options,
+    prepare_split,
+)
+
+FRAMES = [f"scene/{k:03d}" for k in range(12)]
+PARAMS = {"dataset": "toy", "size": [8, 12]}
+
+
+def make_frame(frame_id: str, calls: Path | None = None, delay: float = 0.0) -> PreparedFrame:
+    """A frame that is a pure function of its id; each call appends the id to ``calls``."""
+    if calls is not None:
+        with calls.open("a") as f:
+            f.write(frame_id + "\n")
+    time.sleep(delay)
+    k = int(frame_id.split("/")[1])
+    rng = np.random.default_rng(k)
+    image = rng.integers(0, 256, (8, 12, 3), dtype=np.uint8)
+    depth = np.where(rng.random((8, 12)) < 0.3, rng.uniform(1, 80, (8, 12)), 0.0)
+    return PreparedFrame(image, depth * (rng.random((8, 12)) < 0.5), depth, "day", filled=depth)
+
+
+def files(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` (hidden ones too) with its bytes."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+def prepare(cache: Path, options: PrepareOptions | None = None, make=make_frame, **kwargs) -> Path:
+    with prepare_options(options or PrepareOptions()):
+        return prepare_split(cache, "train", FRAMES, make, PARAMS, **kwargs)
+
+
+@pytest.fixture
+def serial(tmp_path: Path) -> dict[str, bytes]:
+    """The cache one serial, uninterrupted prepare writes."""
+    prepare(tmp_path / "serial")
+    return files(tmp_path / "serial")
+
+
+def test_workers_write_the_same_cache_as_one_process(tmp_path, serial) -> None:
+    calls = tmp_path / "calls.txt"
+    prepare(tmp_path / "parallel", PrepareOptions(workers=3), make=lambda f: make_frame(f, calls))
+    assert files(tmp_path / "parallel") == serial
+    assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
+
+
+def test_shards_share_the_split_and_the_last_writes_the_index(tmp_path, serial) -> None:
+    cache = tmp_path / "sharded"
+    for shard in (0, 1):
+        with pytest.raises(IncompleteSplitError) as info:
+            prepare(cache, PrepareOptions(shard=shard, num_shards=3, finish_sharded=True))
+    assert (info.value.done, info.value.total) == (8, 12)
+    assert len(list((cache / "train").glob("0*.json"))) == 8
+    # Training on the split does not prepare the other shard's frames: it names what is missing.
+    with pytest.raises(IncompleteSplitError, match=r"8 of 12 frames prepared, 4 missing.*3 shards"):
+        prepare(cache)
+    prepare(cache, PrepareOptions(shard=2, num_shards=3, finish_sharded=True))
+    assert files(cache) == serial
+    prepare(cache)  # usable now
+
+
+def test_a_plain_prepare_finishes_what_shards_left(tmp_path, serial) -> None:
+    cache = tmp_path / "finish"
+    with pytest.raises(IncompleteSplitError):
+        prepare(cache, PrepareOptions(shard=1, num_shards=4, finish_sharded=True))
+    prepare(cache, PrepareOptions(workers=2, finish_sharded=True))
+    assert files(cache) == serial
+
+
+def test_leftovers_of_a_killed_prepare_are_removed(tmp_path, serial) -> None:
+    cache = tmp_path / "killed"
+    with pytest.raises(IncompleteSplitError):
+        prepare(cache, PrepareOptions(shard=0, num_shards=2, finish_sharded=True))
+    split = cache / "train"
+    # What a kill during frame 3's write leaves: a temporary array and the dead process's claim.
+    (split / ".000003.image.npy.x1y2z3.npy").write_bytes(b"\x93NUMPY half")
+    (split / ".000003.json.abcdef.tmp").write_text("{")
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True
+    )
+    (split / CLAIMS_DIR).mkdir(exist_ok=True)
+    claim = {"host": os.uname().nodename, "pid": int(dead.stdout)}
+    (split / CLAIMS_DIR / "000003").write_text(json.dumps(claim))
+    prepare(cache, PrepareOptions(workers=2, finish_sharded=True))
+    assert files(cache) == serial
+
+
+def _prepare_in_a_process(cache: Path, calls: Path) -> None:
+    prepare(cache, make=lambda f: make_frame(f, calls, delay=0.05))
+
+
+def test_two_processes_on_one_cache_make_each_frame_once(tmp_path, serial) -> None:
+    cache, calls = tmp_path / "shared", tmp_path / "calls.txt"
+    context = multiprocessing.get_context("fork")
+    processes = [context.Process(target=_prepare_in_a_process, args=(cache, calls)) for _ in "ab"]
+    for process in processes:
+        process.start()
+    for process in processes:
+        process.join(60)
+        assert process.exitcode == 0
+    assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
+    assert files(cache) == serial
+
+
+def test_a_broken_frame_is_skipped_by_its_worker_and_the_others_go_on(tmp_path) -> None:
+    def broken(frame_id: str) -> PreparedFrame:
+        if frame_id in ("scene/004", "scene/009"):
+            raise ValueError(f"{frame_id}.png: truncated")
+        return make_frame(frame_id)
+
+    cache = tmp_path / "broken"
+    with pytest.raises(SkippedFramesError) as info:
+        prepare(cache, PrepareOptions(workers=3), make=broken, on_error="skip")
+    (report,) = info.value.reports
+    assert [s.frame_id for s in report.skipped] == ["scene/004", "scene/009"]
+    assert len(list((cache / "train").glob("0*.json"))) == 10
+    assert not (cache / "train" / "index.json").exists()
+    assert not list((cache / "train").glob(".0*"))  # no temporary file left
+
+
+def test_an_error_in_one_worker_stops_them_all_and_leaves_no_half_file(tmp_path) -> None:
+    def failing(frame_id: str) -> PreparedFrame:
+        if frame_id == "scene/005":
+            raise ValueError("bad frame")
+        return make_frame(frame_id, delay=0.05)
+
+    cache = tmp_path / "raise"
+    with pytest.raises(ValueError, match="bad frame"):
+        prepare(cache, PrepareOptions(workers=3), make=failing)
+    assert not list((cache / "train").glob(".0*"))
+    assert len(list((cache / "train").glob("0*.json"))) < len(FRAMES)
+
+
+def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial) -> None:
+    cache = tmp_path / "interrupted"
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from test_prepare_parallel import PrepareOptions, make_frame, prepare
+        from pathlib import Path
+        prepare(Path({str(cache)!r}), PrepareOptions(workers=2),
+                make=lambda f: make_frame(f, delay=0.4))
+        """
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", script], start_new_session=True, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 60
+    while not list((cache / "train").glob("0*.json")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGINT)  # what Ctrl-C sends: the whole process group
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode != 0 and b"KeyboardInterrupt" in stderr
+    done = len(list((cache / "train").glob("0*.json")))
+    assert 0 < done < len(FRAMES)
+    assert not list((cache / "train").glob(".0*")), "a temporary file was left"
+    prepare(cache)
+    assert files(cache) == serial
+
+
+@pytest.mark.parametrize(
+    "error",
+    [
+        OSError(errno.ENOSPC, "No space left on device"),
+        OSError("479232 requested and 133056 written"),  # numpy's np.save, no errno
+    ],
+)
+def test_a_full_disk_is_one_line_naming_the_cache_and_resumes(
+    tmp_path, serial, monkeypatch, error
+) -> None:
+    cache = tmp_path / "full"
+    real_write = cache_module.write_npy
+    written = []
+
+    def filling_up(path, array) -> None:
+        if len(written) == 7:
+            raise error
+        written.append(path)
+        real_write(path, array)
+
+    monkeypatch.setattr(cache_module, "write_npy", filling_up)
+    monkeypatch.setattr(
+        cache_module.shutil, "disk_usage", lambda path: type("usage", (), {"free": 4096})()
+    )
+    with pytest.raises(CacheFullError) as info:
+        prepare(cache)
+    message = str(info.value)
+    assert str(cache) in message and "disk is full" in message and "\n" not in message
+    monkeypatch.setattr(cache_module, "write_npy", real_write)
+    prepare(cache)
+    assert files(cache) == serial
+
+
+def test_an_unrelated_write_error_is_not_called_a_full_disk(tmp_path, monkeypatch) -> None:
+    def denied(path, array) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(cache_module, "write_npy", denied)
+    with pytest.raises(PermissionError):
+        prepare(tmp_path / "denied")
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        ({"workers": 0}, r"prepare.workers=0: expected an integer >= 1"),
+        ({"num_shards": 0}, r"prepare.num_shards=0"),
+        ({"shard": 3, "num_shards": 3}, r"prepare.shard=3: expected an integer in \[0, 3\)"),
+        ({"shard": -1, "num_shards": 2}, r"prepare.shard=-1"),
+        ({"workers": True}, r"prepare.workers=True"),
+    ],
+)
+def test_bad_options_are_refused_naming_the_key(options, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        PrepareOptions(**options)
