@@ -25,6 +25,11 @@ hold (beyond :data:`~fusion_depth.data.depth_io.MAX_ENCODED_DEPTH`, 255.996 m) i
 the frame is prepared, naming it, never clipped. Caches of an older :data:`PREPARED_VERSION` hash
 to another folder, so they are prepared again (and the old folder is left alone: delete it).
 
+Several processes may prepare one split: workers (``prepare.workers``), shards across machines
+(``prepare.shard``/``prepare.num_shards``) or two commands. Each claims a frame before making it
+(a file in ``.claims/``), so a frame is made once; the process that finds every frame present
+writes ``index.json`` (:func:`prepare_split`, :class:`PrepareOptions`).
+
 Each file goes through a temporary name and a rename, and a frame counts as done only once its
 ``.json`` exists, so an interrupted prepare restarts where it stopped and never leaves a file a
 later run would read as valid (a ``.json`` that does not parse, or names another frame, is
@@ -642,8 +647,10 @@ def _write_index(split_dir: Path, frame_ids: Sequence[str]) -> None:
     """``index.json`` from the frames' records, by one process (the index claim's holder), then
     the claims, the shard marker and any temporary file are removed: the split is then the same,
     file for file, as one prepared in a single uninterrupted run."""
-    if not _claim(split_dir, INDEX_FILE):
-        return  # another process is writing it
+    while not _claim(split_dir, INDEX_FILE):  # another process is writing it: wait for it
+        if (split_dir / INDEX_FILE).is_file():
+            return
+        time.sleep(0.2)
     try:
         if (split_dir / INDEX_FILE).is_file():
             return

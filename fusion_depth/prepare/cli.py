@@ -13,7 +13,14 @@ line per split (``train: 3 of 4 frames prepared; skipped 1: train/a02``) and exi
 the file. Running prepare again reuses every frame already written to that cache and prepares
 only the rest; note that CARLA and Top-View caches are keyed by every file's size and time, so
 replacing a file there starts a new cache. Problems that are not about one frame (a missing
-dataset folder, a bad setting, an unwritable cache) fail at once, as in training.
+dataset folder, a bad setting, an unwritable cache) fail at once, as in training; a full disk in
+one line naming the cache.
+
+``prepare.workers`` (default ``auto``: every core the process may use) prepares frames in that
+many processes; ``prepare.shard=I prepare.num_shards=N`` prepares every N-th frame from the
+I-th, for a multirun across machines. A shard whose frames are done while others' are not prints
+how far each split is and exits 0; the last one writes the index (see
+:mod:`fusion_depth.data.cache`).
 """
 
 from __future__ import annotations
