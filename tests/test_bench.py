@@ -90,6 +90,7 @@ def test_bench_runs_only_the_stages_asked_for(tmp_path: Path, cache: Path) -> No
         (["fusion=fancy"], "fusion"),
         (["--only", "infer,warp"], "warp"),
         (["--runs", "0"], "--runs=0"),
+        (["--only", "prepare", "--cores", "0"], "--cores=0"),
         (["dataset.height=100"], "dataset.height=100"),
         (["trainer.precision=fp8"], "trainer.precision"),
     ],
@@ -192,3 +193,22 @@ def test_bench_refuses_an_engine_it_cannot_run_in_one_line(
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert message in error
     assert not cache.exists()  # refused before any stage ran
+
+
+def test_prepare_stage_times_each_fill_and_estimates_the_named_splits(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    result = _run(tmp_path, "--only", "prepare", "--cores", "8")
+    stage = result["prepare"]
+    assert (stage["height"], stage["width"], stage["cores"]) == (64, 192, 8)
+    assert 0 < stage["measured_fraction"] < 0.2  # a lidar's scan lines, not a dense map
+    assert list(stage["methods"]) == ["none", "linear", "colorization"]
+    for method in stage["methods"].values():
+        seconds = method["s_per_frame"]
+        assert seconds > 0 and method["frames_per_s_per_worker"] == pytest.approx(1 / seconds)
+        for split, frames in benchmarks.NAMED_SPLITS.items():
+            assert method["hours"][split] == pytest.approx(frames * seconds / 8 / 3600)
+    printed = capsys.readouterr().out
+    assert "| colorization |" in printed and "h, nuscenes train" in printed
+    assert "infer median" not in printed  # only the stage asked for
+    assert "prepare" not in bench.bench_parser().parse_args([]).only.split(",")

@@ -3,6 +3,7 @@
 python -m fusion_depth.bench dataset.height=384 dataset.width=1248 --baseline --json bench.json
 python -m fusion_depth.bench backbone=resnet50 fusion=concat trainer.precision=32-true
 python -m fusion_depth.bench --only peak,infer --engines torch,onnxruntime,openvino,openvino-int8
+python -m fusion_depth.bench --only prepare dataset.height=448 dataset.width=800 --cores 32
 
 Positional arguments are Hydra overrides of the training config (``conf/train.yaml``), so the
 benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion, resolution
@@ -18,6 +19,9 @@ benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion,
 * ``data``: the input pipeline without a model: samples/s per DataLoader worker (reading,
   collating the uint8/uint16 samples), the conversion to floats and the training augmentation
   on the device (where training runs them, after the transfer), and both together;
+* ``prepare`` (only when asked for): seconds per frame of each ground-truth fill method on a
+  generated lidar frame at ``dataset.height x dataset.width``, frames/s per worker, and the hours
+  that makes for nuScenes' and KITTI's train and val splits on ``--cores`` workers;
 * ``peak``: the matrix-product GFLOP/s of this device in the precision's dtype, the ceiling the
   model's GFLOP/s are compared with.
 
@@ -44,7 +48,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.errors import HydraException
 from omegaconf import DictConfig
 
-from fusion_depth.bench.stages import BENCH_ENGINES, STAGES, run_bench
+from fusion_depth.bench.stages import BENCH_ENGINES, DEFAULT_STAGES, STAGES, run_bench
 from fusion_depth.config import CONF_DIR
 from fusion_depth.config.hydra_main import unknown_key_message
 from fusion_depth.errors import ConfigError
@@ -53,6 +57,7 @@ from fusion_depth.runner.bench_record import (
     SPEED_HEADER,
     engine_rows,
     floor_note,
+    prepare_table,
     settings_line,
     speed_notes,
     speed_rows,
@@ -84,12 +89,17 @@ def compose_train_config(overrides: Sequence[str]) -> DictConfig:
 def format_result(result: dict[str, Any]) -> str:
     """The result as Markdown: a settings line, the speed table and its notes, and with several
     engines the engines table (:mod:`fusion_depth.runner.bench_record`)."""
-    lines = [settings_line(result), "", format_table(SPEED_HEADER, speed_rows(result))]
+    lines = [settings_line(result)]
+    if result.get("infer") or result.get("train"):
+        lines += ["", format_table(SPEED_HEADER, speed_rows(result))]
     notes = speed_notes(result)
     if notes:
         lines += ["", notes]
     if len(result.get("engines") or {}) > 1:
         lines += ["", *format_engines(result)]
+    if "prepare" in result:
+        header, rows, note = prepare_table(result)
+        lines += ["", format_table(header, rows), "", note]
     return "\n".join(lines)
 
 
@@ -117,7 +127,14 @@ def bench_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--json", type=Path, help="write the results to this JSON file")
     parser.add_argument(
-        "--only", default=",".join(STAGES), help=f"stages, comma-separated: {','.join(STAGES)}"
+        "--only",
+        default=",".join(DEFAULT_STAGES),
+        help=f"stages, comma-separated: {','.join(STAGES)} (default: all but prepare)",
+    )
+    parser.add_argument(
+        "--cores",
+        type=int,
+        help="--only prepare: the cores its estimates assume (default: those this process may use)",
     )
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls first")
     parser.add_argument("--runs", type=int, default=20, help="timed batch-1 inferences")
@@ -138,7 +155,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = bench_parser()
     args = parser.parse_intermixed_args(argv)  # overrides may come after the flags
-    for name in ("warmup", "runs", "train_steps", "data_workers", "data_batches", "threads"):
+    counts = ("warmup", "runs", "train_steps", "data_workers", "data_batches", "threads", "cores")
+    for name in counts:
         value = getattr(args, name)
         minimum = 0 if name in ("warmup", "data_workers") else 1
         if value is not None and value < minimum:
@@ -158,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             data_workers=args.data_workers,
             data_batches=args.data_batches,
             data_split=args.data_split,
+            prepare_cores=args.cores,
         )
     except (ValueError, FileNotFoundError, ImportError) as err:
         parser.error(str(err))

@@ -16,6 +16,8 @@ for and gathers the result that ``--json`` writes:
 * :func:`matmul_peak_gflops`: the matrix-product GFLOP/s of this device in the precision's dtype,
   the ceiling the model's GFLOP/s are compared with, and so the FLOP floor of a frame (its
   FLOPs at that peak), the latency no engine can beat at that precision;
+* :func:`bench_prepare`: seconds per frame of each ground-truth fill method on a generated lidar
+  frame, and the hours that makes for the named splits (:data:`NAMED_SPLITS`) on N cores;
 * :func:`bench_engine`: batch-1 latency of the network exported by
   :func:`~fusion_depth.export.export_model` and run by its engine
   (:data:`BENCH_ENGINES`: ONNX Runtime, OpenVINO bf16/fp32 and int8, TensorRT), against the
@@ -45,8 +47,11 @@ from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
 from fusion_depth.data.base import check_dataset
+from fusion_depth.data.cache import usable_cores
 from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.encoding import decode_sample
+from fusion_depth.data.filling import FILL_METHODS, fill_depth
+from fusion_depth.data.procedural import render_frame
 from fusion_depth.export import (
     BACKENDS,
     ENGINES,
@@ -67,7 +72,10 @@ from fusion_depth.runner.speed import (
     speed_up,
 )
 
-STAGES = ("peak", "infer", "train", "data")
+STAGES = ("peak", "infer", "train", "data", "prepare")
+# What a plain ``bench`` runs: ``prepare`` times ground-truth filling, not the network.
+DEFAULT_STAGES = ("peak", "infer", "train", "data")
+CPU = torch.device("cpu")
 
 
 @dataclass(frozen=True)
@@ -428,8 +436,13 @@ def run_bench(
     data_workers: int = 1,
     data_batches: int = 100,
     data_split: str = "train",
+    prepare_cores: int | None = None,
 ) -> dict[str, Any]:
     """Every requested stage for the config; the result is what ``--json`` writes.
+
+    ``prepare`` (:func:`bench_prepare`) fills a generated lidar frame at ``dataset.height x
+    dataset.width`` with each method and estimates hours for the named splits on
+    ``prepare_cores`` workers (default: every core this process may use).
 
     ``engines`` (:data:`BENCH_ENGINES`) other than ``torch`` are timed in the infer stage after
     PyTorch, each as ``engines[<name>]`` and the top-level ``<key>_infer_latency_s_median`` and
@@ -458,7 +471,59 @@ def run_bench(
         data = bench_data(cfg, device, data_workers, data_batches, data_split)
         result["data"] = data
         result["data_samples_per_s_per_worker"] = data["samples_per_s_per_worker"]
+    if "prepare" in stages:
+        height, width = int(cfg.dataset.height), int(cfg.dataset.width)
+        result["prepare"] = bench_prepare(height, width, prepare_cores or usable_cores())
     return result
+
+
+# Frames of the splits people prepare, for ``--only prepare``'s estimates: nuScenes v1.0-trainval
+# keyframes of the train and val scenes (Caesar et al., CVPR 2020: 28,130 and 6,019), and the
+# KITTI depth-completion train and val sets, both cameras (Uhrig et al., 3DV 2017: 85,898 and
+# 6,852).
+NAMED_SPLITS: dict[str, int] = {
+    "nuscenes train": 28_130,
+    "nuscenes val": 6_019,
+    "kitti-dc train": 85_898,
+    "kitti-dc val": 6_852,
+}
+
+
+def generated_lidar_frame(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """A street frame of the built-in generator at ``height x width`` with its lidar map
+    (image uint8 (H, W, 3), sparse float32 (H, W) metres, 0 = no return): what ``--only
+    prepare`` fills when it has no data of the user's."""
+    image, _, sparse = render_frame(0, "train", 0, height, width, 82.0, "day", "lidar")
+    return image, sparse
+
+
+def bench_prepare(
+    height: int, width: int, cores: int, methods: Sequence[str] = FILL_METHODS, runs: int = 1
+) -> dict[str, Any]:
+    """Seconds per frame of each ground-truth fill method (:func:`fill_depth`, the cost that
+    dominates preparing a frame) on a generated ``height x width`` lidar frame, one worker;
+    frames per second per worker; and the hours each of :data:`NAMED_SPLITS` takes to fill on
+    ``cores`` workers (``prepare.workers``), assuming the frames divide evenly."""
+    image, sparse = generated_lidar_frame(height, width)
+    methods_out: dict[str, Any] = {}
+    for method in methods:
+        fill_depth(sparse[:32, :32], image[:32, :32], method)  # the solver's imports, untimed
+        seconds = time_calls(lambda m=method: fill_depth(sparse, image, m), CPU, 0, runs)
+        per_frame = float(np.median(seconds))
+        methods_out[method] = {
+            "s_per_frame": per_frame,
+            "frames_per_s_per_worker": 1.0 / per_frame if per_frame > 0 else None,
+            "hours": {
+                split: frames * per_frame / cores / 3600 for split, frames in NAMED_SPLITS.items()
+            },
+        }
+    return {
+        "height": height,
+        "width": width,
+        "measured_fraction": float((sparse > 0).mean()),
+        "cores": cores,
+        "methods": methods_out,
+    }
 
 
 def _check_request(

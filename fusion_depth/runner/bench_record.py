@@ -207,6 +207,33 @@ def floor_note(result: Mapping[str, Any]) -> str:
     )
 
 
+PREPARE_HEADER_START = ("fill", "s per frame", "frames/s per worker")
+
+
+def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]], str]:
+    """The ``prepare`` stage as a table: per fill method its seconds per frame, frames per
+    second per worker, and the hours of each named split on the measured number of cores;
+    with the line saying what frame was filled."""
+    stage = result["prepare"]
+    splits = list(next(iter(stage["methods"].values()))["hours"]) if stage["methods"] else []
+    header = [*PREPARE_HEADER_START, *(f"h, {split}" for split in splits)]
+    rows = [
+        [
+            method,
+            _fmt(m["s_per_frame"], 3),
+            _fmt(m["frames_per_s_per_worker"], 2),
+            *(_fmt(m["hours"][split], 2) for split in splits),
+        ]
+        for method, m in stage["methods"].items()
+    ]
+    note = (
+        f"a generated {stage['height']}×{stage['width']} lidar frame "
+        f"({100 * stage['measured_fraction']:.1f} % of pixels measured), one worker per core; "
+        f"hours on {stage['cores']} cores (prepare.workers={stage['cores']})"
+    )
+    return header, rows, note
+
+
 # --- Reading records back ----------------------------------------------------------------------
 
 
