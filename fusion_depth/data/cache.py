@@ -240,7 +240,8 @@ class PrepareOptions:
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
                 raise ValueError(f"prepare.{name}={value!r}: expected an integer >= {minimum}")
-        if not isinstance(self.shard, int) or not 0 <= self.shard < self.num_shards:
+        shard_ok = isinstance(self.shard, int) and not isinstance(self.shard, bool)
+        if not shard_ok or not 0 <= self.shard < self.num_shards:
             raise ValueError(
                 f"prepare.shard={self.shard!r}: expected an integer in [0, {self.num_shards}) "
                 f"(prepare.num_shards={self.num_shards})"
@@ -558,9 +559,12 @@ def _claim(split_dir: Path, stem: str) -> bool:
     process is gone (:func:`_stale`)."""
     path = split_dir / CLAIMS_DIR / stem
     path.parent.mkdir(exist_ok=True)
-    for _ in range(2):
+    for _ in range(3):
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileNotFoundError:  # the index's writer removed the claims folder just now
+            path.parent.mkdir(exist_ok=True)
+            continue
         except FileExistsError:
             if not _stale(path):
                 return False
