@@ -545,13 +545,15 @@ def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
         _dataset(kitti_data, "train")
 
 
-def test_prepare_in_shards_with_workers_gives_the_serial_cache(kitti_data, tmp_path) -> None:
+def test_prepare_in_shards_with_workers_gives_the_serial_cache(
+    kitti_data, tmp_path, monkeypatch
+) -> None:
     from helpers import compose_config
 
     from fusion_depth.data.cache import IncompleteSplitError
 
     def config(cache: str, *extra: str):
-        os.environ["FUSION_DEPTH_CACHE"] = str(kitti_data["cache"] / cache)
+        monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"] / cache))
         overrides = [
             "dataset=kitti",
             f"dataset.root={kitti_data['root']}",
@@ -563,42 +565,39 @@ def test_prepare_in_shards_with_workers_gives_the_serial_cache(kitti_data, tmp_p
         ]
         return compose_config(overrides, tmp_path / "run", config_name="prepare")
 
-    try:
-        assert prepare(config("serial", "prepare.workers=1")) == {"train": 6, "val": 4, "test": 4}
-        with pytest.raises(IncompleteSplitError) as info:
-            prepare(
-                config("sharded", "prepare.workers=2", "prepare.num_shards=3", "prepare.shard=1")
-            )
-        assert [(s.split_dir.name, s.done, s.total) for s in info.value.splits] == [
-            ("train", 2, 6),
-            ("val", 1, 4),
-        ]
-        # Training does not prepare what the other shards own: it names what is missing.
-        with pytest.raises(IncompleteSplitError, match="2 of 6 frames prepared, 4 missing"):
-            sharded_data = kitti_data | {"cache": kitti_data["cache"] / "sharded"}
-            _dataset(sharded_data, "train", height=32, width=96, fill="colorization")
-        for shard in (0, 2):
-            try:
-                prepare(
-                    config(
-                        "sharded",
-                        "prepare.workers=2",
-                        "prepare.num_shards=3",
-                        f"prepare.shard={shard}",
-                    )
-                )
-            except IncompleteSplitError:
-                assert shard == 0
-        serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
-        sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
-        names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
-        assert names == sorted(
-            str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file()
+    assert prepare(config("serial", "prepare.workers=1")) == {"train": 6, "val": 4, "test": 4}
+    with pytest.raises(IncompleteSplitError) as info:
+        prepare(
+            config("sharded", "prepare.workers=2", "prepare.num_shards=3", "prepare.shard=1")
         )
-        for name in names:
-            assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
-    finally:
-        os.environ.pop("FUSION_DEPTH_CACHE", None)
+    assert [(s.split_dir.name, s.done, s.total) for s in info.value.splits] == [
+        ("train", 2, 6),
+        ("val", 1, 4),
+    ]
+    # Training does not prepare what the other shards own: it names what is missing.
+    with pytest.raises(IncompleteSplitError, match="2 of 6 frames prepared, 4 missing"):
+        sharded_data = kitti_data | {"cache": kitti_data["cache"] / "sharded"}
+        _dataset(sharded_data, "train", height=32, width=96, fill="colorization")
+    for shard in (0, 2):
+        try:
+            prepare(
+                config(
+                    "sharded",
+                    "prepare.workers=2",
+                    "prepare.num_shards=3",
+                    f"prepare.shard={shard}",
+                )
+            )
+        except IncompleteSplitError:
+            assert shard == 0
+    serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
+    sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
+    names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
+    assert names == sorted(
+        str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file()
+    )
+    for name in names:
+        assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
 
 
 # --- configs end to end --------------------------------------------------------------------------
