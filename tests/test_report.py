@@ -108,6 +108,14 @@ def test_errors_name_the_problem(tmp_path, capsys) -> None:
     (tmp_path / "bad" / "metrics.json").write_text("{not json")
     assert main([str(tmp_path)]) == 2
     assert "bad/metrics.json: not valid JSON" in capsys.readouterr().err
+    # Hostile files are one line too: bytes that are not UTF-8, and nesting deep enough to
+    # exhaust the parser's recursion.
+    (tmp_path / "bad" / "metrics.json").write_bytes(b"\xff\xfe{}")
+    assert main([str(tmp_path)]) == 2
+    assert "bad/metrics.json: not valid JSON" in capsys.readouterr().err
+    (tmp_path / "bad" / "metrics.json").write_text("[" * 100_000 + "]" * 100_000)
+    assert main([str(tmp_path)]) == 2
+    assert "bad/metrics.json: nested too deeply to be a metrics file" in capsys.readouterr().err
 
 
 def test_unknown_format_is_rejected() -> None:

@@ -29,7 +29,6 @@ package's own tables, and the model file is the path given, never one the sideca
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
 import os
@@ -51,6 +50,7 @@ from fusion_depth.models import DepthModel
 from fusion_depth.models.fusion import FUSION_MODES
 from fusion_depth.runner.checkpoints import LoadedModel, check_expected
 from fusion_depth.utils.checkpoint_file import check_no_code
+from fusion_depth.utils.json_file import read_json
 
 log = logging.getLogger(__name__)
 
@@ -302,12 +302,7 @@ def read_sidecar(model_file: str | os.PathLike) -> ModelInfo:
             f"model_file={path}: no sidecar {sidecar.name} next to it; python -m "
             "fusion_depth.export writes one (what the model takes and gives), export it again"
         )
-    try:
-        data = json.loads(sidecar.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SidecarError(f"{sidecar}: not valid JSON ({err})") from err
-    except RecursionError as err:  # json's parser recurses once per nesting level
-        raise SidecarError(f"{sidecar}: nested too deeply to be a sidecar") from err
+    data = read_json(sidecar, "a sidecar", error=SidecarError)
     return ModelInfo.from_sidecar(data, path, sidecar)
 
 

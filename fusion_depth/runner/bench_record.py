@@ -22,6 +22,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from fusion_depth.utils.json_file import read_json
 from fusion_depth.utils.schema import is_int, is_number
 
 BENCH_FILE = "bench.json"
@@ -311,13 +312,7 @@ def read_bench_record(path: str | os.PathLike) -> dict[str, Any]:
         ValueError: it is not JSON or not a bench record; the message names the file.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from err
-    except RecursionError as err:  # json's parser recurses once per nesting level
-        raise ValueError(f"{path}: nested too deeply to be a bench record") from err
-    return check_bench_record(data, path)
+    return check_bench_record(read_json(path, "a bench record"), path)
 
 
 def load_bench_records(root: str | os.PathLike) -> list[NamedRecord]:

@@ -28,6 +28,7 @@ from fusion_depth.runner.protocol import (
 )
 from fusion_depth.runner.run_folder import PER_IMAGE_FILE, provenance
 from fusion_depth.utils.atomic import write_json_atomic
+from fusion_depth.utils.json_file import read_json
 from fusion_depth.utils.schema import is_number
 
 METRICS_FILE = "metrics.json"
@@ -305,11 +306,7 @@ def read_run_record(path: str | os.PathLike) -> RunRecord:
         ValueError: it is not JSON, or not a metrics file; the message names the file.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from err
-    return RunRecord.from_json(data, path)
+    return RunRecord.from_json(read_json(path, "a metrics file"), path)
 
 
 def read_finished(output_dir: str | os.PathLike) -> RunRecord | None:
