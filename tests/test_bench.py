@@ -212,3 +212,61 @@ def test_prepare_stage_times_each_fill_and_estimates_the_named_splits(
     assert "| colorization |" in printed and "h, nuscenes train" in printed
     assert "infer median" not in printed  # only the stage asked for
     assert "prepare" not in bench.bench_parser().parse_args([]).only.split(",")
+
+
+def test_prepare_stage_times_the_fill_on_a_prepared_splits_own_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``--prepared`` fills the cached frames' measured depth, cut to each frame's own pixels
+    where the cache padded it (frame_box), as prepare filled them."""
+    from fusion_depth.data.cache import PreparedFrame, SplitJob, prepare_splits
+
+    rng = np.random.default_rng(0)
+    frames = []
+    for _ in range(3):
+        depth = np.where(rng.random((64, 96)) < 0.05, rng.uniform(2, 60, (64, 96)), 0.0)
+        depth[:, 90:] = 0.0  # the padding of a 64x90 frame
+        frames.append(
+            PreparedFrame(
+                image=rng.integers(0, 255, (64, 96, 3), dtype=np.uint8),
+                sparse=np.zeros((64, 96), np.float32),
+                depth=depth.astype(np.float32),
+                condition="day",
+                frame_box=(0, 0, 64, 90),
+            )
+        )
+    job = SplitJob(tmp_path, "val", ["a", "b", "c"], lambda i: frames["abc".index(i)], {})
+    prepare_splits([job])
+    got = benchmarks.prepared_frames(tmp_path / "val", 2)
+    assert len(got) == 2 and got[0][0].shape == (64, 90, 3) and got[0][1].shape == (64, 90)
+    stored = np.round(frames[1].depth[:, :90] * 256) / 256  # the cache's 1/256 m steps
+    np.testing.assert_array_equal(got[1][1], stored)
+    result = _run(tmp_path, "--only", "prepare", "--prepared", str(tmp_path / "val"))
+    stage = result["prepare"]
+    assert (stage["source"], stage["frames"], stage["height"], stage["width"]) == (
+        str(tmp_path / "val"),
+        3,
+        64,
+        90,
+    )
+    assert stage["measured_fraction"] == pytest.approx(
+        np.mean([(f.depth[:, :90] > 0).mean() for f in frames])
+    )
+    assert f"3 frames of {tmp_path / 'val'}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--prepared", "x"], "--prepared x: times the fill, which --only leaves out"),
+        (["--only", "prepare", "--prepared", "missing"], "missing/index.json: not a prepared"),
+        (["--only", "prepare", "--frames", "0"], "--frames=0"),
+    ],
+)
+def test_prepared_frames_are_checked(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch, args, message
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(args)
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err

@@ -207,3 +207,36 @@ def test_bench_options_that_do_not_apply_are_refused(records, tmp_path, capsys) 
 def test_records_are_named_by_their_folder(records) -> None:
     assert [name for name, _ in load_bench_records(records)] == ["round-1", "round-2"]
     assert [name for name, _ in load_bench_records(records / "round-1")] == ["round-1"]
+
+
+def test_the_prepare_table_has_a_row_per_fill_method_of_each_record(tmp_path, capsys) -> None:
+    """``--bench prepare``: what ``bench --only prepare`` printed, one block per record."""
+    prepare = {
+        "source": "/data/cache/kitti/abc/val",
+        "frames": 3,
+        "height": 375,
+        "width": 1242,
+        "measured_fraction": 0.037,
+        "cores": 32,
+        "methods": {
+            method: {
+                "s_per_frame": seconds,
+                "frames_per_s_per_worker": 1 / seconds,
+                "hours": {"nuscenes train": 28_130 * seconds / 32 / 3600},
+            }
+            for method, seconds in (("linear", 0.5), ("colorization", 2.0))
+        },
+    }
+    record = {key: RECORD[key] for key in ("settings", "machine")} | {"prepare": prepare}
+    write_json_atomic(tmp_path / "prepare" / "bench.json", record)
+    write_json_atomic(tmp_path / "speed" / "bench.json", RECORD)  # no prepare: no rows
+    assert main([str(tmp_path), "--bench", "prepare"]) == 0
+    rows = _rows(capsys.readouterr().out)
+    assert [row[2:] for row in rows] == [
+        ["linear", "0.500", "2.00", "0.12"],
+        ["colorization", "2.000", "0.50", "0.49"],
+    ]
+    assert rows[0][0] == "prepare" and "3 frames of /data/cache/kitti/abc/val" in rows[0][1]
+    assert "3.7 % of pixels measured" in rows[0][1] and "32 cores" in rows[0][1]
+    assert main([str(tmp_path / "speed"), "--bench", "prepare"]) == 2
+    assert "run bench with --only prepare" in capsys.readouterr().err

@@ -4,6 +4,7 @@ python -m fusion_depth.bench dataset.height=384 dataset.width=1248 --baseline --
 python -m fusion_depth.bench backbone=resnet50 fusion=concat trainer.precision=32-true
 python -m fusion_depth.bench --only peak,infer --engines torch,onnxruntime,openvino,openvino-int8
 python -m fusion_depth.bench --only prepare dataset.height=448 dataset.width=800 --cores 32
+python -m fusion_depth.bench --only prepare --prepared ~/.cache/fusion_depth/kitti/<hash>/val
 
 Positional arguments are Hydra overrides of the training config (``conf/train.yaml``), so the
 benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion, resolution
@@ -20,8 +21,9 @@ benchmark times exactly what ``fusion_depth.train`` would run: backbone, fusion,
   collating the uint8/uint16 samples), the conversion to floats and the training augmentation
   on the device (where training runs them, after the transfer), and both together;
 * ``prepare`` (only when asked for): seconds per frame of each ground-truth fill method on a
-  generated lidar frame at ``dataset.height x dataset.width``, frames/s per worker, and the hours
-  that makes for nuScenes' and KITTI's train and val splits on ``--cores`` workers;
+  generated lidar frame at ``dataset.height x dataset.width``, or on the first ``--frames`` frames
+  of a ``--prepared`` split folder (your own data), frames/s per worker, and the hours that makes
+  for nuScenes' and KITTI's train and val splits on ``--cores`` workers;
 * ``peak``: the matrix-product GFLOP/s of this device in the precision's dtype, the ceiling the
   model's GFLOP/s are compared with.
 
@@ -136,6 +138,16 @@ def bench_parser() -> argparse.ArgumentParser:
         type=int,
         help="--only prepare: the cores its estimates assume (default: those this process may use)",
     )
+    parser.add_argument(
+        "--prepared",
+        type=Path,
+        help="--only prepare: time the fill on the frames of this prepared split (a folder "
+        "holding index.json, e.g. one prepared with dataset.fill=none) instead of a generated "
+        "frame",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=3, help="--only prepare --prepared: the frames timed"
+    )
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls first")
     parser.add_argument("--runs", type=int, default=20, help="timed batch-1 inferences")
     parser.add_argument("--train-steps", type=int, default=10, help="timed optimizer steps")
@@ -155,19 +167,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     parser = bench_parser()
     args = parser.parse_intermixed_args(argv)  # overrides may come after the flags
-    counts = ("warmup", "runs", "train_steps", "data_workers", "data_batches", "threads", "cores")
+    counts = (
+        "warmup",
+        "runs",
+        "train_steps",
+        "data_workers",
+        "data_batches",
+        "threads",
+        "cores",
+        "frames",
+    )
     for name in counts:
         value = getattr(args, name)
         minimum = 0 if name in ("warmup", "data_workers") else 1
         if value is not None and value < minimum:
             parser.error(f"--{name.replace('_', '-')}={value}: expected an integer ≥ {minimum}")
+    stages = [stage for stage in args.only.split(",") if stage]
+    if args.prepared is not None and "prepare" not in stages:
+        parser.error(
+            f"--prepared {args.prepared}: times the fill, which --only leaves out; add prepare"
+        )
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
         cfg = compose_train_config(args.overrides)
         result = run_bench(
             cfg,
-            stages=[stage for stage in args.only.split(",") if stage],
+            stages=stages,
             baseline=args.baseline,
             engines=[engine for engine in args.engines.split(",") if engine],
             warmup=args.warmup,
@@ -177,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             data_batches=args.data_batches,
             data_split=args.data_split,
             prepare_cores=args.cores,
+            prepared=args.prepared,
+            prepare_frames=args.frames,
         )
     except (ValueError, FileNotFoundError, ImportError) as err:
         parser.error(str(err))

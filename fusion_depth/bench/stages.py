@@ -47,8 +47,9 @@ from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
 from fusion_depth.data.base import check_dataset
-from fusion_depth.data.cache import usable_cores
+from fusion_depth.data.cache import PreparedSplit, usable_cores
 from fusion_depth.data.datamodule import DepthDataModule
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.procedural import render_frame
@@ -437,12 +438,15 @@ def run_bench(
     data_batches: int = 100,
     data_split: str = "train",
     prepare_cores: int | None = None,
+    prepared: str | Path | None = None,
+    prepare_frames: int = 3,
 ) -> dict[str, Any]:
     """Every requested stage for the config; the result is what ``--json`` writes.
 
     ``prepare`` (:func:`bench_prepare`) fills a generated lidar frame at ``dataset.height x
-    dataset.width`` with each method and estimates hours for the named splits on
-    ``prepare_cores`` workers (default: every core this process may use).
+    dataset.width``, or the first ``prepare_frames`` frames of the ``prepared`` split folder,
+    with each method and estimates hours for the named splits on ``prepare_cores`` workers
+    (default: every core this process may use).
 
     ``engines`` (:data:`BENCH_ENGINES`) other than ``torch`` are timed in the infer stage after
     PyTorch, each as ``engines[<name>]`` and the top-level ``<key>_infer_latency_s_median`` and
@@ -473,7 +477,13 @@ def run_bench(
         result["data_samples_per_s_per_worker"] = data["samples_per_s_per_worker"]
     if "prepare" in stages:
         height, width = int(cfg.dataset.height), int(cfg.dataset.width)
-        result["prepare"] = bench_prepare(height, width, prepare_cores or usable_cores())
+        result["prepare"] = bench_prepare(
+            height,
+            width,
+            prepare_cores or usable_cores(),
+            prepared=prepared,
+            frames=prepare_frames,
+        )
     return result
 
 
@@ -497,18 +507,69 @@ def generated_lidar_frame(height: int, width: int) -> tuple[np.ndarray, np.ndarr
     return image, sparse
 
 
+def prepared_frames(split_dir: str | Path, count: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The first ``count`` frames of a prepared split as ``fill_depth`` gets them when the split
+    is prepared: image uint8 (H, W, 3) and measured depth float32 (H, W) metres, 0 = none, cut
+    to the frame's own pixels where the cache padded it (its ``frame_box``). ``--only prepare
+    --prepared`` times the fill on these, so the estimate is for the user's own frames.
+
+    Raises:
+        FileNotFoundError: ``split_dir`` holds no prepared split (no ``index.json``).
+        DataFileError: a damaged file of the split, naming it.
+    """
+    split = PreparedSplit(split_dir)
+    frames = []
+    for index in range(min(count, len(split))):
+        sample = split.encoded_sample(index)
+        image = sample["image"].permute(1, 2, 0).numpy()
+        depth = sample["depth"][0].numpy().astype(np.float32) / DEPTH_PNG_SCALE
+        if "frame_box" in sample:  # (top, left, height, width) of the frame in the sample
+            top, left, frame_h, frame_w = (int(v) for v in sample["frame_box"])
+            rows = slice(max(top, 0), min(top + frame_h, depth.shape[0]))
+            cols = slice(max(left, 0), min(left + frame_w, depth.shape[1]))
+            image, depth = image[rows, cols], depth[rows, cols]
+        frames.append((np.ascontiguousarray(image), depth))
+    return frames
+
+
 def bench_prepare(
-    height: int, width: int, cores: int, methods: Sequence[str] = FILL_METHODS, runs: int = 1
+    height: int,
+    width: int,
+    cores: int,
+    methods: Sequence[str] = FILL_METHODS,
+    runs: int = 1,
+    prepared: str | Path | None = None,
+    frames: int = 3,
 ) -> dict[str, Any]:
     """Seconds per frame of each ground-truth fill method (:func:`fill_depth`, the cost that
-    dominates preparing a frame) on a generated ``height x width`` lidar frame, one worker;
-    frames per second per worker; and the hours each of :data:`NAMED_SPLITS` takes to fill on
-    ``cores`` workers (``prepare.workers``), assuming the frames divide evenly."""
-    image, sparse = generated_lidar_frame(height, width)
+    dominates preparing a frame), one worker; frames per second per worker; and the hours each
+    of :data:`NAMED_SPLITS` takes to fill on ``cores`` workers (``prepare.workers``), assuming
+    the frames divide evenly.
+
+    The frames are the first ``frames`` of the ``prepared`` split folder
+    (:func:`prepared_frames`: the user's data, filled as prepare fills it; each timed once, the
+    median kept), or else one generated ``height x width`` lidar frame timed ``runs`` times.
+
+    Raises:
+        FileNotFoundError, DataFileError: ``prepared`` is not a readable prepared split.
+        ValueError: ``prepared`` has no frame.
+    """
+    if prepared is None:
+        image, sparse = generated_lidar_frame(height, width)
+        inputs, source = [(image, sparse)] * runs, "generated"
+    else:
+        inputs, source = prepared_frames(prepared, frames), str(prepared)
+        if not inputs:
+            raise ValueError(f"--prepared {prepared}: the split has no frame to time")
+        height, width = inputs[0][1].shape
     methods_out: dict[str, Any] = {}
     for method in methods:
-        fill_depth(sparse[:32, :32], image[:32, :32], method)  # the solver's imports, untimed
-        seconds = time_calls(lambda m=method: fill_depth(sparse, image, m), CPU, 0, runs)
+        image, depth = inputs[0]
+        fill_depth(depth[:32, :32], image[:32, :32], method)  # the solver's imports, untimed
+        seconds = [
+            time_calls(lambda m=method, i=i, d=d: fill_depth(d, i, m), CPU, 0, 1)[0]
+            for i, d in inputs
+        ]
         per_frame = float(np.median(seconds))
         methods_out[method] = {
             "s_per_frame": per_frame,
@@ -518,9 +579,11 @@ def bench_prepare(
             },
         }
     return {
+        "source": source,
+        "frames": len(inputs) if prepared is not None else 1,
         "height": height,
         "width": width,
-        "measured_fraction": float((sparse > 0).mean()),
+        "measured_fraction": float(np.mean([(d > 0).mean() for _, d in inputs])),
         "cores": cores,
         "methods": methods_out,
     }

@@ -49,14 +49,17 @@ Options:
                                  that names the command (Markdown ``<!-- -->``, LaTeX ``%``;
                                  CSV has no header line): a table a docs page includes, made
                                  from run records rather than typed.
-  --bench {speed,engines}        tabulate the ``bench.json`` files below the directory (what
+  --bench {speed,engines,prepare}
+                                 tabulate the ``bench.json`` files below the directory (what
                                  ``python -m fusion_depth.bench --json`` writes) instead of the
                                  metrics: ``speed``, a row per record's run (and its eager fp32
                                  baseline and speed-ups); ``engines``, a row per engine of each
-                                 record run with ``--engines``. Rows are led by the record's
-                                 folder and what it measured. ``--plot`` draws latency and
-                                 samples/s (speed) or latency per engine, median to p95
-                                 (engines). Not with --by, --compare, --metric, --first or --wandb.
+                                 record run with ``--engines``; ``prepare``, a row per fill
+                                 method of each record run with ``--only prepare``. Rows are
+                                 led by the record's folder and what it measured. ``--plot``
+                                 draws latency and samples/s (speed) or latency per engine,
+                                 median to p95 (engines); prepare has no figure. Not with --by,
+                                 --compare, --metric, --first or --wandb.
   --wandb                        also log the table as a W&B Table (project fusion-depth, job
                                  type report, named after the directory, written below it);
                                  offline unless you are logged in (``wandb sync`` uploads it).
@@ -251,7 +254,8 @@ def _parser() -> argparse.ArgumentParser:
         "--bench",
         choices=BENCH_TABLES,
         help="tabulate the bench.json records below the directory (bench --json) instead: "
-        "speed (latency, samples/s, speed-ups) or engines (latency per engine)",
+        "speed (latency, samples/s, speed-ups), engines (latency per engine) or prepare (fill "
+        "time per frame and hours per split)",
     )
     parser.add_argument("--plot", metavar="OUT.png", help="also save the grid as a bar chart")
     parser.add_argument(
@@ -301,6 +305,8 @@ def _bench_report(args: argparse.Namespace, argv: Sequence[str]) -> None:
     print(table)
     if args.output:
         write_text_atomic(args.output, generated_table(table, args.format, argv))
+    if args.plot and args.bench == "prepare":
+        raise ValueError("--plot: the prepare table has no figure")
     if args.plot:
         plot = plot_speed if args.bench == "speed" else plot_engine_latency
         plot(records, args.plot, command_line(argv))

@@ -227,9 +227,16 @@ def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
         ]
         for method, m in stage["methods"].items()
     ]
+    source = stage.get("source", "generated")
+    what = (
+        f"a generated {stage['height']}×{stage['width']} lidar frame"
+        if source == "generated"
+        else f"the median of {stage['frames']} frames of {source} "
+        f"({stage['height']}×{stage['width']} the first)"
+    )
     note = (
-        f"a generated {stage['height']}×{stage['width']} lidar frame "
-        f"({100 * stage['measured_fraction']:.1f} % of pixels measured), one worker per core; "
+        f"{what} ({100 * stage['measured_fraction']:.1f} % of pixels measured), one worker per "
+        "core; "
         f"hours on {stage['cores']} cores (prepare.workers={stage['cores']})"
     )
     return header, rows, note
