@@ -167,3 +167,22 @@ def test_nested_dissection_visits_every_pixel_once_cut_last(shape) -> None:
         np.testing.assert_array_equal(order[-h:], np.arange(h) * w + 30)
     with pytest.raises(ValueError):  # cached, so callers must not change it
         order[0] = 1
+
+
+def test_colorization_refines_the_float32_factors_without_falling_back(monkeypatch) -> None:
+    """The float32 factorisation refined in float64 reaches the float64 solution on a lidar
+    frame without needing the float64 factorisation; where refinement is cut short, the
+    fallback gives the same map."""
+    from fusion_depth.data import filling
+    from fusion_depth.data.procedural import render_frame
+
+    image, _, sparse = render_frame(3, "train", 1, 64, 192, 82.0, "fog", "lidar")
+    factorised = []
+    real = filling._factorise
+    monkeypatch.setattr(filling, "_factorise", lambda m: factorised.append(m.dtype) or real(m))
+    refined = fill_depth(sparse, image, "colorization")
+    assert factorised == [np.float32]
+    monkeypatch.setattr(filling, "_MAX_REFINEMENTS", 0)
+    exact = fill_depth(sparse, image, "colorization")
+    assert factorised[1:] == [np.float32, np.float64]
+    np.testing.assert_allclose(refined, exact, rtol=0, atol=1e-5)

@@ -25,6 +25,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from scipy.sparse import csc_matrix
+    from scipy.sparse.linalg import SuperLU
 
 FILL_METHODS: tuple[str, ...] = ("none", "linear", "colorization")
 
@@ -37,6 +38,10 @@ _MIN_SIGMA = 2e-6
 _OFFSETS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 # Nested dissection stops cutting at boxes this small: below it a cut saves less than it costs.
 _LEAF_PIXELS = 16
+# Iterative refinement of the float32 solve (in units of the largest measured depth, <= 256 m):
+# done when a step changes no unknown by more than this (< 3e-7 m), in at most this many steps.
+_REFINED = 1e-9
+_MAX_REFINEMENTS = 8
 
 
 def fill_depth(depth: np.ndarray, image: np.ndarray, method: str) -> np.ndarray:
@@ -100,23 +105,57 @@ def _fill_linear(depth: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 def _fill_colorization(depth: np.ndarray, known: np.ndarray, gray: np.ndarray) -> np.ndarray:
     """Levin et al.'s optimisation with the measured pixels fixed (:func:`colorization_system`),
-    solved directly: one sparse LU factorisation, exact to rounding."""
+    solved directly: a sparse LU factorisation in single precision, refined in double precision
+    to the exact solution (Wilkinson's iterative refinement; the float64 factorisation where
+    refinement stalls)."""
+    transposed, rhs, scale, unknowns = colorization_system(depth, known, gray)
+    filled = depth.astype(np.float64).ravel() / scale
+    filled[unknowns] = _solve_refined(transposed, rhs)
+    return filled.reshape(depth.shape) * scale
+
+
+def _factorise(transposed: csc_matrix) -> SuperLU:
+    """SuperLU of ``transposed`` (``A`` transposed, solve with ``trans="T"``) in its own order.
+
+    The system is a nonsingular M-matrix (every weight is positive, rows sum to 1, and each
+    region of missing pixels borders a measured one), so LU needs no pivoting: every pivot of
+    every symmetric reordering is positive and the factors cannot grow. That lets SuperLU keep
+    the nested-dissection order, which is what makes it fast.
+    """
     from scipy.sparse.linalg import splu
 
-    transposed, rhs, scale, unknowns = colorization_system(depth, known, gray)
-    # The system is a nonsingular M-matrix (every weight is positive, rows sum to 1, and each
-    # region of missing pixels borders a measured one), so LU needs no pivoting: every pivot
-    # of every symmetric reordering is positive and the factors cannot grow. That lets SuperLU
-    # keep the nested-dissection order, which is what makes it fast.
-    factors = splu(
+    return splu(
         transposed,
         permc_spec="NATURAL",
         diag_pivot_thresh=0.0,
         options={"SymmetricMode": True},
     )
-    filled = depth.astype(np.float64).ravel() / scale
-    filled[unknowns] = factors.solve(rhs, trans="T")
-    return filled.reshape(depth.shape) * scale
+
+
+def _solve_refined(transposed: csc_matrix, rhs: np.ndarray) -> np.ndarray:
+    """``x`` with ``A x = rhs`` to float64 rounding (``transposed`` is ``A`` transposed, CSC).
+
+    Factorising in float32 takes about 0.7x the time of float64; each refinement step costs a
+    product and two triangular solves, and gains about three digits on these systems (the
+    factors are those of an M-matrix, so they are accurate to float32 rounding). Refinement
+    stops once a step changes no unknown by more than :data:`_REFINED`; a step that does not
+    at least halve the change falls back to the float64 factorisation.
+    """
+    matrix = transposed.T  # A in CSR: the same arrays, nothing copied
+    factors = _factorise(transposed.astype(np.float32))
+    solution = factors.solve(rhs.astype(np.float32), trans="T").astype(np.float64)
+    previous = np.inf
+    for _ in range(_MAX_REFINEMENTS):
+        residual = rhs - matrix @ solution
+        step = factors.solve(residual.astype(np.float32), trans="T").astype(np.float64)
+        solution += step
+        change = float(np.abs(step).max())
+        if change <= _REFINED:
+            return solution
+        if change > 0.5 * previous:
+            break
+        previous = change
+    return _factorise(transposed).solve(rhs, trans="T")
 
 
 def colorization_system(
