@@ -567,9 +567,7 @@ def test_prepare_in_shards_with_workers_gives_the_serial_cache(
 
     assert prepare(config("serial", "prepare.workers=1")) == {"train": 6, "val": 4, "test": 4}
     with pytest.raises(IncompleteSplitError) as info:
-        prepare(
-            config("sharded", "prepare.workers=2", "prepare.num_shards=3", "prepare.shard=1")
-        )
+        prepare(config("sharded", "prepare.workers=2", "prepare.num_shards=3", "prepare.shard=1"))
     assert [(s.split_dir.name, s.done, s.total) for s in info.value.splits] == [
         ("train", 2, 6),
         ("val", 1, 4),
@@ -593,9 +591,7 @@ def test_prepare_in_shards_with_workers_gives_the_serial_cache(
     serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
     sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
     names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
-    assert names == sorted(
-        str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file()
-    )
+    assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
     for name in names:
         assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
 
