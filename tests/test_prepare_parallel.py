@@ -169,12 +169,13 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial
         from test_prepare_parallel import PrepareOptions, make_frame, prepare
         from pathlib import Path
         prepare(Path({str(cache)!r}), PrepareOptions(workers=2),
-                make=lambda f: make_frame(f, delay=0.4))
+                make=lambda f: make_frame(f, delay=2.0))
         """
     )
     process = subprocess.Popen(
         [sys.executable, "-c", script], start_new_session=True, stderr=subprocess.PIPE
     )
+    # 2 s a frame: the split takes 12 s, so Ctrl-C lands mid-split even on a loaded machine.
     deadline = time.monotonic() + 60
     while not list((cache / "train").glob("0*.json")) and time.monotonic() < deadline:
         time.sleep(0.05)
