@@ -8,6 +8,7 @@ import errno
 import json
 import multiprocessing
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -71,6 +72,18 @@ def test_workers_write_the_same_cache_as_one_process(tmp_path, serial) -> None:
     prepare(tmp_path / "parallel", PrepareOptions(workers=3), make=lambda f: make_frame(f, calls))
     assert files(tmp_path / "parallel") == serial
     assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_progress_counts_each_frame_once_whatever_the_workers(tmp_path, caplog, workers) -> None:
+    """Off a terminal the last progress line says 12/12, not a count per worker (each worker
+    walks the whole list and skips the frames others claimed)."""
+    caplog.set_level("INFO", logger=cache_module.__name__)
+    prepare(tmp_path / "cache", PrepareOptions(workers=workers))
+    lines = [
+        r.getMessage() for r in caplog.records if re.search(r"\d+/\d+ frames in", r.getMessage())
+    ]
+    assert lines and f": {len(FRAMES)}/{len(FRAMES)} frames in" in lines[-1], lines
 
 
 def test_shards_share_the_split_and_the_last_writes_the_index(tmp_path, serial) -> None:

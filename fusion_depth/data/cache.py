@@ -521,13 +521,15 @@ def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> l
     for i in todo:
         stem = f"{i:06d}"
         frame_id = job.frame_ids[i]
+        # Only the frames this worker makes (or skips) count: every worker walks the whole list,
+        # so counting the ones others claimed would count each frame once per worker.
         if not _claim(job.split_dir, stem):
-            advance()  # another process is making it (or found it broken)
-            continue
-        release = True
+            continue  # another worker or process is making it (or found it broken)
+        release, made = True, False
         try:
             if _done_record(job.split_dir, i, frame_id) is not None:
                 continue  # made by another process before this one claimed it
+            made = True
             _remove_temporaries(job.split_dir, stem)
             try:
                 frame = job.make_frame(frame_id)
@@ -543,7 +545,8 @@ def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> l
         finally:
             if release:
                 _release(job.split_dir, stem)
-            advance()
+            if made:
+                advance()
     return skipped
 
 
