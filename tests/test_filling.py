@@ -186,3 +186,22 @@ def test_colorization_refines_the_float32_factors_without_falling_back(monkeypat
     exact = fill_depth(sparse, image, "colorization")
     assert factorised[1:] == [np.float32, np.float64]
     np.testing.assert_allclose(refined, exact, rtol=0, atol=1e-5)
+
+
+def test_a_float32_factorisation_that_fails_falls_back_to_float64(monkeypatch) -> None:
+    """SuperLU raises on a pivot that rounds to exactly 0; in float32 that falls back to the
+    float64 factors instead of failing the frame."""
+    from fusion_depth.data import filling
+    from fusion_depth.data.procedural import render_frame
+
+    image, _, sparse = render_frame(3, "train", 1, 64, 192, 82.0, "fog", "lidar")
+    expected = fill_depth(sparse, image, "colorization")
+    real = filling._factorise
+
+    def singular_in_float32(matrix):
+        if matrix.dtype == np.float32:
+            raise RuntimeError("Factor is exactly singular")
+        return real(matrix)
+
+    monkeypatch.setattr(filling, "_factorise", singular_in_float32)
+    np.testing.assert_allclose(fill_depth(sparse, image, "colorization"), expected, atol=1e-5)

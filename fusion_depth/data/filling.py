@@ -143,7 +143,10 @@ def _solve_refined(transposed: csc_matrix, rhs: np.ndarray) -> np.ndarray:
     at least halve the change falls back to the float64 factorisation.
     """
     matrix = transposed.T  # A in CSR: the same arrays, nothing copied
-    factors = _factorise(transposed.astype(np.float32))
+    try:
+        factors = _factorise(transposed.astype(np.float32))
+    except RuntimeError:  # a pivot rounded to 0 in float32 (a nearly cut-off region)
+        return _factorise(transposed).solve(rhs, trans="T")
     solution = factors.solve(rhs.astype(np.float32), trans="T").astype(np.float64)
     previous = np.inf
     for _ in range(_MAX_REFINEMENTS):
@@ -153,7 +156,7 @@ def _solve_refined(transposed: csc_matrix, rhs: np.ndarray) -> np.ndarray:
         change = float(np.abs(step).max())
         if change <= _REFINED:
             return solution
-        if change > 0.5 * previous:
+        if not np.isfinite(change) or change > 0.5 * previous:
             break
         previous = change
     return _factorise(transposed).solve(rhs, trans="T")
