@@ -517,7 +517,7 @@ def prepared_frames(split_dir: str | Path, count: int) -> list[tuple[np.ndarray,
         FileNotFoundError: ``split_dir`` holds no prepared split (no ``index.json``).
         DataFileError: a damaged file of the split, naming it.
     """
-    split = PreparedSplit(split_dir)
+    split = PreparedSplit(Path(split_dir).expanduser())
     frames = []
     for index in range(min(count, len(split))):
         sample = split.encoded_sample(index)
