@@ -261,6 +261,8 @@ def test_prepare_stage_times_the_fill_on_a_prepared_splits_own_frames(
         (["--prepared", "x"], "--prepared x: times the fill, which --only leaves out"),
         (["--only", "prepare", "--prepared", "missing"], "missing/index.json: not a prepared"),
         (["--only", "prepare", "--frames", "0"], "--frames=0"),
+        (["--only", "prepare", "--frames", "2"], "--frames: the frames of a --prepared split"),
+        (["--only", "peak,prepare", "--prepared", "missing"], "missing/index.json"),
     ],
 )
 def test_prepared_frames_are_checked(

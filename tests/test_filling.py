@@ -156,7 +156,7 @@ def test_colorization_agrees_with_a_pivoting_solve_on_a_lidar_frame_within_1_cm(
     assert error.max() < 1e-4, f"{error.max() * 100:.2g} cm"  # 1 cm promised; LU gives ~1e-9
 
 
-@pytest.mark.parametrize("shape", [(1, 7), (3, 3), (40, 60), (61, 47), (9, 300)])
+@pytest.mark.parametrize("shape", [(1, 7), (3, 3), (40, 60), (61, 47), (9, 300), (2, 300)])
 def test_nested_dissection_visits_every_pixel_once_cut_last(shape) -> None:
     from fusion_depth.data.filling import nested_dissection_order
 
@@ -165,6 +165,8 @@ def test_nested_dissection_visits_every_pixel_once_cut_last(shape) -> None:
     np.testing.assert_array_equal(np.sort(order), np.arange(h * w))
     if (h, w) == (40, 60):  # wider than tall: the first cut is column 30, numbered last
         np.testing.assert_array_equal(order[-h:], np.arange(h) * w + 30)
+    if (h, w) == (2, 300):  # too thin to cut: numbered along its length, a band
+        np.testing.assert_array_equal(order[:4], [0, 300, 1, 301])
     with pytest.raises(ValueError):  # cached, so callers must not change it
         order[0] = 1
 
@@ -205,3 +207,17 @@ def test_a_float32_factorisation_that_fails_falls_back_to_float64(monkeypatch) -
 
     monkeypatch.setattr(filling, "_factorise", singular_in_float32)
     np.testing.assert_allclose(fill_depth(sparse, image, "colorization"), expected, atol=1e-5)
+
+
+def test_refinement_reaches_the_float64_solve_of_the_system() -> None:
+    """Before the float32 map: the refined unknowns agree with SciPy's float64 solve to 1e-9
+    of the largest depth, far below what rounding the map to float32 would hide."""
+    from scipy.sparse.linalg import spsolve
+
+    from fusion_depth.data.filling import _intensity, _solve_refined, colorization_system
+    from fusion_depth.data.procedural import render_frame
+
+    image, _, sparse = render_frame(5, "train", 2, 94, 310, 82.0, "night", "lidar")
+    transposed, rhs, _, _ = colorization_system(sparse, sparse > 0, _intensity(image))
+    exact = spsolve(transposed.T.tocsc(), rhs)
+    assert np.abs(_solve_refined(transposed, rhs) - exact).max() < 2e-9

@@ -240,3 +240,7 @@ def test_the_prepare_table_has_a_row_per_fill_method_of_each_record(tmp_path, ca
     assert "3.7 % of pixels measured" in rows[0][1] and "32 cores" in rows[0][1]
     assert main([str(tmp_path / "speed"), "--bench", "prepare"]) == 2
     assert "run bench with --only prepare" in capsys.readouterr().err
+    out = tmp_path / "table.md"
+    argv = [str(tmp_path), "--bench", "prepare", "--output", str(out), "--plot", "x.svg"]
+    assert main(argv) == 2 and not out.exists()  # refused before anything is written
+    assert "--plot: the prepare table has no figure" in capsys.readouterr().err

@@ -146,7 +146,7 @@ def bench_parser() -> argparse.ArgumentParser:
         "frame",
     )
     parser.add_argument(
-        "--frames", type=int, default=3, help="--only prepare --prepared: the frames timed"
+        "--frames", type=int, help="--only prepare --prepared: the frames timed (default 3)"
     )
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls first")
     parser.add_argument("--runs", type=int, default=20, help="timed batch-1 inferences")
@@ -183,6 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if value is not None and value < minimum:
             parser.error(f"--{name.replace('_', '-')}={value}: expected an integer ≥ {minimum}")
     stages = [stage for stage in args.only.split(",") if stage]
+    if args.prepared is None and args.frames is not None:
+        parser.error("--frames: the frames of a --prepared split; give --prepared too")
     if args.prepared is not None and "prepare" not in stages:
         parser.error(
             f"--prepared {args.prepared}: times the fill, which --only leaves out; add prepare"
@@ -204,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             data_split=args.data_split,
             prepare_cores=args.cores,
             prepared=args.prepared,
-            prepare_frames=args.frames,
+            prepare_frames=args.frames or 3,
         )
     except (ValueError, FileNotFoundError, ImportError) as err:
         parser.error(str(err))

@@ -298,6 +298,8 @@ def generated_table(table: str, fmt: str, argv: Sequence[str]) -> str:
 
 def _bench_report(args: argparse.Namespace, argv: Sequence[str]) -> None:
     """``--bench``: the table (and figure) of the bench records below ``args.directory``."""
+    if args.plot and args.bench == "prepare":
+        raise ValueError("--plot: the prepare table has no figure")
     records = load_bench_records(args.directory)
     if not records:
         raise ValueError(f"{args.directory}: no {BENCH_FILE} found below it")
@@ -305,8 +307,6 @@ def _bench_report(args: argparse.Namespace, argv: Sequence[str]) -> None:
     print(table)
     if args.output:
         write_text_atomic(args.output, generated_table(table, args.format, argv))
-    if args.plot and args.bench == "prepare":
-        raise ValueError("--plot: the prepare table has no figure")
     if args.plot:
         plot = plot_speed if args.bench == "speed" else plot_engine_latency
         plot(records, args.plot, command_line(argv))
