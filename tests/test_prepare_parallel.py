@@ -177,7 +177,9 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial
     cache = tmp_path / "interrupted"
     script = textwrap.dedent(
         f"""
-        import sys
+        import signal, sys
+        # As from a terminal: a test runner's worker may ignore SIGINT, and children inherit it.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_prepare_parallel import PrepareOptions, make_frame, prepare
         from pathlib import Path

@@ -473,7 +473,10 @@ def _prepare_frames(
         finally:
             _stop(processes)
         order = {frame_id: i for i, frame_id in enumerate(job.frame_ids)}
-        return sorted(skipped, key=lambda frame: order[frame.frame_id])
+        # A worker that skipped a frame and exited leaves a stale claim, so another worker may
+        # try the frame again: it is reported once.
+        unique = {frame.frame_id: frame for frame in reversed(skipped)}
+        return sorted(unique.values(), key=lambda frame: order[frame.frame_id])
 
 
 def _stop(processes: Sequence[Any]) -> None:

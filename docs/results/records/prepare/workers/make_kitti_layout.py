@@ -3,7 +3,7 @@
 2 train drives x 2 cameras x 4 frames (16 train frames) and 1 val drive x 2 cameras x 2 frames,
 drawn by the built-in generator; the lidar map serves as both ground truth and Velodyne input.
 Run from the repository root: ``python docs/results/records/prepare/workers/make_kitti_layout.py
-OUT``.
+OUT [N]``, N train frames per drive and camera (default 4).
 """
 
 import sys
@@ -25,12 +25,12 @@ def save_depth(path: Path, metres: np.ndarray) -> None:
     Image.fromarray(np.round(metres * 256).astype(np.uint16)).save(path)
 
 
-def main(out: Path) -> None:
+def main(out: Path, per_camera: int = 4) -> None:
     root, raw, k = out / "kitti_depth", out / "kitti_raw", 0
     for subset, drives in DRIVES.items():
         for drive in drives:
             for camera in ("image_02", "image_03"):
-                for frame in range(4 if subset == "train" else 2):
+                for frame in range(per_camera if subset == "train" else 2):
                     image, _, lidar = render_frame(11, "train", k, 375, 1242, 82.0, "day", "lidar")
                     k += 1
                     name = f"{frame:010d}.png"
@@ -46,4 +46,4 @@ def main(out: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    main(Path(sys.argv[1]), *(int(n) for n in sys.argv[2:3]))
