@@ -9,11 +9,13 @@ from __future__ import annotations
 import json
 import logging
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import run_sweep
+from helpers import run_module, run_sweep
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
@@ -594,6 +596,88 @@ def test_prepare_in_shards_with_workers_gives_the_serial_cache(
     assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
     for name in names:
         assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
+
+
+@pytest.mark.slow
+def test_two_shards_as_a_joblib_multirun_give_the_serial_cache_and_training_reads_it(
+    kitti_data, tmp_path, monkeypatch
+) -> None:
+    """The documented multirun of shards, on the joblib launcher: exit 0 (training's sweep
+    summary, which wants a metrics.json per job, is not prepare's), the serial cache file for
+    file, and a split training reads."""
+    from helpers import compose_config
+
+    size = [
+        "dataset=kitti",
+        f"dataset.root={kitti_data['root']}",
+        f"dataset.raw_root={kitti_data['raw_root']}",
+        "dataset.height=32",
+        "dataset.width=96",
+    ]
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(kitti_data["cache"] / "serial"))
+    prepare(compose_config([*size, "prepare.workers=1"], tmp_path / "run", config_name="prepare"))
+    env = {**os.environ, "FUSION_DEPTH_CACHE": str(kitti_data["cache"] / "sharded")}
+    shards = ["prepare.workers=1", "prepare.num_shards=2", "prepare.shard=range(2)"]
+    sweep_dir = f"hydra.sweep.dir={tmp_path / 'sweep'}"
+    command = ["fusion_depth.prepare", "-m", *size, *shards, "hydra/launcher=parallel", sweep_dir]
+    done = run_module(command, cwd=tmp_path, env=env, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "failed" not in done.stdout + done.stderr
+    serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
+    sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
+    names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
+    assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
+    for name in names:
+        assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
+    sharded_data = kitti_data | {"cache": kitti_data["cache"] / "sharded"}
+    train_split = _dataset(sharded_data, "train", height=32, width=96)
+    assert len(train_split) == 6 and train_split[5]["image"].shape == (3, 32, 96)
+
+
+# Run in a fresh interpreter: prepare's own command line, then which heavy packages it imported.
+_PREPARE_AND_LIST_IMPORTS = """
+import runpy, sys
+sys.argv = ["fusion_depth.prepare", *sys.argv[1:]]
+try:
+    runpy.run_module("fusion_depth.prepare", run_name="__main__")
+finally:
+    print("imported:", sorted(m for m in ("lightning", "timm", "torchvision") if m in sys.modules))
+"""
+
+
+@pytest.mark.slow
+def test_prepare_starts_without_the_models_and_the_trainer_and_checks_its_keys(
+    kitti_data, tmp_path
+) -> None:
+    """prepare checks only ``dataset`` and ``prepare``, so it imports neither timm (the models)
+    nor Lightning (the trainer): seconds of start-up that no number of workers shortens. Its own
+    keys are still checked, a ``+key`` as well."""
+    env = {**os.environ, "FUSION_DEPTH_CACHE": str(kitti_data["cache"])}
+    base = [
+        "dataset=kitti",
+        f"dataset.root={kitti_data['root']}",
+        f"dataset.raw_root={kitti_data['raw_root']}",
+        "dataset.height=32",
+        "dataset.width=96",
+        "prepare.workers=2",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+
+    def run(*extra: str) -> subprocess.CompletedProcess:
+        command = [sys.executable, "-c", _PREPARE_AND_LIST_IMPORTS, *base, *extra]
+        return subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+
+    done = run()
+    assert done.returncode == 0, done.stderr
+    assert "imported: []" in done.stdout
+    assert len(list((kitti_data["cache"] / "kitti").glob("*/*/index.json"))) == 2  # train, val
+    for extra, message in [
+        ("+dataset.reader.fill_iters=3", "dataset.reader.fill_iters: unknown key"),
+        ("+prepare.worker=3", "prepare.worker: unknown key (nothing reads it"),
+        ("dataset.fill=colorisation", "dataset.fill=colorisation"),
+    ]:
+        refused = run(extra)
+        assert refused.returncode == 1 and message in refused.stderr, (extra, refused.stderr)
 
 
 # --- configs end to end --------------------------------------------------------------------------

@@ -4,19 +4,28 @@ through before any work, one module per concern:
 - :mod:`.resolvers`: the ``fd.*`` OmegaConf resolvers that ``conf/`` uses.
 - :mod:`.keys`: unknown keys (every key must be read by something).
 - :mod:`.validation`: :func:`validate_config`: the values each reader declares it takes
-  (:mod:`fusion_depth.utils.schema`) and the keys, as one-line errors.
+  (:mod:`fusion_depth.utils.schema`) and the keys, as one-line errors;
+  :func:`validate_dataset_config` (:mod:`.dataset_validation`): the same for the dataset alone,
+  for ``prepare``, which reads nothing else.
 - :mod:`.output_dir`: the output directory (writable, room for the checkpoints).
 - :mod:`.run_dirs`: run and sweep folder names.
 - :mod:`.hydra_main`: what every command line of the package shares.
 
 The errors they raise are in :mod:`fusion_depth.errors`; the redaction of secrets from what a run
 writes is :mod:`fusion_depth.runner.redaction`. Every public name is importable from here.
+
+:mod:`.validation` imports every layer whose values it checks (the models with timm, the trainer
+with Lightning: seconds), so its names are imported on first use: ``import fusion_depth``, and
+``prepare``, which validates only the dataset, start without them.
 """
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
+from typing import Any
 
+from fusion_depth.config.dataset_validation import validate_dataset_config
 from fusion_depth.config.keys import (
     PASSED_BY_CODE,
     PLAIN_CONSUMERS,
@@ -27,7 +36,6 @@ from fusion_depth.config.keys import (
 )
 from fusion_depth.config.output_dir import MB, check_output_dir, checkpoint_bytes
 from fusion_depth.config.resolvers import register_resolvers
-from fusion_depth.config.validation import VALUE_CHECKS, check_config_values, validate_config
 
 __all__ = [
     "CONF_DIR",
@@ -45,7 +53,20 @@ __all__ = [
     "target_accepts",
     "unknown_key_error",
     "validate_config",
+    "validate_dataset_config",
 ]
+
+# Names imported on first use (PEP 562), by module.
+_ON_FIRST_USE = {
+    name: "fusion_depth.config.validation"
+    for name in ("VALUE_CHECKS", "check_config_values", "validate_config")
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _ON_FIRST_USE:
+        return getattr(importlib.import_module(_ON_FIRST_USE[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _shipped(name: str) -> str:

@@ -6,14 +6,13 @@ from __future__ import annotations
 import difflib
 import inspect
 import re
-from collections.abc import Iterator, Mapping
+from collections.abc import Collection, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.errors import ConfigError
-from fusion_depth.models._registry import create_model, model_class
 from fusion_depth.utils.overrides import show
 
 # Nodes without a ``_target_`` whose keys are one callable's arguments: data → the datamodule
@@ -47,6 +46,7 @@ PASSED_BY_CODE: dict[str, dict[str, str]] = {
 # Keys fusion_depth.train reads directly although no config file may define them, so a
 # ``+key=value`` override of them is not an unknown key.
 READ_BY_CODE = ("resume", "sweep.skip_done", "dataset.fusions", "dataset.requires")
+_MODEL_REGISTRY = "fusion_depth.models._registry"  # its create_model takes the model's keys
 _RESERVED = re.compile(r"^_\w+_$")  # Hydra's _target_, _partial_, _convert_, _recursive_, _args_
 _REFERENCE = re.compile(r"\$\{(\.*)([A-Za-z_][\w-]*(?:(?:\.[\w-]+)|(?:\[[^\]]*\]))*)\}")
 
@@ -102,6 +102,17 @@ def _import_target(target: str, key: str) -> Any:
     except Exception as err:  # noqa: BLE001 - any failure means the target cannot be built
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{key}={target}: cannot be imported ({first})") from None
+
+
+def _is_model_factory(target: Any) -> bool:
+    """Whether ``target`` is :func:`fusion_depth.models.create_model`. The model registry is
+    imported only for a target from it: it imports timm (seconds), and ``prepare``, which checks
+    only its dataset, does without."""
+    if getattr(target, "__module__", None) != _MODEL_REGISTRY:
+        return False
+    from fusion_depth.models._registry import create_model
+
+    return target is create_model
 
 
 def _check_node(node: Mapping, path: str, target: Any) -> None:
@@ -208,16 +219,25 @@ def _added_keys() -> list[str]:
     ]
 
 
-def check_known_keys(cfg: DictConfig) -> None:
+def check_known_keys(cfg: DictConfig, only: Collection[str] | None = None) -> None:
     """Every key is read by something: the keys of a ``_target_`` node are the arguments of
     its target (unless it takes ``**kwargs``), those of ``data`` and ``eval`` the arguments of
     the datamodule and the evaluation protocol, and a key added with ``+key=value`` elsewhere
     must be read by an interpolation (or by train itself, :data:`READ_BY_CODE`). Hydra rejects
     ``key=value`` for an unknown key, but it accepts ``+key=value``, which would otherwise fail
-    deep inside instantiate or be ignored in silence."""
+    deep inside instantiate or be ignored in silence.
+
+    ``only`` (top-level keys, e.g. ``("dataset", "prepare")``) checks those nodes alone, for a
+    command that reads nothing else (``prepare``); it imports only their targets.
+
+    Raises:
+        ConfigError: the first unknown key, in one line naming it and the keys that exist.
+    """
     plain = OmegaConf.to_container(cfg, resolve=False)
     checked: list[str] = []  # nodes whose keys are checked against a signature
     for path, node in _walk(plain):
+        if only is not None and path.split(".")[0].split("[")[0] not in only:
+            continue
         if "_target_" in node:
             target = OmegaConf.select(cfg, _join(path, "_target_"))
             if target is None:  # e.g. logger=none
@@ -225,7 +245,9 @@ def check_known_keys(cfg: DictConfig) -> None:
             if not isinstance(target, str):
                 raise ConfigError(f"{_join(path, '_target_')}={show(target)}: expected a name")
             built = _import_target(target, _join(path, "_target_"))
-            if built is create_model:  # a factory: the keys are the named model's arguments
+            if _is_model_factory(built):  # the keys are the named model's arguments
+                from fusion_depth.models._registry import model_class
+
                 try:
                     built = model_class(OmegaConf.select(cfg, _join(path, "name")))
                 except ValueError as err:
@@ -234,12 +256,12 @@ def check_known_keys(cfg: DictConfig) -> None:
             _check_node(node, path, built)
             checked.append(path)
     for path, target in PLAIN_CONSUMERS.items():
-        node = plain.get(path)
+        node = plain.get(path) if only is None or path in only else None
         if isinstance(node, Mapping):
             _check_node(node, path, _import_target(target, path))
             checked.append(path)
 
-    added = _added_keys()
+    added = [k for k in _added_keys() if only is None or k.split(".")[0] in only]
     if not added:
         return
     from hydra.core.hydra_config import HydraConfig

@@ -9,12 +9,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
+from fusion_depth.config.dataset_validation import one_line_errors
 from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data import datamodule, transforms
 from fusion_depth.data.base import check_dataset
-from fusion_depth.errors import ConfigError, MissingValueError
 from fusion_depth.losses import depth_loss
 from fusion_depth.models import encoder, fusion
 from fusion_depth.models._registry import check_model
@@ -71,18 +70,8 @@ def validate_config(cfg: DictConfig) -> dict:
     Hydra already rejects unknown group choices with the list of options. Returns the resolved
     config as plain data.
     """
-    try:
+    with one_line_errors():
         OmegaConf.to_container(cfg, resolve=False, throw_on_missing=True)  # ??? values first
         check_config_values(cfg)  # before importing targets: a missing optional package is named
         check_known_keys(cfg)
         return OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    except MissingValueError:
-        raise
-    except MissingMandatoryValue as err:
-        key = err.full_key or "?"
-        raise MissingValueError(
-            f"{key}: missing value (???); set it on the command line: {key}=..."
-        ) from None
-    except OmegaConfBaseException as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"{err.full_key or 'config'}: {first}") from None

@@ -31,7 +31,7 @@ import sys
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from fusion_depth.config import target_accepts, validate_config
+from fusion_depth.config import target_accepts, validate_dataset_config
 from fusion_depth.config.hydra_main import hydra_main
 from fusion_depth.data import SPLITS
 from fusion_depth.data.cache import (
@@ -65,8 +65,11 @@ def prepare_options_of(cfg: DictConfig) -> PrepareOptions:
 def prepare(cfg: DictConfig) -> dict[str, int]:
     """Builds (or finds) every split of ``cfg.dataset``; returns the frame count per split.
 
-    Readers that prepare a cache are built with ``on_error="skip"`` (the procedural reader, which
-    generates its frames, takes no such argument).
+    Only ``dataset`` and ``prepare`` are checked
+    (:func:`~fusion_depth.config.validate_dataset_config`): the rest of the config is training's,
+    and leaving the models and the trainer unimported keeps the start-up short. Readers that
+    prepare a cache are built with ``on_error="skip"`` (the procedural reader, which generates its
+    frames, takes no such argument).
 
     ``cfg.prepare`` (:func:`prepare_options_of`) sets the workers and this process's shard.
 
@@ -78,7 +81,7 @@ def prepare(cfg: DictConfig) -> dict[str, int]:
             (its ``splits``: each split still waiting).
         CacheFullError: the cache's disk is full.
     """
-    validate_config(cfg)
+    validate_dataset_config(cfg)
     spread = prepare_options_of(cfg)
     reader = instantiate(cfg.dataset.reader)
     options = {"on_error": "skip"} if target_accepts(cfg.dataset.reader, "on_error") else {}
