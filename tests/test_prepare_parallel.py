@@ -74,6 +74,24 @@ def test_workers_write_the_same_cache_as_one_process(tmp_path, serial) -> None:
     assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
 
 
+def test_each_worker_runs_its_blas_on_its_share_of_the_cores(tmp_path, monkeypatch) -> None:
+    """Two workers on 2 cores run one BLAS thread each (SuperLU's dense kernels), not the
+    thread per core each would start: four threads on two cores wait on one another."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    threads_seen = tmp_path / "threads.txt"
+
+    def make_and_count(frame_id: str) -> PreparedFrame:
+        with threads_seen.open("a") as f:
+            f.write(f"{max(pool['num_threads'] for pool in threadpool_info())}\n")
+        return make_frame(frame_id)
+
+    monkeypatch.setattr(cache_module, "usable_cores", lambda: 2)
+    with threadpool_limits(limits=2):  # the BLAS default on 2 cores: a thread per core
+        prepare(tmp_path / "cache", PrepareOptions(workers=2), make=make_and_count)
+    assert threads_seen.read_text().split() == ["1"] * len(FRAMES)
+
+
 @pytest.mark.parametrize("workers", [1, 3])
 def test_progress_counts_each_frame_once_whatever_the_workers(tmp_path, caplog, workers) -> None:
     """Off a terminal the last progress line says 12/12, not a count per worker (each worker

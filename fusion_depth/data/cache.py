@@ -75,8 +75,7 @@ from pathlib import Path
 from typing import Any, Literal, cast
 
 import numpy as np
-import torch
-from torch.utils.data import Dataset
+from threadpoolctl import threadpool_limits
 
 from fusion_depth.data import RADAR_POINT_FIELDS, EncodedSample, Sample
 from fusion_depth.data.depth_io import (
@@ -87,7 +86,6 @@ from fusion_depth.data.depth_io import (
     read_npy,
     write_npy,
 )
-from fusion_depth.data.encoding import decode_sample, encode_sample
 from fusion_depth.data.radar_points import (
     DEFAULT_MAX_RADAR_POINTS,
     VALID,
@@ -508,8 +506,13 @@ def _worker_main(
             counter.value += n
 
     offset = start * len(todo) // workers
+    # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS runs a
+    # thread per core in every process, and N workers of N threads each on N cores wait on one
+    # another.
+    threads = max(1, usable_cores() // workers)
     try:
-        results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
+        with threadpool_limits(limits=threads):
+            results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
     except BaseException as err:
         try:
             results.put(("error", err))
@@ -859,13 +862,17 @@ def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
         )
 
 
-class PreparedSplit(Dataset):
+class PreparedSplit:
     """Reads one prepared split: :meth:`encoded_sample` as stored (uint8 image, uint16 depth
     maps: what the datamodule's loaders pass on), ``split[i]`` as the float
     :class:`~fusion_depth.data.Sample`. ``use_filled`` serves the filled ground truth as
     ``depth`` where it exists (training); evaluation leaves it off and scores the measured
     points. A split prepared with radar points serves ``radar_points`` as float32
     (``max_radar_points``, K): the nearest returns, zero rows after.
+
+    A map-style dataset (``len(split)``, ``split[i]``), as torch's ``DataLoader`` takes it. Torch
+    is imported on the first read, not with this module: ``prepare``, which only writes splits,
+    starts without it (about 2 s, a fixed cost that no number of workers shortens).
 
     Raises:
         FileNotFoundError: the split has no ``index.json``.
@@ -913,6 +920,8 @@ class PreparedSplit(Dataset):
     def __getitem__(self, index: int) -> Sample:
         """Frame ``index`` in the float form (:func:`~fusion_depth.data.encoding.decode_sample`
         of :meth:`encoded_sample`)."""
+        from fusion_depth.data.encoding import decode_sample
+
         return decode_sample(self.encoded_sample(index))  # type: ignore[return-value]
 
     def encoded_sample(self, index: int) -> EncodedSample:
@@ -925,6 +934,10 @@ class PreparedSplit(Dataset):
             DataFileError: a file is damaged (truncated, another dtype, a map of another size
                 than the image), naming it.
         """
+        import torch
+
+        from fusion_depth.data.encoding import encode_sample
+
         frame = self.frames[index]
         stem = self.split_dir / frame["file"]
         depth_file = "filled" if self.use_filled and frame["filled"] else "depth"
