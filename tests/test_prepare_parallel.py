@@ -8,6 +8,7 @@ import errno
 import json
 import multiprocessing
 import os
+import random
 import re
 import signal
 import subprocess
@@ -189,6 +190,41 @@ def test_an_error_in_one_worker_stops_them_all_and_leaves_no_half_file(tmp_path)
         prepare(cache, PrepareOptions(workers=3), make=failing)
     assert not list((cache / "train").glob(".0*"))
     assert len(list((cache / "train").glob("0*.json"))) < len(FRAMES)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_shard_killed_at_a_random_moment_and_run_again_gives_the_serial_cache(
+    tmp_path, serial, seed
+) -> None:
+    """Shard 0 of 2 (two workers) is killed with SIGKILL, parent and workers at once, at a
+    random moment after its first frame; shard 1 runs, shard 0 runs again: the serial cache,
+    file for file (a dead process's claims and temporary files taken over or removed)."""
+    cache = tmp_path / "sharded"
+    shard = "PrepareOptions(shard=0, num_shards=2, workers=2, finish_sharded=True)"
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from test_prepare_parallel import PrepareOptions, make_frame, prepare
+        from pathlib import Path
+        prepare(Path({str(cache)!r}), {shard}, make=lambda f: make_frame(f, delay=0.4))
+        """
+    )
+    process = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not list((cache / "train").glob("0*.json")) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    # The shard's 6 frames take 1.2 s on its two workers, 0.8 s of it after the first.
+    time.sleep(random.Random(seed).uniform(0.0, 0.7))
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait(timeout=60)
+    try:
+        prepare(cache, PrepareOptions(shard=1, num_shards=2, finish_sharded=True))
+    except IncompleteSplitError:
+        pass  # shard 0 was killed before its last frame
+    prepare(cache, PrepareOptions(shard=0, num_shards=2, workers=2, finish_sharded=True))
+    assert files(cache) == serial
 
 
 def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial) -> None:
