@@ -547,6 +547,16 @@ def test_prepare_skips_broken_frames_by_name_and_training_still_refuses_them(
         _dataset(kitti_data, "train")
 
 
+def assert_same_caches(first: Path, second: Path) -> None:
+    """The KITTI caches below two ``$FUSION_DEPTH_CACHE`` folders hold the same files, byte for
+    byte (hidden ones too)."""
+    first, second = (next((root / "kitti").iterdir()) for root in (first, second))
+    names = sorted(str(p.relative_to(first)) for p in first.rglob("*") if p.is_file())
+    assert names == sorted(str(p.relative_to(second)) for p in second.rglob("*") if p.is_file())
+    for name in names:
+        assert (first / name).read_bytes() == (second / name).read_bytes(), name
+
+
 def test_prepare_in_shards_with_workers_gives_the_serial_cache(
     kitti_data, tmp_path, monkeypatch
 ) -> None:
@@ -590,12 +600,7 @@ def test_prepare_in_shards_with_workers_gives_the_serial_cache(
             )
         except IncompleteSplitError:
             assert shard == 0
-    serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
-    sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
-    names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
-    assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
-    for name in names:
-        assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
+    assert_same_caches(kitti_data["cache"] / "serial", kitti_data["cache"] / "sharded")
 
 
 @pytest.mark.slow
@@ -623,12 +628,7 @@ def test_two_shards_as_a_joblib_multirun_give_the_serial_cache_and_training_read
     done = run_module(command, cwd=tmp_path, env=env, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "failed" not in done.stdout + done.stderr
-    serial = next((kitti_data["cache"] / "serial" / "kitti").iterdir())
-    sharded = next((kitti_data["cache"] / "sharded" / "kitti").iterdir())
-    names = sorted(str(p.relative_to(serial)) for p in serial.rglob("*") if p.is_file())
-    assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
-    for name in names:
-        assert (serial / name).read_bytes() == (sharded / name).read_bytes(), name
+    assert_same_caches(kitti_data["cache"] / "serial", kitti_data["cache"] / "sharded")
     sharded_data = kitti_data | {"cache": kitti_data["cache"] / "sharded"}
     train_split = _dataset(sharded_data, "train", height=32, width=96)
     assert len(train_split) == 6 and train_split[5]["image"].shape == (3, 32, 96)
