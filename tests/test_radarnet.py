@@ -100,6 +100,30 @@ def test_on_a_cpu_the_association_runs_in_fp32_under_bf16_autocast() -> None:
     assert torch.equal(logits, reference)
 
 
+def test_padded_rows_skip_the_association_network_and_change_no_valid_logit() -> None:
+    """Only valid points' windows go through the association network: a batch padded to 5 rows
+    per image gives the valid rows' logits of the unpadded batch (eval mode, so batch norm does
+    not see the batch), 0 for the padding rows, and the network sees 3 windows, not 10."""
+    torch.manual_seed(0)
+    net = RadarNet(stage="end_to_end").eval()
+    image = torch.rand(2, 3, 64, 96)
+    rows = [[(10, 40, 5.0), (60, 30, 12.0)], [(90, 20, 30.0)]]
+    padded = torch.cat([_points(r, pad_to=5) for r in rows])
+    seen = []
+    hook = net.association.register_forward_hook(lambda m, args, out: seen.append(len(args[0])))
+    with torch.no_grad():
+        logits = net.association_logits(image, padded)
+        hook.remove()
+        alone = [net.association_logits(image[i : i + 1], _points(r)) for i, r in enumerate(rows)]
+    assert seen == [3]
+    torch.testing.assert_close(logits[0, :2], alone[0][0])
+    torch.testing.assert_close(logits[1, :1], alone[1][0])
+    assert not logits[0, 2:].any() and not logits[1, 1:].any()
+    # A batch with no valid point runs nothing and still has the shape.
+    empty = net.association_logits(image, torch.zeros(2, 4, 6))
+    assert empty.shape == (2, 4, 64, 32) and not empty.any()
+
+
 def test_the_quasi_dense_map_keeps_each_point_where_it_passes_the_threshold() -> None:
     """Two points, confidences written by hand: a pixel takes the depth of the most confident
     point at or above 0.5; nothing where neither passes."""

@@ -481,7 +481,8 @@ class RadarNet(DepthModel):
         return points_from_sparse(sparse, self.max_points)
 
     def association_logits(self, image: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """The confidence logits of each point's window.
+        """The confidence logits of each point's window; 0 for padding rows (``valid`` = 0 or
+        depth 0), which the network does not see.
 
         Shape:
             - image: (B, 3, H, W); points: (B, P, 6); output: (B, P, H, window) logits.
@@ -497,12 +498,30 @@ class RadarNet(DepthModel):
         features = torch.stack(
             [points[..., V] / h, points[..., DEPTH] / self.max_depth, points[..., U] / w], dim=-1
         ).reshape(b * p, 3)
+        # Only the windows of valid points go through the network: padding rows (a frame's
+        # returns fill a fixed P, 40 % of it on the built-in dataset) would cost as much and
+        # their logits are masked out anyway; here they stay 0. Traced for export, every row
+        # goes through (a data-dependent count does not export).
+        keep = None
+        if not torch.compiler.is_compiling():
+            keep = ((points[..., VALID] > 0) & (points[..., DEPTH] > 0)).flatten()
+            windows, features = windows[keep], features[keep]
         if image.device.type == "cpu":
             # In fp32 under bf16 autocast too: oneDNN's bf16 convolutions (torch 2.14, AMX)
             # return NaN at random on the 1-pixel-wide deepest features of a 32-column window.
             with torch.autocast("cpu", enabled=False):
-                return self.association(windows.float(), features.float()).view(b, p, h, width)
-        return self.association(windows, features).view(b, p, h, width)
+                logits = self._associate(windows.float(), features.float())
+        else:
+            logits = self._associate(windows, features)
+        if keep is not None:
+            logits = logits.new_zeros(b * p, *logits.shape[1:]).index_put((keep,), logits)
+        return logits.view(b, p, h, width)
+
+    def _associate(self, windows: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """The association network on ``N`` windows; (N, 1, H, w) logits, none for N = 0."""
+        if windows.shape[0] == 0:
+            return windows.new_zeros(0, 1, *windows.shape[-2:])
+        return self.association(windows, features)
 
     def quasi_dense(
         self, image: torch.Tensor, points: torch.Tensor, grad: bool = False
