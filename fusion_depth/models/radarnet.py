@@ -498,10 +498,10 @@ class RadarNet(DepthModel):
         features = torch.stack(
             [points[..., V] / h, points[..., DEPTH] / self.max_depth, points[..., U] / w], dim=-1
         ).reshape(b * p, 3)
-        # Only the windows of valid points go through the network: padding rows (a frame's
-        # returns fill a fixed P, 40 % of it on the built-in dataset) would cost as much and
-        # their logits are masked out anyway; here they stay 0. Traced for export, every row
-        # goes through (a data-dependent count does not export).
+        # Only the windows of valid points go through the network. Padding rows fill each frame
+        # up to a fixed P (60 % of the rows on the built-in dataset); they would cost as much as
+        # the returns, and their logits are masked out anyway, so here they stay 0. Traced for
+        # export, every row goes through (a data-dependent count does not export).
         keep = None
         if not torch.compiler.is_compiling():
             keep = ((points[..., VALID] > 0) & (points[..., DEPTH] > 0)).flatten()
