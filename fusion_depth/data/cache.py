@@ -506,9 +506,8 @@ def _worker_main(
             counter.value += n
 
     offset = start * len(todo) // workers
-    # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS runs a
-    # thread per core in every process, and N workers of N threads each on N cores wait on one
-    # another.
+    # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS starts
+    # a thread per core in every process, N × N threads on N cores.
     threads = max(1, usable_cores() // workers)
     try:
         with threadpool_limits(limits=threads):
