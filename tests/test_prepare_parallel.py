@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import file_bytes
 
 from fusion_depth.data import cache as cache_module
 from fusion_depth.data.cache import (
@@ -49,13 +50,6 @@ def make_frame(frame_id: str, calls: Path | None = None, delay: float = 0.0) -> 
     return PreparedFrame(image, depth * (rng.random((8, 12)) < 0.5), depth, "day", filled=depth)
 
 
-def files(folder: Path) -> dict[str, bytes]:
-    """Every file below ``folder`` (hidden ones too) with its bytes."""
-    return {
-        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
-    }
-
-
 def prepare(cache: Path, options: PrepareOptions | None = None, make=make_frame, **kwargs) -> Path:
     with prepare_options(options or PrepareOptions()):
         return prepare_split(cache, "train", FRAMES, make, PARAMS, **kwargs)
@@ -65,13 +59,13 @@ def prepare(cache: Path, options: PrepareOptions | None = None, make=make_frame,
 def serial(tmp_path: Path) -> dict[str, bytes]:
     """The cache one serial, uninterrupted prepare writes."""
     prepare(tmp_path / "serial")
-    return files(tmp_path / "serial")
+    return file_bytes(tmp_path / "serial")
 
 
 def test_workers_write_the_same_cache_as_one_process(tmp_path, serial) -> None:
     calls = tmp_path / "calls.txt"
     prepare(tmp_path / "parallel", PrepareOptions(workers=3), make=lambda f: make_frame(f, calls))
-    assert files(tmp_path / "parallel") == serial
+    assert file_bytes(tmp_path / "parallel") == serial
     assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
 
 
@@ -116,7 +110,7 @@ def test_shards_share_the_split_and_the_last_writes_the_index(tmp_path, serial) 
     with pytest.raises(IncompleteSplitError, match=r"8 of 12 frames prepared, 4 missing.*3 shards"):
         prepare(cache)
     prepare(cache, PrepareOptions(shard=2, num_shards=3, finish_sharded=True))
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
     prepare(cache)  # usable now
 
 
@@ -125,7 +119,7 @@ def test_a_plain_prepare_finishes_what_shards_left(tmp_path, serial) -> None:
     with pytest.raises(IncompleteSplitError):
         prepare(cache, PrepareOptions(shard=1, num_shards=4, finish_sharded=True))
     prepare(cache, PrepareOptions(workers=2, finish_sharded=True))
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 def test_leftovers_of_a_killed_prepare_are_removed(tmp_path, serial) -> None:
@@ -143,7 +137,7 @@ def test_leftovers_of_a_killed_prepare_are_removed(tmp_path, serial) -> None:
     claim = {"host": os.uname().nodename, "pid": int(dead.stdout)}
     (split / CLAIMS_DIR / "000003").write_text(json.dumps(claim))
     prepare(cache, PrepareOptions(workers=2, finish_sharded=True))
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 def _prepare_in_a_process(cache: Path, calls: Path) -> None:
@@ -160,7 +154,7 @@ def test_two_processes_on_one_cache_make_each_frame_once(tmp_path, serial) -> No
         process.join(60)
         assert process.exitcode == 0
     assert sorted(calls.read_text().split()) == sorted(FRAMES), "a frame was made twice"
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 def test_a_broken_frame_is_skipped_by_its_worker_and_the_others_go_on(tmp_path) -> None:
@@ -224,7 +218,7 @@ def test_a_shard_killed_at_a_random_moment_and_run_again_gives_the_serial_cache(
     except IncompleteSplitError:
         pass  # shard 0 was killed before its last frame
     prepare(cache, PrepareOptions(shard=0, num_shards=2, workers=2, finish_sharded=True))
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial) -> None:
@@ -256,7 +250,7 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial
     assert 0 < done < len(FRAMES), why
     assert not list((cache / "train").glob(".0*")), "a temporary file was left"
     prepare(cache)
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 @pytest.mark.parametrize(
@@ -289,7 +283,7 @@ def test_a_full_disk_is_one_line_naming_the_cache_and_resumes(
     assert str(cache) in message and "disk is full" in message and "\n" not in message
     monkeypatch.setattr(cache_module, "write_npy", real_write)
     prepare(cache)
-    assert files(cache) == serial
+    assert file_bytes(cache) == serial
 
 
 def test_an_unrelated_write_error_is_not_called_a_full_disk(tmp_path, monkeypatch) -> None:

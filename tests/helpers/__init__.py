@@ -1,5 +1,6 @@
 """What several test files share: the repository's root, configs composed as a command would
-receive them, checkpoints saved without training, and commands run as a user runs them.
+receive them, checkpoints saved without training, commands run as a user runs them, and the
+files of a folder to compare two caches by.
 
 Fixtures that use these live in ``conftest.py``; test files import these by name."""
 
@@ -19,6 +20,14 @@ from omegaconf import DictConfig, open_dict
 from fusion_depth.config import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[2]
+
+
+def file_bytes(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` (hidden ones too), by its path relative to it, with its
+    bytes."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
 
 
 def compose_config(
