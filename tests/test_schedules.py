@@ -201,7 +201,9 @@ def test_each_model_brings_its_published_recipe(make_config) -> None:
     0.9, weight decay 1e-4, lr_init * 0.1 ** (epoch // 5), batch 8, 15 epochs); model=radarnet as
     the FusionNet script (Adam 1e-3, no decay, one rate, batch 16, 450 epochs). Composed on KITTI:
     the built-in dataset has its own recipe for Sparse-to-Dense (the test below)."""
-    s2d = make_config("model=sparse_to_dense", "dataset=kitti", "dataset.root=/k", "dataset.raw_root=/r")
+    s2d = make_config(
+        "model=sparse_to_dense", "dataset=kitti", "dataset.root=/k", "dataset.raw_root=/r"
+    )
     validate_config(s2d)
     optimizer = instantiate(s2d.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
     assert isinstance(optimizer, torch.optim.SGD)
@@ -223,15 +225,16 @@ def test_each_model_brings_its_published_recipe(make_config) -> None:
 
 def test_the_built_in_dataset_brings_sparse_to_dense_its_own_recipe(make_config) -> None:
     """conf/experiment/procedural_sparse_to_dense.yaml: its authors' SGD (momentum 0.9, weight
-    decay 1e-4) at the searched peak 3e-2, 5 % warm-up then cosine to 1 %, batch 8, 21 epochs of
-    50 batches from a 6,400-frame pool (docs/results/methods.md)."""
+    decay 1e-4) at the searched peak 3e-2, 5 % warm-up then cosine to 1 %, batch 8, 30 epochs of
+    100 batches from a 6,400-frame pool (docs/results/methods.md)."""
     cfg = make_config("model=sparse_to_dense", "fusion=concat")
     validate_config(cfg)
     optimizer = instantiate(cfg.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
     assert isinstance(optimizer, torch.optim.SGD)
     group = optimizer.param_groups[0]
     assert (group["lr"], group["momentum"], group["weight_decay"]) == (3e-2, 0.9, 1e-4)
-    assert (cfg.data.batch_size, cfg.trainer.max_epochs, cfg.trainer.limit_train_batches) == (8, 21, 50)
+    trainer = cfg.trainer
+    assert (cfg.data.batch_size, trainer.max_epochs, trainer.limit_train_batches) == (8, 30, 100)
     assert cfg.dataset.num_train == 6400
     schedule = instantiate(cfg.scheduler)(optimizer, total_steps=1000)
     rates = []
