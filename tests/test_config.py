@@ -124,11 +124,12 @@ def test_a_choice_on_the_command_line_beats_the_recipe(make_config) -> None:
     cosine = _flat(make_config("scheduler=cosine"))
     assert cosine["scheduler._target_"] == "fusion_depth.optim.schedules.WarmupCosine"
     assert "scheduler.step_size" not in cosine
-    # Other models on the built-in dataset keep their own published recipe (the reference
-    # code's Adam 1e-3, batch 16), not the built-in dataset's DenseDepth recipe.
+    # Other models on the built-in dataset get their own recipe for it (RadarNet: Adam 3e-2,
+    # batch 8), never the built-in dataset's DenseDepth recipe (its encoder or loss weights).
     radarnet = _flat(make_config("model=radarnet", "fusion=concat"))
-    assert (radarnet["optimizer.lr"], radarnet["data.batch_size"]) == (1e-3, 16)
-    assert "recipe.backbone" not in radarnet
+    assert (radarnet["optimizer.lr"], radarnet["data.batch_size"]) == (3e-2, 8)
+    assert "recipe.backbone" not in radarnet and "recipe.loss_weights.ssim" not in radarnet
+    assert radarnet["backbone.name"] == "resnet18"
 
 
 def test_a_recipe_can_name_the_pixel_term_and_smoke_its_encoder(make_config) -> None:
