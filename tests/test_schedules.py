@@ -252,12 +252,7 @@ def test_the_built_in_dataset_brings_each_model_its_own_recipe(
         batches,
     )
     assert cfg.dataset.num_train == 6400
-    schedule = instantiate(cfg.scheduler)(optimizer, total_steps=1000)
-    rates = []
-    for _ in range(1000):
-        rates.append(optimizer.param_groups[0]["lr"])
-        optimizer.step()
-        schedule.step()
+    rates = _lrs(instantiate(cfg.scheduler)(optimizer, total_steps=1000), 1000)
     assert rates[0] < 3e-2 * 0.05 and max(rates) == pytest.approx(3e-2)
     assert rates.index(max(rates)) in range(49, 51)  # the peak after 5 % of the steps
     assert rates[-1] == pytest.approx(3e-4, rel=0.05)  # decays to 1 % of the peak
