@@ -772,6 +772,32 @@ def test_bad_multi_key_compare_is_rejected(spec) -> None:
         main(["x", "--compare", spec])
 
 
+def test_where_keeps_one_configuration_and_its_seeds(models_grid, capsys) -> None:
+    root, runs, night = models_grid
+    argv = [str(root), "--where", "model=densedepth,fusion=concat", "--by", "condition"]
+    assert main([*argv, "--format", "csv"]) == 0
+    rows = _csv(capsys)
+    assert len(rows) == 1 and rows[0]["Modality"] == "RGB-Fusion"
+    per_seed = [runs["densedepth", "concat", s][night].mean() for s in (1, 2, 3)]
+    assert float(rows[0]["rmse_night_mean"]) == pytest.approx(np.mean(per_seed), rel=1e-5)
+    # the kept runs alone are compared: Sparse-to-Dense's are gone, RGB is the baseline
+    assert main([str(root), "--where", "model=densedepth", "--compare", "fusion=rgb"]) == 0
+    table = capsys.readouterr().out
+    assert "Sparse-to-Dense" not in table and "RGB-Fusion" in table
+
+
+def test_where_without_a_matching_run_names_the_values_there(models_grid, capsys) -> None:
+    root, _, _ = models_grid
+    err = _refused(capsys, [str(root), "--where", "fusion=add"])
+    assert err == "error: --where fusion=add: no run has it (the runs have fusion: concat, rgb)"
+    with pytest.raises(SystemExit):  # a key the records do not identify runs by
+        main([str(root), "--where", "seed=1"])
+    assert "--where" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([str(root), "--bench", "speed", "--where", "fusion=rgb"])
+    assert "--where is for metrics records" in capsys.readouterr().err
+
+
 def test_first_puts_columns_first(grid, capsys) -> None:
     root, _ = grid
     assert main([str(root), "--by", "condition", "--first", "night"]) == 0

@@ -33,6 +33,10 @@ Options:
                                  groups may differ from it in all those keys. With ``model``, a
                                  group may differ in backbone and loss too (each model has its
                                  own). Needs each run's ``per_image.csv``.
+  --where KEY=VALUE[,...]        keep only the runs with these values (same KEYs as --compare),
+                                 e.g. ``fusion=rgb,model=densedepth``: one configuration of a
+                                 sweep, its seeds. A value no run has is refused, naming those
+                                 the runs have.
   --first COL[,COL...]           put these --by columns first, after ``all`` (e.g. night,fog;
                                  --by model's default); each must be a column of the runs.
   --resamples N                  bootstrap resamples of --compare (default 10000).
@@ -77,7 +81,7 @@ import io
 import os
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -164,7 +168,8 @@ def log_wandb(
 
 
 def _compare_option(text: str) -> dict[str, str]:
-    """``fusion=rgb`` or ``model=densedepth,fusion=rgb`` → the baseline's key → value."""
+    """``fusion=rgb`` or ``model=densedepth,fusion=rgb`` → key → value (of ``--compare``'s
+    baseline, or of the runs ``--where`` keeps)."""
     baseline: dict[str, str] = {}
     for pair in text.split(","):
         key, sep, value = pair.partition("=")
@@ -233,6 +238,12 @@ def _parser() -> argparse.ArgumentParser:
         "backbone, model; several separated by commas), with bootstrap CIs",
     )
     parser.add_argument(
+        "--where",
+        type=_compare_option,
+        metavar="KEY=VALUE[,...]",
+        help="keep only the runs with these values (KEY as --compare), e.g. fusion=rgb",
+    )
+    parser.add_argument(
         "--first",
         type=_first_option,
         metavar="COL[,...]",
@@ -279,6 +290,20 @@ def _check_first(runs: Sequence[Any], section: str | None, first: Sequence[str])
         )
 
 
+def select_groups(groups: Sequence[dict], where: Mapping[str, str]) -> list[dict]:
+    """The groups (:func:`group_runs`) whose identity has every ``key=value`` of ``where``.
+
+    Raises:
+        ValueError: no group has them; names the values the groups have for each key.
+    """
+    kept = [g for g in groups if all(str(g[k]) == v for k, v in where.items())]
+    if not kept:
+        have = "; ".join(f"{k}: {', '.join(sorted({str(g[k]) for g in groups}))}" for k in where)
+        spec = ",".join(f"{k}={v}" for k, v in where.items())
+        raise ValueError(f"--where {spec}: no run has it (the runs have {have})")
+    return kept
+
+
 def command_line(argv: Sequence[str]) -> str:
     """The command a generated table or figure names: ``python -m fusion_depth.report ...``,
     quoted so that it pastes back into a shell."""
@@ -317,7 +342,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     if args.bench:
-        metrics_only = ("by", "compare", "metric", "first", "wandb")
+        metrics_only = ("by", "compare", "where", "metric", "first", "wandb")
         given = [f"--{k}" for k in metrics_only if getattr(args, k)]
         if given:
             parser.error(f"--bench tabulates bench records; {given[0]} is for metrics records")
@@ -334,11 +359,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         runs = load_runs(args.directory)
         if not runs:
             raise ValueError(f"{args.directory}: no {METRICS_FILE} found below it")
+        groups = group_runs(runs)
+        if args.where:
+            groups = select_groups(groups, args.where)
+            runs = [run for group in groups for run in group["runs"]]
         if args.first:
             _check_first(runs, section, args.first)
         first = args.first or (HARD_CONDITIONS if by_model else ())
         preset = runs_preset(runs)
-        groups = group_runs(runs)
         baseline = args.compare or (default_baseline(groups) if by_model else None)
         comparisons = None
         if baseline:
