@@ -9,8 +9,12 @@ from pathlib import Path
 import pytest
 import torch
 from helpers import compose_config, save_untrained_checkpoint
+from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig, OmegaConf
+
+from fusion_depth.config import SWEEPS_DIR
+from fusion_depth.config.hydra_main import register_sweeps
 
 # Under pytest-xdist (pyproject's addopts) every worker trains at once: each gets its share of
 # the cores, and the runs it starts as subprocesses inherit that share, so that the workers do
@@ -40,6 +44,16 @@ LONGEST_FILES = (
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     rank = {name: i for i, name in enumerate(LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: order within a file
+
+
+@pytest.fixture
+def packaged_sweeps():
+    """The sweeps registered in Hydra's config store as the commands do, removed afterwards
+    (the store is process-wide: other tests compose the sweep files by path)."""
+    register_sweeps()
+    yield
+    for path in Path(SWEEPS_DIR).glob("*.yaml"):
+        ConfigStore.instance().repo.pop(path.name, None)
 
 
 @pytest.fixture(scope="session", autouse=True)

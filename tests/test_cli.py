@@ -20,7 +20,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from PIL import Image
 
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values, validate_config
-from fusion_depth.config.hydra_main import register_sweeps, unknown_key_message, user_message
+from fusion_depth.config.hydra_main import unknown_key_message, user_message
 from fusion_depth.config.run_dirs import job_subdir, run_dir, run_dirname, sweep_dir
 from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
@@ -134,18 +134,6 @@ def test_other_problems_are_left_to_hydra() -> None:
     GlobalHydra.instance().clear()
     with initialize_config_dir(CONF_DIR, version_base="1.3"):
         compose("train", overrides=["trainer.max_epochs=3", "+trainer.max_epoch=3"])
-
-
-@pytest.fixture
-def packaged_sweeps():
-    """The sweeps registered in Hydra's config store as the commands do, removed afterwards
-    (the store is process-wide: other tests compose the sweep files by path)."""
-    from hydra.core.config_store import ConfigStore
-
-    register_sweeps()
-    yield
-    for path in Path(SWEEPS_DIR).glob("*.yaml"):
-        ConfigStore.instance().repo.pop(path.name, None)
 
 
 def test_the_packaged_sweeps_are_found_by_name(packaged_sweeps) -> None:

@@ -7,13 +7,18 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import re
+import shlex
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
+from helpers import compose_config
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
-from fusion_depth.config import validate_config
+from fusion_depth.config import SWEEPS_DIR, validate_config
 from fusion_depth.errors import ConfigError
 from fusion_depth.optim.schedules import (
     SCHEDULE_ARGUMENTS,
@@ -222,6 +227,50 @@ def test_each_model_brings_its_published_recipe(make_config) -> None:
     assert _lr_by_epoch(radarnet, 12) == pytest.approx([1e-3] * 12)
     assert radarnet.optimizer.weight_decay == 0.0
     assert (radarnet.data.batch_size, radarnet.trainer.max_epochs) == (16, 450)
+
+
+def _reference_command(sweep: str) -> list[str]:
+    """The overrides of the search sweep's reference trial, as its header prints them: the
+    ``python -m fusion_depth.train --config-name <sweep> -m`` command that names a scheduler."""
+    header = "\n".join(
+        line.removeprefix("#").strip()
+        for line in Path(SWEEPS_DIR, f"{sweep}.yaml").read_text().splitlines()
+        if line.startswith("#")
+    ).replace("\\\n", " ")
+    commands = [c for c in header.splitlines() if c.startswith("python -m fusion_depth.train")]
+    (command,) = [c for c in commands if re.search(r"\bscheduler=", c)]
+    given = shlex.split(command, comments=True)
+    given = given[given.index("--config-name") + 3 :]  # after "--config-name <sweep> -m"
+    # the sweeper's values for the keys not given (each a single value in these sweeps)
+    params = OmegaConf.load(Path(SWEEPS_DIR, f"{sweep}.yaml")).hydra.sweeper.params
+    keys = {override.partition("=")[0] for override in given}
+    return [*given, *(f"{key}={value}" for key, value in params.items() if key not in keys)]
+
+
+@pytest.mark.parametrize(
+    "sweep,optimizer_class,epochs,expected",
+    [
+        (  # sparse-to-dense.pytorch's main.py: lr_init * 0.1 ** (epoch // 5), lr_init 0.01
+            "procedural_recipe_search_sparse_to_dense",
+            torch.optim.SGD,
+            15,
+            [0.01 * 0.1 ** (epoch // 5) for epoch in range(15)],
+        ),
+        ("procedural_recipe_search_radarnet", torch.optim.Adam, 4, [1e-3] * 4),  # one rate
+    ],
+)
+def test_a_searchs_reference_trial_trains_with_its_authors_schedule(
+    packaged_sweeps, tmp_path, sweep, optimizer_class, epochs, expected
+) -> None:
+    """The command a search sweep's header gives for its reference trial composes, on the
+    built-in dataset, to the authors' schedule, not the built-in recipe's warm-up + cosine
+    (there, ``scheduler=for_<model>`` names the recipe's)."""
+    cfg = compose_config(_reference_command(sweep), tmp_path / "run", config_name=sweep)
+    validate_config(cfg)
+    optimizer = instantiate(cfg.optimizer)(params=[torch.nn.Parameter(torch.zeros(1))])
+    assert type(optimizer) is optimizer_class
+    assert cfg.trainer.max_epochs == epochs
+    assert _lr_by_epoch(cfg, epochs) == pytest.approx(expected)
 
 
 @pytest.mark.parametrize(
