@@ -151,6 +151,18 @@ def test_int8_records_its_calibration_and_measured_accuracy(
     assert info["verified"]["checked"] == "mean_rel_diff"
     assert info["verified"]["runtime"].endswith("CPU, int8")
     assert b"FakeQuantize" in out.read_bytes()  # NNCF's quantization nodes are in the graph
+    # Every convolution's weights are int8 (dequantized by a Multiply) but the first's, which
+    # takes the sparse metres, and the last's, which gives the depth: those stay fp32 Constants.
+    convolutions = [
+        op
+        for op in ov.Core().read_model(out).get_ordered_ops()
+        if op.get_type_name() == "Convolution"
+    ]
+    float_weights = [
+        op.input_value(1).get_node().get_type_name() == "Constant" for op in convolutions
+    ]
+    assert len(float_weights) > 2 and float_weights[0] and float_weights[-1]
+    assert not any(float_weights[1:-1])
     accuracy = info["accuracy"]
     assert (accuracy["split"], accuracy["dataset"]) == ("val", "procedural")
     assert accuracy["images"] == smoke_dataset["reader"]["num_val"] == 4
