@@ -232,17 +232,16 @@ def test_each_model_brings_its_published_recipe(make_config) -> None:
 def _reference_command(sweep: str) -> list[str]:
     """The overrides of the search sweep's reference trial, as its header prints them: the
     ``python -m fusion_depth.train --config-name <sweep> -m`` command that names a scheduler."""
+    text = Path(SWEEPS_DIR, f"{sweep}.yaml").read_text()
     header = "\n".join(
-        line.removeprefix("#").strip()
-        for line in Path(SWEEPS_DIR, f"{sweep}.yaml").read_text().splitlines()
-        if line.startswith("#")
+        line.removeprefix("#").strip() for line in text.splitlines() if line.startswith("#")
     ).replace("\\\n", " ")
     commands = [c for c in header.splitlines() if c.startswith("python -m fusion_depth.train")]
     (command,) = [c for c in commands if re.search(r"\bscheduler=", c)]
     given = shlex.split(command, comments=True)
     given = given[given.index("--config-name") + 3 :]  # after "--config-name <sweep> -m"
     # the sweeper's values for the keys not given (each a single value in these sweeps)
-    params = OmegaConf.load(Path(SWEEPS_DIR, f"{sweep}.yaml")).hydra.sweeper.params
+    params = OmegaConf.create(text).hydra.sweeper.params
     keys = {override.partition("=")[0] for override in given}
     return [*given, *(f"{key}={value}" for key, value in params.items() if key not in keys)]
 

@@ -96,6 +96,7 @@ from fusion_depth.report.compare import (
     COMPARE_KEYS,
     build_comparison_table,
     compare_to_baseline,
+    group_matches,
 )
 from fusion_depth.report.groups import (
     BY_SECTIONS,
@@ -296,7 +297,7 @@ def select_groups(groups: Sequence[dict], where: Mapping[str, str]) -> list[dict
     Raises:
         ValueError: no group has them; names the values the groups have for each key.
     """
-    kept = [g for g in groups if all(str(g[k]) == v for k, v in where.items())]
+    kept = [g for g in groups if group_matches(g, where)]
     if not kept:
         have = "; ".join(f"{k}: {', '.join(sorted({str(g[k]) for g in groups}))}" for k in where)
         spec = ",".join(f"{k}={v}" for k, v in where.items())

@@ -323,7 +323,7 @@ def compare_to_baseline(
     """
     spec = compare_spec(baseline)
     _check_compare_request(groups, baseline, spec, by)
-    baselines = [g for g in groups if _is_baseline(g, baseline)]
+    baselines = [g for g in groups if group_matches(g, baseline)]
     if not baselines:
         have = "; ".join(sorted({",".join(f"{k}={g[k]}" for k in baseline) for g in groups}))
         raise ValueError(
@@ -335,7 +335,7 @@ def compare_to_baseline(
     keys = tuple(baseline)
     comparisons = []
     for g in groups:
-        if _is_baseline(g, baseline):
+        if group_matches(g, baseline):
             continue
         for base in _closest_baselines(g, baselines, identity):
             diff, conditions, seeds = paired_differences(base, g, metric, load)
@@ -374,9 +374,10 @@ def _check_compare_request(
             raise ValueError(f"--compare {spec}: no runs with {key}={value} (have: {have})")
 
 
-def _is_baseline(group: dict, baseline: Mapping[str, str]) -> bool:
-    """Whether ``group`` has every ``key: value`` of ``baseline``."""
-    return all(group[k] == v for k, v in baseline.items())
+def group_matches(group: dict, values: Mapping[str, str]) -> bool:
+    """Whether ``group`` (:func:`~fusion_depth.report.groups.group_runs`) has every
+    ``key: value`` of ``values`` (``--compare``'s baseline, or the runs ``--where`` keeps)."""
+    return all(group[k] == v for k, v in values.items())
 
 
 def _closest_baselines(
