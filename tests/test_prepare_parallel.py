@@ -32,6 +32,7 @@ from fusion_depth.data.cache import (
     prepare_options,
     prepare_split,
 )
+from fusion_depth.utils.atomic import write_atomic
 
 FRAMES = [f"scene/{k:03d}" for k in range(12)]
 PARAMS = {"dataset": "toy", "size": [8, 12]}
@@ -250,6 +251,45 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_temporary_file(tmp_path, serial
     assert 0 < done < len(FRAMES), why
     assert not list((cache / "train").glob(".0*")), "a temporary file was left"
     prepare(cache)
+    assert file_bytes(cache) == serial
+
+
+def test_a_worker_killed_mid_write_leaves_no_temporary_file_but_anothers_stays(
+    tmp_path, serial, monkeypatch
+) -> None:
+    """A worker dies (SIGKILL) between creating frame 3's temporary array and renaming it:
+    prepare stops with one line and removes that file, but not the temporary file of a frame
+    another live process claims; once that process is gone, the next run gives the serial
+    cache."""
+    cache, split = tmp_path / "worker-killed", tmp_path / "worker-killed" / "train"
+    real_write, parent = cache_module.write_npy, os.getpid()
+
+    def half_then_killed(tmp: Path) -> None:
+        tmp.write_bytes(b"\x93NUMPY half")
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    def killed_mid_write(path, array) -> None:
+        if os.getpid() != parent and Path(path).name.startswith("000003."):
+            write_atomic(path, half_then_killed, suffix=".npy")
+        real_write(path, array)
+
+    monkeypatch.setattr(cache_module, "write_npy", killed_mid_write)
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        split.mkdir(parents=True)
+        (split / CLAIMS_DIR).mkdir()
+        claim = {"host": os.uname().nodename, "pid": other.pid}
+        (split / CLAIMS_DIR / "000011").write_text(json.dumps(claim))
+        theirs = split / ".000011.image.npy.x1y2z3.npy"
+        theirs.write_bytes(b"\x93NUMPY being written")
+        with pytest.raises(RuntimeError, match="a prepare worker died"):
+            prepare(cache, PrepareOptions(workers=2))
+        assert [p.name for p in split.glob(".0*")] == [theirs.name]
+    finally:
+        other.kill()
+        other.wait()
+    monkeypatch.setattr(cache_module, "write_npy", real_write)
+    prepare(cache, PrepareOptions(workers=2))
     assert file_bytes(cache) == serial
 
 

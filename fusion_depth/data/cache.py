@@ -427,7 +427,8 @@ def _prepare_frames(
 
     The first error a worker raises (with ``on_error="raise"``), an interrupt, or a worker that
     dies stops every worker: each gets SIGTERM, which ends its write in progress by removing
-    the temporary file, as any exception does.
+    the temporary file, as any exception does. A temporary file that a worker did not remove
+    (killed, or signalled again during its cleanup) is removed once every worker has stopped.
     """
     workers = min(workers, len(todo))
     if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
@@ -470,6 +471,9 @@ def _prepare_frames(
             progress.advance(counter.value - seen)
         finally:
             _stop(processes)
+            # A worker stopped mid-write (a second signal during its cleanup, or SIGKILL) may
+            # have left a temporary file: with every worker gone, no one will rename it.
+            _remove_orphaned_temporaries(job.split_dir)
         order = {frame_id: i for i, frame_id in enumerate(job.frame_ids)}
         # A worker that skipped a frame and exited leaves a stale claim, so another worker may
         # try the frame again: it is reported once.
@@ -627,6 +631,15 @@ def _remove_temporaries(split_dir: Path, stem: str | None = None) -> None:
     pattern = f".{stem}.*" if stem is not None else ".[0-9]*.*"
     for path in split_dir.glob(pattern):
         path.unlink(missing_ok=True)
+
+
+def _remove_orphaned_temporaries(split_dir: Path) -> None:
+    """The temporary files whose frame no live process claims: their writer is gone. Those of a
+    frame another process is making now stay (it holds the claim until after its renames)."""
+    for path in split_dir.glob(".[0-9]*.*"):
+        claim = split_dir / CLAIMS_DIR / path.name.split(".")[1]
+        if not claim.exists() or _stale(claim):
+            path.unlink(missing_ok=True)
 
 
 # --- the split's state ---------------------------------------------------------------------------
