@@ -436,7 +436,10 @@ def _prepare_frames(
         workers = 1
     with Progress(len(todo), description, unit="frames", transient=True, logger=log) as progress:
         if workers <= 1:
-            return _work(job, todo, progress.advance)
+            try:
+                return _work(job, todo, progress.advance)
+            finally:  # an interrupt between a temporary file's creation and its write's guard
+                _remove_orphaned_temporaries(job.split_dir)
         context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
         counter = context.Value("i", 0)
         results = context.SimpleQueue()
