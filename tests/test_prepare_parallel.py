@@ -293,6 +293,26 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_file_but_anothers_stays(
     assert file_bytes(cache) == serial
 
 
+def test_an_interrupt_before_a_writes_guard_leaves_no_temporary_file_in_one_process(
+    tmp_path, monkeypatch
+) -> None:
+    """Ctrl-C lands after frame 3's temporary file is created but before the write's own
+    cleanup is armed: prepare in one process still leaves no temporary file."""
+    cache, real_write = tmp_path / "one-process", cache_module.write_npy
+
+    def interrupted_after_creating(path, array) -> None:
+        path = Path(path)
+        if path.name.startswith("000003."):
+            (path.parent / f".{path.name}.x1y2z3.npy").write_bytes(b"")
+            raise KeyboardInterrupt
+        real_write(path, array)
+
+    monkeypatch.setattr(cache_module, "write_npy", interrupted_after_creating)
+    with pytest.raises(KeyboardInterrupt):
+        prepare(cache, PrepareOptions(workers=1))
+    assert not list((cache / "train").glob(".0*"))
+
+
 @pytest.mark.parametrize(
     "error",
     [

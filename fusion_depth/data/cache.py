@@ -628,10 +628,14 @@ def _release(split_dir: Path, stem: str) -> None:
         pass
 
 
+_TEMPORARIES = ".[0-9]*.*"
+"""The hidden temporary files of every frame's writes: ``.000123.image.npy.<random>.npy``."""
+
+
 def _remove_temporaries(split_dir: Path, stem: str | None = None) -> None:
     """The hidden temporary files (``.000123.image.npy.<random>.npy``) that writes killed
     before their rename left, of frame ``stem`` (None: of every frame)."""
-    pattern = f".{stem}.*" if stem is not None else ".[0-9]*.*"
+    pattern = f".{stem}.*" if stem is not None else _TEMPORARIES
     for path in split_dir.glob(pattern):
         path.unlink(missing_ok=True)
 
@@ -639,7 +643,7 @@ def _remove_temporaries(split_dir: Path, stem: str | None = None) -> None:
 def _remove_orphaned_temporaries(split_dir: Path) -> None:
     """The temporary files whose frame no live process claims: their writer is gone. Those of a
     frame another process is making now stay (it holds the claim until after its renames)."""
-    for path in split_dir.glob(".[0-9]*.*"):
+    for path in split_dir.glob(_TEMPORARIES):
         claim = split_dir / CLAIMS_DIR / path.name.split(".")[1]
         if not claim.exists() or _stale(claim):
             path.unlink(missing_ok=True)
