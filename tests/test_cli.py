@@ -471,6 +471,20 @@ def test_a_run_folder_hydra_cannot_create_is_a_short_error_naming_it(tmp_path) -
 
 
 @pytest.mark.slow
+def test_a_run_folder_on_a_full_disk_is_a_short_error_naming_the_file(tmp_path) -> None:
+    """The first file Hydra writes in the run folder goes to a full disk (/dev/full answers
+    every write with ENOSPC, as a full file system does): one line naming that file."""
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").symlink_to("/dev/full")
+    done = run_module(["fusion_depth.train", "experiment=smoke", f"hydra.run.dir={run}"], tmp_path)
+    assert done.returncode == 1
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert lines[0].startswith(f"{run}/.hydra/config.yaml: the disk is full"), done.stderr
+    assert "Traceback" not in done.stderr and len(lines) == 2  # and the HYDRA_FULL_ERROR hint
+
+
+@pytest.mark.slow
 def test_unknown_key_on_the_command_line_is_one_line(tmp_path) -> None:
     done = run_module(["fusion_depth.train", "experiment=smoke", "trainer.max_epoch=3"], tmp_path)
     assert done.returncode == 1

@@ -16,6 +16,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -368,3 +369,154 @@ def test_an_unrelated_write_error_is_not_called_a_full_disk(tmp_path, monkeypatc
 def test_bad_options_are_refused_naming_the_key(options, message) -> None:
     with pytest.raises(ValueError, match=message):
         PrepareOptions(**options)
+
+
+# --- processes: workers die with their parent, takeovers are atomic, Ctrl-C is quick ------------
+
+
+def _children(pid: int) -> list[int]:
+    """The pids of ``pid``'s child processes (Linux's /proc)."""
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a process that still runs (a zombie waiting to be reaped does not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")
+
+
+# Work a frame does in C, where no Python signal handler runs until it returns (as SuperLU's
+# solve in the filling): about 5 s on a 2024 CPU.
+BUSY = "sum(range(400_000_000))"
+
+
+def test_a_parents_sigkill_leaves_no_worker_running(tmp_path) -> None:
+    cache = tmp_path / "orphans"
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from test_prepare_parallel import PrepareOptions, make_frame, prepare
+        from pathlib import Path
+        prepare(Path({str(cache)!r}), PrepareOptions(workers=2),
+                make=lambda f: ({BUSY}, make_frame(f))[1])
+        """
+    )
+    process = subprocess.Popen([sys.executable, "-c", script], start_new_session=True)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(_children(process.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        workers = _children(process.pid)
+        assert len(workers) == 2
+        time.sleep(0.5)  # both are inside a frame's C work now
+        process.kill()  # the parent alone, as kill -9 <pid>
+        process.wait(timeout=10)
+        time.sleep(2.0)
+        assert [pid for pid in workers if _running(pid)] == []
+    finally:
+        for pid in [process.pid, *workers]:
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
+        process.wait(timeout=10)
+
+
+def _take_over_in_rounds(split: Path, rounds: int, start: Any, done: Any, wins: Any) -> None:
+    for _ in range(rounds):
+        start.wait()
+        wins.put(cache_module._claim(split, "000000"))
+        done.wait()
+
+
+def test_two_takeovers_of_one_dead_claim_never_both_succeed(tmp_path) -> None:
+    """Two processes find the same dead claim at once, 2000 times: each time exactly one of
+    them holds it afterwards (without the lock both did, about half the time)."""
+    split, rounds = tmp_path / "train", 2000
+    (split / CLAIMS_DIR).mkdir(parents=True)
+    script = "import os; print(os.getpid())"
+    dead = subprocess.run([sys.executable, "-c", script], capture_output=True)
+    stale = json.dumps({"host": os.uname().nodename, "pid": int(dead.stdout)})
+    context = multiprocessing.get_context("fork")
+    start, done, wins = context.Barrier(3), context.Barrier(3), context.SimpleQueue()
+    racers = [
+        context.Process(target=_take_over_in_rounds, args=(split, rounds, start, done, wins))
+        for _ in range(2)
+    ]
+    for racer in racers:
+        racer.start()
+    both = 0
+    try:
+        for _ in range(rounds):
+            (split / CLAIMS_DIR / "000000").write_text(stale)
+            start.wait(timeout=30)
+            results = [wins.get(), wins.get()]
+            both += results == [True, True]
+            assert results.count(True) >= 1, "nobody took over a dead claim"
+            (split / CLAIMS_DIR / "000000").unlink()
+            done.wait(timeout=30)
+    finally:
+        for racer in racers:
+            racer.join(30)
+    assert both == 0, f"both processes held the claim in {both} of {rounds} rounds"
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_the_command_ends_within_2_s_in_one_line_leaving_nothing(tmp_path) -> None:
+    """``python -m fusion_depth.prepare`` with two workers, each deep in a frame's C work, gets
+    Ctrl-C: it exits within 2 s with status 130 and one line on stderr, no worker runs on, and
+    the cache holds finished frames only (no temporary file, no claim); the next run finishes
+    it."""
+    from helpers.topview import write_folder
+
+    root, cache = write_folder(tmp_path / "topview"), tmp_path / "cache"
+    argv = [
+        "fusion_depth.prepare",
+        "dataset=topview",
+        f"dataset.root={root}",
+        "dataset.height=64",
+        "dataset.width=96",
+        "prepare.workers=2",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+    script = textwrap.dedent(
+        f"""
+        import signal, sys
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal
+        sys.argv = {argv!r}
+        import fusion_depth.data.topview as topview
+        real = topview.load_frame
+        topview.load_frame = lambda *args, **kwargs: ({BUSY}, real(*args, **kwargs))[1]
+        from fusion_depth.prepare.cli import main
+        main()
+        """
+    )
+    env = {**os.environ, "FUSION_DEPTH_CACHE": str(cache)}
+    process = subprocess.Popen(
+        [sys.executable, "-c", script], start_new_session=True, stderr=subprocess.PIPE, env=env
+    )
+    deadline = time.monotonic() + 120
+    while not list(cache.glob("topview/*/train/0*.json")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    workers = _children(process.pid)
+    time.sleep(0.3)  # into the next frames' C work
+    os.killpg(process.pid, signal.SIGINT)
+    pressed = time.monotonic()
+    _, stderr = process.communicate(timeout=60)
+    took = time.monotonic() - pressed
+    lines = [line for line in stderr.decode().splitlines() if line.strip()]
+    why = f"exit {process.returncode} after {took:.1f} s, stderr: {lines}"
+    assert process.returncode == 130 and took < 2.0, why
+    assert len(lines) == 1 and lines[0].startswith("prepare: interrupted"), why
+    assert len(workers) == 2 and not [pid for pid in workers if _running(pid)], why
+    (folder,) = cache.glob("topview/*")
+    hidden = [str(p.relative_to(folder)) for p in folder.rglob(".*")]
+    assert hidden == [], f"left behind: {hidden}"
+    assert not list(folder.glob("*/index.json"))  # interrupted before the first split's end
+    done = subprocess.run([sys.executable, "-m", "fusion_depth.prepare", *argv[1:]], env=env)
+    assert done.returncode == 0
+    assert len(list(folder.glob("*/index.json"))) == 3

@@ -6,6 +6,9 @@ import json
 import logging
 import os
 import pickle
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ import torch
 
 from fusion_depth.data import procedural
 from fusion_depth.data.procedural import CONDITIONS, ProceduralDepth, render_frame
+from fusion_depth.utils.atomic import host_tag
 
 H, W = 64, 96
 SMALL = {"height": H, "width": W, "num_train": 10, "num_val": 5, "num_test": 5}
@@ -313,3 +317,69 @@ def test_preview_cli_writes_a_grid(tmp_path):
     with Image.open(out) as image:
         assert image.size[1] == 5 * 64 + 4 * 4  # one row per condition
         assert image.size[0] == 3 * 96 + 2 * 4  # image | depth | sparse
+
+
+# --- a damaged or leftover cache mends itself ----------------------------------------------------
+
+
+def _delete_image(split_dir):
+    (split_dir / "image.npy").unlink()
+
+
+def _truncate_depth(split_dir):
+    path = split_dir / "depth.npy"
+    os.truncate(path, path.stat().st_size // 2)
+
+
+def _cut_conditions(split_dir):
+    path = split_dir / "conditions.json"
+    path.write_text(path.read_text()[:7])
+
+
+def _empty_sparse(split_dir):
+    (split_dir / "sparse.npy").write_bytes(b"")
+
+
+@pytest.mark.parametrize("damage", [_delete_image, _truncate_depth, _cut_conditions, _empty_sparse])
+def test_a_damaged_split_is_generated_again_without_hand_work(tmp_path, damage, caplog):
+    first = ProceduralDepth("val", tmp_path, **SMALL)
+    before = _arrays(first)
+    damage(first.split_dir)
+    with caplog.at_level(logging.WARNING, logger="fusion_depth.data.procedural"):
+        again = ProceduralDepth("val", tmp_path, **SMALL)
+    assert f"{again.split_dir}: " in caplog.text and "generating the split again" in caplog.text
+    for name, array in _arrays(again).items():
+        assert np.array_equal(array, before[name]), name
+    assert again.conditions == first.conditions
+    assert sorted(p.name for p in again.cache_dir.iterdir()) == ["meta.json", "val"]
+
+
+def test_an_edited_meta_json_is_refused_in_one_line(tmp_path):
+    first = ProceduralDepth("val", tmp_path, **SMALL)
+    meta = first.cache_dir / "meta.json"
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "height": 32}))
+    with pytest.raises(ValueError, match=r"meta.json: records height=32, but the folder") as info:
+        ProceduralDepth("val", tmp_path, **SMALL)
+    assert "\n" not in str(info.value)
+
+
+def test_a_killed_runs_temporary_folder_goes_and_a_live_ones_stays(tmp_path):
+    first = ProceduralDepth("val", tmp_path, **SMALL)
+    script = "import os; print(os.getpid())"
+    dead = subprocess.run([sys.executable, "-c", script], capture_output=True)
+    tag = host_tag()
+    orphan = first.cache_dir / f".train.tmp.p{int(dead.stdout)}h{tag}.0e737453"
+    live = first.cache_dir / f".train.tmp.p{os.getpid()}h{tag}.1f848564"
+    older = first.cache_dir / ".train.tmp-926-0e737453"  # as 0.2.0 named them
+    stale_meta = first.cache_dir / ".meta.json.tmp-926-5a5a5a5a"
+    for folder in (orphan, live, older):
+        folder.mkdir()
+        (folder / "image.npy").write_bytes(b"\x93NUMPY half")
+    stale_meta.write_text("{")
+    hour_ago = time.time() - 3600
+    for path in (older, stale_meta):
+        os.utime(path, (hour_ago, hour_ago))
+    ProceduralDepth("val", tmp_path, **SMALL)
+    assert sorted(p.name for p in first.cache_dir.iterdir()) == sorted(
+        ["meta.json", "val", live.name]
+    )

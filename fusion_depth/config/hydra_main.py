@@ -24,6 +24,7 @@ and exiting), and reports them itself, as Hydra would, only shorter.
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -144,10 +145,53 @@ def _override_message(err: OverrideParseException) -> str:
     return message
 
 
+def _run_folder() -> str | None:
+    """The run folder Hydra made for this job, when it has got that far."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        return str(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
+    except Exception:  # noqa: BLE001 - a half-set Hydra config: no folder to name
+        return None
+
+
+def _file_being_written(err: BaseException) -> str | None:
+    """The name of a file open for writing in the innermost frames of ``err``'s traceback: what
+    a write that failed without naming its file (``f.write`` in Hydra or Lightning) wrote."""
+    frames = []
+    tb = err.__traceback__
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    for frame in reversed(frames[-3:]):
+        for value in frame.f_locals.values():
+            name, mode = getattr(value, "name", None), getattr(value, "mode", None)
+            if isinstance(name, str) and isinstance(mode, str) and set(mode) & set("wax+"):
+                return name
+    return None
+
+
+def _disk_full_message(err: BaseException) -> str | None:
+    """One line for a write that failed for want of space, naming where: the file, else (a
+    write deep in Hydra or Lightning that did not say) the run folder."""
+    if not isinstance(err, OSError) or err.errno not in (errno.ENOSPC, errno.EDQUOT):
+        return None
+    if err.filename is None and err.strerror and "disk is full" in err.strerror:
+        return err.strerror  # the package's own message (a full cache), which names it
+    where = err.filename or _file_being_written(err) or _run_folder() or "the output folder"
+    return (
+        f"{where}: the disk is full ({os.strerror(err.errno)}); free space there or write the "
+        "run elsewhere (hydra.run.dir=...), then run the command again"
+    )
+
+
 def user_message(err: BaseException) -> str | None:
     """The message to show instead of a traceback for an error about the user's input (data,
     config values, files), or None for anything else (a bug keeps its traceback)."""
     text = str(err).strip()
+    full = _disk_full_message(err)
+    if full is not None:
+        return full
     if _study_without_completed_trial(err):
         return (
             "hparams_search: no trial of the study completed, so it has no best configuration; "
@@ -246,6 +290,9 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
             os.environ["HYDRA_FULL_ERROR"] = "1"
             try:
                 return hydra_task()
+            except KeyboardInterrupt:
+                sys.stderr.write(f"fusion_depth.{config_name}: interrupted (Ctrl-C)" + os.linesep)
+                sys.exit(130)
             except Exception as err:  # noqa: BLE001 - reported as Hydra would, only shorter
                 unknown = unknown_key_message(err, overrides)
                 if unknown is not None:

@@ -8,7 +8,11 @@ and fills in two methods:
 * :meth:`~PreparedDataset.list_frames`: every split's frames, ``{frame id: what
   load_frame needs}``, in the same order every time, and a digest of their files
   (:class:`FrameList`);
-* :meth:`~PreparedDataset.load_frame`: one frame's arrays at the network's input size.
+* :meth:`~PreparedDataset.load_frame`: one frame's arrays at the network's input size;
+
+and may fill in a third, :meth:`~PreparedDataset.frame_files`: the files one frame is made from.
+Their sizes, times and content digests go into the frame's record, so a file replaced later
+prepares that frame again; without it the frames' files are trusted once prepared.
 
 The base class checks the split, ``on_error`` and the input size, resolves the dataset folder,
 prepares every split once into the shared cache (:mod:`fusion_depth.data.cache`: atomic,
@@ -22,7 +26,7 @@ from __future__ import annotations
 import importlib.util
 import numbers
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -159,6 +163,15 @@ class PreparedDataset(PreparedSplit):
         """
         raise NotImplementedError
 
+    def frame_files(self, split: str, frame: Any) -> list[Path] | None:
+        """The files :meth:`load_frame` reads for ``frame`` (a value of :meth:`list_frames`), or
+        None (the default): the frames' files are then trusted once prepared. Each frame's
+        record keeps their sizes, modification times and SHA-256 digests; on every load a file
+        whose size or time changed is read again, and a frame whose file's content changed is
+        prepared again (:func:`~fusion_depth.data.cache.is_prepared`). Cheap: builds paths,
+        reads nothing."""
+        return None
+
     def load_frame(self, split: str, frame: Any) -> PreparedFrame:
         """One frame of ``split`` (a value of :meth:`list_frames`) at ``height x width``; a radar
         dataset adds its returns as ``radar_points``
@@ -222,9 +235,12 @@ class PreparedDataset(PreparedSplit):
         cache = cache_dir(cache_root, self.name, params, read_only=self.read_only())
         folders = {split: self.split_folder(split) for split in SPLITS}
         needed = list(dict.fromkeys(folders.values()))  # in SPLITS order, each folder once
-        if all(is_prepared(cache, folder) for folder in needed):
-            return cache
         first = {folder: next(s for s in SPLITS if folders[s] == folder) for folder in needed}
+        ready = [
+            is_prepared(cache, folder, list(frames[first[folder]]), params) for folder in needed
+        ]
+        if all(ready):
+            return cache
         if self.on_error == "raise":
             for folder in needed:
                 self.check_frames(first[folder], frames[first[folder]])
@@ -241,10 +257,21 @@ class PreparedDataset(PreparedSplit):
                         split, by_id[frame_id]
                     ),
                     params,
+                    self._sources(split, by_id),
                 )
             )
         prepare_splits(jobs, on_error=self.on_error)
         return cache
+
+    def _sources(self, split: str, by_id: dict[str, Any]) -> Callable[[str], list[Path]] | None:
+        """``frame id -> its files`` for the split's job, or None when the dataset names none."""
+        if type(self).frame_files is PreparedDataset.frame_files:
+            return None
+
+        def files(frame_id: str) -> list[Path]:
+            return self.frame_files(split, by_id[frame_id]) or []
+
+        return files
 
 
 def check_dataset(ds: DictConfig, fusion: str) -> None:

@@ -27,18 +27,29 @@ to another folder, so they are prepared again (and the old folder is left alone:
 
 Several processes may prepare one split: workers (``prepare.workers``), shards across machines
 (``prepare.shard``/``prepare.num_shards``) or two commands. Each claims a frame before making it
-(a file in ``.claims/``), so a frame is made once; the process that finds every frame present
-writes ``index.json`` (:func:`prepare_split`, :class:`PrepareOptions`).
+(a file in ``.claims/``), so a frame is made once; a dead process's claim is taken over by one
+process at a time (under ``.claims/.lock``); the process that finds every frame present writes
+``index.json`` (:func:`prepare_split`, :class:`PrepareOptions`). Workers die with their parent
+and ignore Ctrl-C: the parent stops them, and removes the claims and temporary files no live
+process holds.
 
-Each file goes through a temporary name and a rename, and a frame counts as done only once its
-``.json`` exists, so an interrupted prepare restarts where it stopped and never leaves a file a
-later run would read as valid (a ``.json`` that does not parse, or names another frame, is
-prepared again). A split with ``index.json`` is complete: preparing it again does nothing. Other
-settings hash to another folder, leaving this one alone. The user's dataset folder is only ever
-read. A damaged cache file (an index that does not parse, a truncated array, one of another
-dtype, maps of different sizes, a radar points file truncated or of another dtype or shape) raises
-:class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache
-folder prepares it again.
+Each file goes through a temporary name (which names its writer, so the next run removes a
+killed writer's), is flushed to disk and renamed, and a frame counts as done only once its
+``.json`` exists, so an interrupted prepare (or a power loss) restarts where it stopped and never
+leaves a file a later run would read as valid (a ``.json`` that does not parse, names another
+frame, or whose arrays are not the sizes it records, is prepared again). Other settings hash to
+another folder, leaving this one alone. The user's dataset folder is only ever read.
+
+A split with ``index.json`` is complete, and verified each time it is loaded
+(:func:`is_prepared`): the index must list the frames the dataset lists, each frame's arrays the
+sizes written, each frame's source files (``000123.json``'s ``sources``: path, size, time and
+SHA-256, when the dataset names them) their recorded size and time or, where those changed, their
+content. A changed frame is prepared again, a damaged index rebuilt from the frames' records;
+``meta.json`` recording other settings than the folder's name stands for is refused
+(:func:`check_meta`). A damaged file found while reading (a truncated array, one of another dtype,
+maps of different sizes, a radar points file truncated or of another dtype or shape) raises
+:class:`~fusion_depth.data.depth_io.DataFileError` naming it; deleting the cache folder prepares
+it again.
 
 Broken frames. A frame whose files cannot be read (``make_frame`` raises a ``ValueError``, e.g.
 :class:`~fusion_depth.data.depth_io.DataFileError`, or an ``OSError``, e.g. FileNotFoundError)
@@ -66,6 +77,7 @@ import os
 import shutil
 import signal
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -81,6 +93,7 @@ from fusion_depth.data import RADAR_POINT_FIELDS, EncodedSample, Sample
 from fusion_depth.data.depth_io import (
     MAX_ENCODED_DEPTH,
     DataFileError,
+    check_npy,
     depth_beyond_encoding,
     encode_depth,
     read_npy,
@@ -95,8 +108,14 @@ from fusion_depth.data.radar_points import (
     read_points,
     write_points,
 )
-from fusion_depth.utils.atomic import write_json_atomic
+from fusion_depth.utils.atomic import remove_orphaned_temporaries, write_json_atomic
+from fusion_depth.utils.processes import die_with_parent, pid_alive
 from fusion_depth.utils.progress import Progress
+
+try:  # takeovers of a dead process's claim are serialised by a lock file (not on Windows)
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None  # type: ignore[assignment]
 
 # Bump when the cache layout changes, so old caches are not reused (3: .npy arrays, were PNGs).
 PREPARED_VERSION = 3
@@ -107,10 +126,17 @@ OnError = Literal["raise", "skip"]
 # What make_frame raises for a frame's bad or missing files (DataFileError is a ValueError).
 FRAME_ERRORS = (ValueError, OSError)
 CLAIMS_DIR = ".claims"  # a split's frames being prepared right now, one file each
+CLAIMS_LOCK = ".lock"  # in CLAIMS_DIR: held while a dead process's claim is taken over
 SHARDED_FILE = ".sharded.json"  # a split a sharded prepare has started and not finished
 # A claim older than this is taken over (its process died on another machine; on this one a
 # claim is taken over as soon as its process is gone). A frame takes seconds.
 CLAIM_STALE_S = 600.0
+# How long stopped workers get to end their writes before they are killed (an interrupt must
+# end prepare within a second or two, even with a worker deep in a long C call).
+STOP_GRACE_S = 1.0
+# The index.json of each split this process verified, by its (mtime, size, frame list):
+# training builds a reader per split, and each would verify every split again.
+_VERIFIED: dict[str, tuple] = {}
 
 log = logging.getLogger(__name__)
 
@@ -189,20 +215,31 @@ class SkippedFramesError(ValueError):
 class IncompleteSplitError(ValueError):
     """A split a sharded prepare started is not complete yet: ``done`` of ``total`` frames are
     in the cache. Raised by a shard once its own frames are done while others are still
-    missing, and by training on such a split (it does not prepare frames other shards own)."""
+    missing, and by training on such a split (it does not prepare frames other shards own).
+    ``hint``: one line when another sharded prepare of the dataset runs with other settings
+    (the shards were started differently, so each waits for frames the others never make)."""
 
-    def __init__(self, split_dir: Path, done: int, total: int, num_shards: int | None) -> None:
+    def __init__(
+        self,
+        split_dir: Path,
+        done: int,
+        total: int,
+        num_shards: int | None,
+        hint: str | None = None,
+    ) -> None:
         self.split_dir, self.done, self.total, self.num_shards = split_dir, done, total, num_shards
+        self.hint = hint
         self.splits: list[IncompleteSplitError] = [self]  # prepare_splits: every such split
         shards = f" by {num_shards} shards" if num_shards else ""
         super().__init__(
             f"{split_dir}: {done} of {total} frames prepared, {total - done} missing: the split "
             f"is being prepared{shards} and is usable once every shard has finished (run the "
             "missing shards, or python -m fusion_depth.prepare without shards to finish it here)"
+            + (f"; {hint}" if hint else "")
         )
 
     def __reduce__(self):
-        return type(self), (self.split_dir, self.done, self.total, self.num_shards)
+        return type(self), (self.split_dir, self.done, self.total, self.num_shards, self.hint)
 
 
 class CacheFullError(OSError):
@@ -282,6 +319,9 @@ class SplitJob:
     frame_ids: Sequence[str]
     make_frame: Callable[[str], PreparedFrame]
     params: dict[str, Any]
+    # The files frame ``id`` is made from (PreparedDataset.frame_files), whose sizes, times
+    # and content digests its record keeps, so that a changed file prepares the frame again.
+    sources: Callable[[str], Sequence[Path]] | None = None
 
 
 def check_on_error(on_error: str) -> OnError:
@@ -324,8 +364,92 @@ def cache_dir(
     return cache
 
 
-def is_prepared(cache: Path, split: str) -> bool:
-    return (cache / split / INDEX_FILE).is_file()
+def frames_digest(frame_ids: Sequence[str]) -> str:
+    """16 hex digits naming the frame list, in order (``index.json``'s ``frames_digest``)."""
+    return hashlib.sha256(json.dumps(list(frame_ids)).encode()).hexdigest()[:16]
+
+
+def is_prepared(
+    cache: Path,
+    split: str,
+    frame_ids: Sequence[str] | None = None,
+    params: dict[str, Any] | None = None,
+) -> bool:
+    """Whether ``split`` is prepared in ``cache`` and still what made it: its ``index.json``
+    lists ``frame_ids`` (when given; else the frames its digest names), each frame's arrays
+    have the sizes they were written with, and each source file its size and time (or, where
+    they changed, its content digest). ``meta.json`` must record ``params`` (when given).
+
+    A split that fails is made ready to prepare again, keeping what is still valid: a changed
+    frame's record is removed (the frame is made again), a damaged index is removed (it is
+    written again from the frames' records); a warning names what changed. The leftovers of a
+    prepare killed after its index was written (claims, shard marker, temporary files) are
+    removed. A split verified once stays verified in this process while its index is unchanged.
+
+    Raises:
+        DataFileError: ``meta.json`` records other settings than ``params`` (it was edited, or
+            the folder copied from another one), naming the first that differs.
+    """
+    split_dir = cache / split
+    index = split_dir / INDEX_FILE
+    if params is not None and index.is_file():
+        check_meta(cache, params)
+    try:
+        stat = index.stat()
+    except FileNotFoundError:
+        return False
+    wanted = None if frame_ids is None else frames_digest(frame_ids)
+    if _VERIFIED.get(str(split_dir)) == (stat.st_mtime_ns, stat.st_size, wanted):
+        return True
+    problem = _verify_split(split_dir, frame_ids)
+    if problem is not None:
+        log.warning("%s: %s; preparing what changed again", split_dir, problem)
+        index.unlink(missing_ok=True)
+        return False
+    _remove_leftovers(split_dir)
+    stat = index.stat()
+    _VERIFIED[str(split_dir)] = (stat.st_mtime_ns, stat.st_size, wanted)
+    return True
+
+
+def check_meta(cache: Path, params: dict[str, Any]) -> None:
+    """Writes ``cache/meta.json`` (the settings the folder's name is a digest of, with
+    :data:`PREPARED_VERSION`) where it is missing; one that records others is refused
+    (:func:`check_settings_file`)."""
+    check_settings_file(cache / META_FILE, {"prepared_version": PREPARED_VERSION, **params}, cache)
+
+
+def check_settings_file(path: Path, settings: dict[str, Any], folder: Path) -> None:
+    """Writes ``settings`` to ``path`` (``meta.json``: what made the cache ``folder``, whose
+    name is a digest of them) where it is missing; one that records other settings is refused.
+
+    The temporary files a killed write of ``path`` left are removed.
+
+    Raises:
+        DataFileError: naming ``path`` and the first setting that differs (or saying it is
+            unreadable), and what to do: delete ``folder``.
+    """
+    expected = json.loads(json.dumps(settings))
+    again = f"delete {folder} to prepare it again"
+    remove_orphaned_temporaries(path.parent, [path.name])  # a killed write's
+    try:
+        found = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        write_json_atomic(path, expected)
+        return
+    except (OSError, ValueError, RecursionError) as err:
+        raise DataFileError(path, f"unreadable ({one_line(err, 80)}); {again}") from err
+    if found == expected:
+        return
+    if not isinstance(found, dict):
+        raise DataFileError(path, f"expected the folder's settings as a JSON object; {again}")
+    key = next(k for k in sorted({*found, *expected}) if found.get(k) != expected.get(k))
+    raise DataFileError(
+        path,
+        f"records {key}={json.dumps(found.get(key))}, but the folder's name stands for "
+        f"{key}={json.dumps(expected.get(key))} (the file was edited, or the folder copied); "
+        f"{again}",
+    )
 
 
 def prepare_split(
@@ -336,11 +460,16 @@ def prepare_split(
     params: dict[str, Any],
     *,
     on_error: OnError = "raise",
+    sources: Callable[[str], Sequence[Path]] | None = None,
 ) -> Path:
     """Writes every frame of ``split`` that is not there yet; returns the split folder.
 
     ``frame_ids`` must come in the same order every time (they name the files by position);
-    ``params`` are recorded in ``meta.json`` for a person to see what the cache holds. The
+    ``params`` are recorded in ``meta.json`` for a person to see what the cache holds (one that
+    records others is refused: :func:`check_meta`). ``sources(frame_id)``: the files the frame
+    is made from; each frame's record keeps their sizes, times and content digests, and a
+    frame whose files changed is made again (:func:`is_prepared`). A split with an index is
+    verified before it is used (:func:`is_prepared`). The
     current :class:`PrepareOptions` (:func:`prepare_options`) say which frames this process
     prepares and with how many workers. Each frame is claimed before it is made (a file in
     ``.claims/``), so workers, shards and separate processes on one cache each make a frame
@@ -356,18 +485,21 @@ def prepare_split(
             skipped; the split then has no ``index.json``.
         IncompleteSplitError: frames other shards own are still missing.
         CacheFullError: the cache's disk is full.
+        DataFileError: ``meta.json`` records other settings (:func:`check_meta`).
     """
     check_on_error(on_error)
     options = current_prepare_options()
     split_dir = cache / split
-    if (split_dir / INDEX_FILE).is_file():
+    if is_prepared(cache, split, frame_ids, params):
         log.info("using the prepared %s split in %s", split, split_dir)
         return split_dir
     if not frame_ids:
         raise ValueError(f"split {split!r}: no frames to prepare (settings: {params})")
     with _disk_full_names(cache):
-        write_json_atomic(cache / META_FILE, {"prepared_version": PREPARED_VERSION, **params})
+        cache.mkdir(parents=True, exist_ok=True)
+        check_meta(cache, params)
         split_dir.mkdir(parents=True, exist_ok=True)
+        remove_orphaned_temporaries(split_dir, [INDEX_FILE, SHARDED_FILE])
         sharded = _read_sharded(split_dir)
         if options.num_shards > 1:
             write_json_atomic(split_dir / SHARDED_FILE, {"num_shards": options.num_shards})
@@ -384,7 +516,7 @@ def prepare_split(
             len(positions),
             min(options.workers, max(len(pending), 1)),
         )
-        job = _FrameJob(split_dir, tuple(frame_ids), make_frame, on_error)
+        job = _FrameJob(split_dir, tuple(frame_ids), make_frame, on_error, sources)
         description = f"preparing {cache.parent.name} {split}"
         skipped: list[SkippedFrame] = []
         while pending:
@@ -403,20 +535,56 @@ def prepare_split(
         missing = _missing(split_dir, frame_ids)
         if missing:
             raise IncompleteSplitError(
-                split_dir, len(frame_ids) - len(missing), len(frame_ids), options.num_shards
+                split_dir,
+                len(frame_ids) - len(missing),
+                len(frame_ids),
+                options.num_shards,
+                _other_sharded_settings(cache, split),
             )
         _write_index(split_dir, frame_ids)
     return split_dir
 
 
+def _other_sharded_settings(cache: Path, split: str) -> str | None:
+    """One line naming another cache folder of the same dataset that shards are preparing with
+    other settings, and the settings that differ (None: there is none)."""
+    try:
+        ours = json.loads((cache / META_FILE).read_text(encoding="utf-8"))
+        folders = sorted(cache.parent.iterdir())
+    except (OSError, ValueError, RecursionError):
+        return None
+    for folder in folders:
+        if folder == cache or not (folder / split / SHARDED_FILE).is_file():
+            continue
+        try:
+            theirs = json.loads((folder / META_FILE).read_text(encoding="utf-8"))
+        except (OSError, ValueError, RecursionError):
+            continue
+        if not isinstance(ours, dict) or not isinstance(theirs, dict):
+            continue
+        keys = [k for k in sorted({*ours, *theirs}) if ours.get(k) != theirs.get(k)]
+        if keys:
+            shown = ", ".join(
+                f"{k}={json.dumps(ours.get(k))} here, {json.dumps(theirs.get(k))} there"
+                for k in keys[:3]
+            )
+            return (
+                f"shards are also preparing {folder} with other settings ({shown}): every "
+                "shard must be started with the same settings"
+            )
+    return None
+
+
 @dataclass(frozen=True)
 class _FrameJob:
-    """What every worker of one split needs: where, which frames, how to make one."""
+    """What every worker of one split needs: where, which frames, how to make one, and from
+    which files."""
 
     split_dir: Path
     frame_ids: tuple[str, ...]
     make_frame: Callable[[str], PreparedFrame]
     on_error: OnError
+    sources: Callable[[str], Sequence[Path]] | None = None
 
 
 def _prepare_frames(
@@ -425,10 +593,12 @@ def _prepare_frames(
     """Makes the frames at positions ``todo`` (claimed one by one), in this process or in
     ``workers`` forked ones, with a progress bar or log lines; returns the skipped ones.
 
-    The first error a worker raises (with ``on_error="raise"``), an interrupt, or a worker that
-    dies stops every worker: each gets SIGTERM, which ends its write in progress by removing
-    the temporary file, as any exception does. A temporary file that a worker did not remove
-    (killed, or signalled again during its cleanup) is removed once every worker has stopped.
+    Workers ignore Ctrl-C and die with this process (:func:`~fusion_depth.utils.processes.
+    die_with_parent`). The first error a worker raises (with ``on_error="raise"``), an
+    interrupt, or a worker that dies stops every worker: each gets SIGTERM, which ends its
+    write in progress by removing the temporary file, as any exception does, and SIGKILL after
+    :data:`STOP_GRACE_S`. Once every worker has stopped (a second Ctrl-C does not cut this
+    short), the temporary files and claims no live process holds are removed.
     """
     workers = min(workers, len(todo))
     if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
@@ -439,20 +609,28 @@ def _prepare_frames(
             try:
                 return _work(job, todo, progress.advance)
             finally:  # an interrupt between a temporary file's creation and its write's guard
-                _remove_orphaned_temporaries(job.split_dir)
+                with _interrupts_deferred():
+                    _remove_orphans(job.split_dir)
         context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
         counter = context.Value("i", 0)
         results = context.SimpleQueue()
         processes = [
             context.Process(
-                target=_worker_main, args=(job, todo, k, workers, counter, results), daemon=True
+                target=_worker_main,
+                args=(job, todo, k, workers, counter, results, os.getpid()),
+                daemon=True,
             )
             for k in range(workers)
         ]
         skipped: list[SkippedFrame] = []
         try:
-            for process in processes:
-                process.start()
+            # Forked with SIGINT blocked: a Ctrl-C before a worker ignores it stays pending.
+            old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                for process in processes:
+                    process.start()
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
             reported, seen = 0, 0
             while reported < workers:
                 while not results.empty():
@@ -473,10 +651,12 @@ def _prepare_frames(
                 time.sleep(0.1)
             progress.advance(counter.value - seen)
         finally:
-            _stop(processes)
-            # A worker stopped mid-write (a second signal during its cleanup, or SIGKILL) may
-            # have left a temporary file: with every worker gone, no one will rename it.
-            _remove_orphaned_temporaries(job.split_dir)
+            with _interrupts_deferred():
+                _stop(processes)
+                # A worker stopped mid-write (killed, or signalled again during its cleanup)
+                # may have left a temporary file and its claim: with every worker gone, no one
+                # will rename or release them.
+                _remove_orphans(job.split_dir)
         order = {frame_id: i for i, frame_id in enumerate(job.frame_ids)}
         # A worker that skipped a frame and exited leaves a stale claim, so another worker may
         # try the frame again: it is reported once.
@@ -484,24 +664,50 @@ def _prepare_frames(
         return sorted(unique.values(), key=lambda frame: order[frame.frame_id])
 
 
-def _stop(processes: Sequence[Any]) -> None:
-    """Ends the workers still running: SIGTERM (a clean stop), then SIGKILL after 10 s."""
+@contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C is held back inside the block (in the main thread; it arrives after it), so that
+    pressing it again cannot cut a cleanup short and leave workers or files behind."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+
+
+def _stop(processes: Sequence[Any], grace: float = STOP_GRACE_S) -> None:
+    """Ends the workers still running: SIGTERM (a clean stop), then SIGKILL after ``grace``
+    seconds (a worker inside a long C call does not see SIGTERM until it returns)."""
     for process in processes:
         if process.is_alive():
             process.terminate()
+    deadline = time.monotonic() + grace
     for process in processes:
-        process.join(10)
+        process.join(max(0.0, deadline - time.monotonic()))
         if process.is_alive():
             process.kill()
             process.join()
 
 
 def _worker_main(
-    job: _FrameJob, todo: Sequence[int], start: int, workers: int, counter: Any, results: Any
+    job: _FrameJob,
+    todo: Sequence[int],
+    start: int,
+    workers: int,
+    counter: Any,
+    results: Any,
+    parent: int,
 ) -> None:
-    """A worker: SIGTERM becomes SystemExit (so the write in progress removes its temporary
-    file, as on any exception), then :func:`_work` from its own place in the list, so the first
-    claims do not collide; reports ``("done", skipped)`` or ``("error", exception)``."""
+    """A worker: it dies with ``parent`` and ignores Ctrl-C (the parent stops it), SIGTERM
+    becomes SystemExit (so the write in progress removes its temporary file, as on any
+    exception), then :func:`_work` from its own place in the list, so the first claims do not
+    collide; reports ``("done", skipped)`` or ``("error", exception)``."""
+    die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
     def stop(signum: int, frame: Any) -> None:
         raise SystemExit(128 + signum)
@@ -519,6 +725,8 @@ def _worker_main(
     try:
         with threadpool_limits(limits=threads):
             results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
+    except SystemExit:
+        raise  # stopped by the parent, which is no longer listening
     except BaseException as err:
         try:
             results.put(("error", err))
@@ -544,7 +752,7 @@ def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> l
             made = True
             _remove_temporaries(job.split_dir, stem)
             try:
-                frame = job.make_frame(frame_id)
+                sources, frame = _sources_and_frame(job, frame_id)
                 _check_frame(frame, frame_id)
             except FRAME_ERRORS as err:
                 if job.on_error == "raise":
@@ -553,13 +761,27 @@ def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> l
                 log.warning("skipped %s: %s", frame_id, skipped[-1].reason)
                 release = False  # the other workers leave it; a later run tries it again
                 continue
-            _write_frame(job.split_dir, stem, frame_id, frame)
+            _write_frame(job.split_dir, stem, frame_id, frame, sources)
         finally:
             if release:
                 _release(job.split_dir, stem)
             if made:
                 advance()
     return skipped
+
+
+def _sources_and_frame(job: _FrameJob, frame_id: str) -> tuple[list | None, PreparedFrame]:
+    """The frame's :func:`source_entries` (None without ``job.sources``), then the frame. The
+    digests come first: a file that changes while the frame is made reads as changed later. A
+    file that cannot be read lets ``make_frame`` fail first, with its own message."""
+    if job.sources is None:
+        return None, job.make_frame(frame_id)
+    try:
+        sources = source_entries(job.sources(frame_id))
+    except OSError:
+        job.make_frame(frame_id)  # names the file and what it should be
+        raise
+    return sources, job.make_frame(frame_id)
 
 
 # --- claims: which process makes a frame -------------------------------------------------------
@@ -571,24 +793,77 @@ def _claim_text() -> str:
 
 def _claim(split_dir: Path, stem: str) -> bool:
     """Whether this process now holds ``stem``'s claim: created it, or took over one whose
-    process is gone (:func:`_stale`)."""
+    process is gone (:func:`_take_over`)."""
     path = split_dir / CLAIMS_DIR / stem
-    path.parent.mkdir(exist_ok=True)
     for _ in range(3):
         try:
+            path.parent.mkdir(exist_ok=True)
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileNotFoundError:  # the index's writer removed the claims folder just now
-            path.parent.mkdir(exist_ok=True)
             continue
         except FileExistsError:
-            if not _stale(path):
+            if not _take_over(path):
                 return False
-            path.unlink(missing_ok=True)  # a dead claim: try once more
-            continue
+            continue  # a dead claim, removed: create ours (only one creator can win)
         with os.fdopen(fd, "w") as f:
             f.write(_claim_text())
         return True
     return False
+
+
+def _take_over(path: Path) -> bool:
+    """Removes the claim at ``path`` if its process is gone (:func:`_stale`); whether it did (or
+    found it gone). Under the claims folder's lock: without it, two processes could both judge
+    one dead claim stale, and the second remove the new claim the first has just created."""
+    with _claims_lock(path.parent):
+        return _remove_if_stale(path)
+
+
+def _remove_if_stale(path: Path) -> bool:
+    """Under the claims lock: removes the claim at ``path`` if it is stale; whether it is gone
+    now. A claim that appears while this runs (created without the lock, so by a live process)
+    is never removed: only the file judged stale, by its inode."""
+    try:
+        inode = path.stat().st_ino
+    except FileNotFoundError:
+        return True
+    if not _stale(path):
+        return False
+    try:
+        if path.stat().st_ino == inode:
+            path.unlink()
+    except FileNotFoundError:
+        pass
+    return True
+
+
+@contextmanager
+def _claims_lock(folder: Path) -> Iterator[None]:
+    """Holds the exclusive lock of ``folder/.lock`` (an ``flock``, freed by the kernel when its
+    holder dies). The lock file may be removed by a cleanup (:func:`_remove_dead_claims`, which
+    holds it then): a lock taken on a file no longer at its name is taken again. Without
+    ``fcntl`` (Windows, which cannot fork workers either) there is no lock."""
+    if fcntl is None:  # pragma: no cover - Windows
+        yield
+        return
+    path = folder / CLAIMS_LOCK
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except FileNotFoundError:  # the folder is gone, and every claim with it
+            yield
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                current = os.fstat(fd).st_ino == os.stat(path).st_ino
+            except FileNotFoundError:
+                current = False
+            if current:
+                yield
+                return
+        finally:
+            os.close(fd)
 
 
 def _stale(path: Path) -> bool:
@@ -606,17 +881,7 @@ def _stale(path: Path) -> bool:
     if not isinstance(owner, dict) or owner.get("host") != socket.gethostname():
         return age > CLAIM_STALE_S
     pid = owner.get("pid")
-    if pid == os.getpid():
-        return True
-    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:  # alive, another user's
-        return False
-    return False
+    return pid == os.getpid() or not pid_alive(pid)
 
 
 def _release(split_dir: Path, stem: str) -> None:
@@ -628,33 +893,173 @@ def _release(split_dir: Path, stem: str) -> None:
         pass
 
 
+def _remove_dead_claims(split_dir: Path) -> None:
+    """Removes the claims whose process is gone (:func:`_stale`), and the claims folder when
+    none is left: a stopped or interrupted prepare leaves no claim behind."""
+    folder = split_dir / CLAIMS_DIR
+    if not folder.is_dir():
+        return
+    with _claims_lock(folder):
+        try:
+            claims = [p for p in folder.iterdir() if p.name != CLAIMS_LOCK]
+        except FileNotFoundError:
+            return
+        live = [p for p in claims if not _remove_if_stale(p)]
+        if not live:
+            (folder / CLAIMS_LOCK).unlink(missing_ok=True)
+            try:
+                folder.rmdir()
+            except OSError:  # another process claimed a frame just now
+                pass
+
+
+# The hidden temporary files of every frame's writes: .000123.image.npy.<owner>.<random>.npy
 _TEMPORARIES = ".[0-9]*.*"
-"""The hidden temporary files of every frame's writes: ``.000123.image.npy.<random>.npy``."""
 
 
 def _remove_temporaries(split_dir: Path, stem: str | None = None) -> None:
-    """The hidden temporary files (``.000123.image.npy.<random>.npy``) that writes killed
-    before their rename left, of frame ``stem`` (None: of every frame)."""
+    """The hidden temporary files (``.000123.image.npy.<owner>.<random>.npy``) that writes
+    killed before their rename left, of frame ``stem`` (None: of every frame)."""
     pattern = f".{stem}.*" if stem is not None else _TEMPORARIES
     for path in split_dir.glob(pattern):
         path.unlink(missing_ok=True)
 
 
-def _remove_orphaned_temporaries(split_dir: Path) -> None:
-    """The temporary files whose frame no live process claims: their writer is gone. Those of a
-    frame another process is making now stay (it holds the claim until after its renames)."""
+def _remove_orphans(split_dir: Path) -> None:
+    """The temporary files whose frame no live process claims (their writer is gone), then the
+    dead claims (:func:`_remove_dead_claims`). Those of a frame another process is making now
+    stay (it holds the claim until after its renames)."""
     for path in split_dir.glob(_TEMPORARIES):
         claim = split_dir / CLAIMS_DIR / path.name.split(".")[1]
         if not claim.exists() or _stale(claim):
             path.unlink(missing_ok=True)
+    _remove_dead_claims(split_dir)
+
+
+def _remove_leftovers(split_dir: Path) -> None:
+    """What a prepare killed after writing the index leaves: claims, the shard marker and
+    temporary files (the split is complete, so no process still writes one)."""
+    if (split_dir / CLAIMS_DIR).exists():
+        shutil.rmtree(split_dir / CLAIMS_DIR, ignore_errors=True)
+    (split_dir / SHARDED_FILE).unlink(missing_ok=True)
+    _remove_temporaries(split_dir)
+    remove_orphaned_temporaries(split_dir, [INDEX_FILE, SHARDED_FILE])
 
 
 # --- the split's state ---------------------------------------------------------------------------
 
 
+def source_entries(paths: Sequence[Path]) -> list[list]:
+    """``[path, size, mtime_ns, sha256]`` of each file (the digest's first 32 hex digits), what
+    a frame's record keeps of the files it was made from.
+
+    Raises:
+        OSError: a file cannot be read (FileNotFoundError for a missing one), naming it.
+    """
+    entries = []
+    for path in paths:
+        stat = os.stat(path)
+        entries.append([str(path), stat.st_size, stat.st_mtime_ns, _file_digest(path)])
+    return entries
+
+
+def _file_digest(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+    return digest.hexdigest()[:32]
+
+
+def _sources_problem(entries: Any) -> tuple[str | None, list | None]:
+    """(why the recorded source files no longer match, or None; the entries with new sizes and
+    times where only those changed and the content is the same, or None). A file whose size and
+    time are as recorded is trusted without reading it."""
+    if not isinstance(entries, list):
+        return "its record's sources are damaged", None
+    refreshed, changed = [], False
+    for entry in entries:
+        if not (isinstance(entry, list) and len(entry) == 4 and isinstance(entry[0], str)):
+            return "its record's sources are damaged", None
+        path, size, mtime, digest = entry
+        try:
+            stat = os.stat(path)
+        except OSError:
+            return f"{path} is gone", None
+        if (stat.st_size, stat.st_mtime_ns) != (size, mtime):
+            try:
+                if stat.st_size != size or _file_digest(path) != digest:
+                    return f"{path} changed", None
+            except OSError:
+                return f"{path} cannot be read", None
+            changed = True
+        refreshed.append([path, stat.st_size, stat.st_mtime_ns, digest])
+    return None, refreshed if changed else None
+
+
+def _arrays_problem(split_dir: Path, record: dict, headers: bool) -> str | None:
+    """Why the frame's arrays are not those its record names (missing, or of another size
+    than written), or None. A record from before sizes were kept (version 0.2.0) has its
+    arrays' headers checked against their sizes when ``headers`` (a resumed prepare)."""
+    stem = split_dir / record["file"]
+    sizes = record.get("arrays")
+    if isinstance(sizes, dict):
+        for name, size in sizes.items():
+            path = f"{stem}.{name}.npy"
+            try:
+                if os.stat(path).st_size != size:
+                    return f"{path} is not the size it was written with"
+            except OSError:
+                return f"{path} is missing"
+        return None
+    if not headers:
+        return None
+    expected: list[tuple[str, Any, tuple]] = [
+        ("image", np.uint8, (None, None, 3)),
+        ("sparse", np.uint16, (None, None)),
+        ("depth", np.uint16, (None, None)),
+    ]
+    if record["filled"]:
+        expected.append(("filled", np.uint16, (None, None)))
+    if record.get("radar_points"):
+        expected.append(("radar", np.float32, (None, len(RADAR_POINT_FIELDS))))
+    for name, dtype, shape in expected:
+        try:
+            check_npy(f"{stem}.{name}.npy", dtype, shape, "prepared array")
+        except (OSError, ValueError) as err:
+            return one_line(err, 200)
+    return None
+
+
+def _frame_problem(
+    split_dir: Path, record: dict, headers: bool = False
+) -> tuple[str | None, dict | None]:
+    """(why the prepared frame of ``record`` is stale, or None; the record with its sources'
+    new sizes and times where only those changed, or None)."""
+    problem = _arrays_problem(split_dir, record, headers)
+    if problem is not None or "sources" not in record:
+        return problem, None
+    problem, refreshed = _sources_problem(record["sources"])
+    if problem is not None or refreshed is None:
+        return problem, None
+    return None, {**record, "sources": refreshed}
+
+
 def _done_record(split_dir: Path, i: int, frame_id: str) -> dict | None:
-    record = _read_record(split_dir / f"{i:06d}.json")
-    return record if record is not None and record.get("id") == frame_id else None
+    """Frame ``i``'s record when the frame is done and current (its arrays whole, its sources
+    unchanged; a record whose sources only changed in time is rewritten), else None."""
+    path = split_dir / f"{i:06d}.json"
+    record = _read_record(path)
+    if record is None or record.get("id") != frame_id:
+        return None
+    problem, refreshed = _frame_problem(split_dir, record, headers=True)
+    if problem is not None:
+        log.warning("%s: %s; preparing frame %s again", path, problem, frame_id)
+        return None
+    if refreshed is not None:
+        write_json_atomic(path, refreshed)
+        return refreshed
+    return record
 
 
 def _missing(split_dir: Path, frame_ids: Sequence[str]) -> list[int]:
@@ -689,12 +1094,68 @@ def _write_index(split_dir: Path, frame_ids: Sequence[str]) -> None:
         records = [_done_record(split_dir, i, frame_id) for i, frame_id in enumerate(frame_ids)]
         if any(record is None for record in records):
             return  # cannot happen: every frame was there a moment ago, and frames stay
-        write_json_atomic(split_dir / INDEX_FILE, {"split": split_dir.name, "frames": records})
-        (split_dir / SHARDED_FILE).unlink(missing_ok=True)
-        _remove_temporaries(split_dir)
+        index = {"split": split_dir.name, "frames_digest": frames_digest(frame_ids)}
+        write_json_atomic(split_dir / INDEX_FILE, {**index, "frames": records})
+        _remove_leftovers(split_dir)
         log.info("prepared %d frames into %s", len(records), split_dir)
     finally:
         shutil.rmtree(split_dir / CLAIMS_DIR, ignore_errors=True)
+
+
+def _verify_split(split_dir: Path, frame_ids: Sequence[str] | None) -> str | None:
+    """Why the prepared split in ``split_dir`` is not what made it (None: it is): its index is
+    damaged or lists other frames than ``frame_ids`` (or than its digest names), or frames
+    changed (:func:`_frame_problem`; their records are removed, so those frames are made
+    again). Records whose sources only changed in time are rewritten, index included."""
+    index = split_dir / INDEX_FILE
+    try:
+        data = json.loads(index.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as err:
+        return f"{INDEX_FILE} is unreadable ({one_line(err, 80)})"
+    problem = index_problem(data, frame_ids)
+    if problem is not None:
+        return f"{INDEX_FILE} {problem}"
+    frames, stale, refreshed = data["frames"], [], False
+    for k, record in enumerate(frames):
+        problem, new = _frame_problem(split_dir, record)
+        if problem is not None:
+            stale.append(problem)
+            (split_dir / f"{record['file']}.json").unlink(missing_ok=True)
+        elif new is not None:
+            frames[k], refreshed = new, True
+            write_json_atomic(split_dir / f"{record['file']}.json", new)
+    if stale:
+        return f"{len(stale)} of {len(frames)} frames changed since they were prepared ({stale[0]})"
+    if refreshed:
+        write_json_atomic(index, data)
+    return None
+
+
+def index_problem(data: Any, frame_ids: Sequence[str] | None = None) -> str | None:
+    """What is wrong with the parsed ``index.json`` ``data``, or None: it must be as
+    :func:`prepare_split` writes it, each frame ``i`` in file ``i`` once, listing ``frame_ids``
+    when given, and the frames its ``frames_digest`` names (an index of version 0.2.0 has none)."""
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(frames, list) or not all(_valid_record(f) for f in frames):
+        return (
+            'is not {"split": name, "frames": [{"id", "file", "condition", "filled"}, ...]} as '
+            "prepare_split writes it"
+        )
+    if not frames:
+        return "lists no frames"
+    if len({bool(frame.get("radar_points")) for frame in frames}) > 1:
+        return "has some frames with radar points and others without, expected all or none"
+    ids = [frame["id"] for frame in frames]
+    if any(frame["file"] != f"{i:06d}" for i, frame in enumerate(frames)):
+        return "does not list each frame once, in the order of its files"
+    if len(set(ids)) != len(ids):
+        return "lists a frame more than once"
+    if frame_ids is not None and ids != list(frame_ids):
+        return f"lists {len(ids)} frames, other than the dataset's {len(frame_ids)}"
+    digest = data.get("frames_digest")
+    if digest is not None and digest != frames_digest(ids):
+        return "lists other frames than its frames_digest names"
+    return None
 
 
 @contextmanager
@@ -722,16 +1183,23 @@ def _disk_full_names(cache: Path) -> Iterator[None]:
         ) from err
 
 
-def _write_frame(split_dir: Path, stem: str, frame_id: str, frame: PreparedFrame) -> dict:
-    """Write a checked frame's arrays, then its record; returns the record."""
-    write_npy(split_dir / f"{stem}.image.npy", frame.image)
+def _write_frame(
+    split_dir: Path, stem: str, frame_id: str, frame: PreparedFrame, sources: list | None = None
+) -> dict:
+    """Write a checked frame's arrays (each flushed to disk), then its record, with each
+    array's size and, when given, the source files' :func:`source_entries`; returns the
+    record."""
+    arrays = {"image": frame.image}
     for name in ("sparse", "depth", "filled"):
         depth = getattr(frame, name)
         if depth is not None:
-            write_npy(split_dir / f"{stem}.{name}.npy", encode_depth(depth))
+            arrays[name] = encode_depth(depth)
+    for name, array in arrays.items():
+        write_npy(split_dir / f"{stem}.{name}.npy", array)
     if frame.radar_points is not None:
         write_points(split_dir / f"{stem}.radar.npy", frame.radar_points)
-    record = {
+        arrays["radar"] = frame.radar_points
+    record: dict[str, Any] = {
         "id": frame_id,
         "file": stem,
         "condition": frame.condition,
@@ -741,6 +1209,9 @@ def _write_frame(split_dir: Path, stem: str, frame_id: str, frame: PreparedFrame
         record["radar_points"] = True
     if frame.frame_box is not None:
         record["frame_box"] = [int(v) for v in frame.frame_box]
+    record["arrays"] = {name: os.stat(split_dir / f"{stem}.{name}.npy").st_size for name in arrays}
+    if sources is not None:
+        record["sources"] = sources
     # Last, so the frame counts as done only once every array is in place.
     write_json_atomic(split_dir / f"{stem}.json", record)
     return record
@@ -770,7 +1241,13 @@ def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> 
     for job in jobs:
         try:
             prepare_split(
-                job.cache, job.split, job.frame_ids, job.make_frame, job.params, on_error=on_error
+                job.cache,
+                job.split,
+                job.frame_ids,
+                job.make_frame,
+                job.params,
+                on_error=on_error,
+                sources=job.sources,
             )
         except SkippedFramesError as err:
             reports += err.reports
@@ -915,20 +1392,10 @@ class PreparedSplit:
             data = json.loads(index.read_text(encoding="utf-8"))
         except (OSError, ValueError, RecursionError) as err:
             raise DataFileError(index, f"unreadable prepared index ({err}); {again}") from err
-        frames = data.get("frames") if isinstance(data, dict) else None
-        if not isinstance(frames, list) or not all(_valid_record(f) for f in frames):
-            raise DataFileError(
-                index,
-                'expected {"split": name, "frames": [{"id", "file", "condition", "filled"}, '
-                f"...]}} as prepare_split writes it; {again}",
-            )
-        if not frames:
-            raise DataFileError(index, "the split has no frames")
-        if len({bool(frame.get("radar_points")) for frame in frames}) > 1:
-            raise DataFileError(
-                index,
-                f"some frames have radar points and others not, expected all or none; {again}",
-            )
+        problem = index_problem(data)
+        if problem is not None:
+            raise DataFileError(index, f"{problem}; {again}")
+        frames = data["frames"]
         self.frames: list[dict] = frames
         self.use_filled = use_filled
         self.conditions = [frame["condition"] for frame in self.frames]

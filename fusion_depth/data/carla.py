@@ -637,5 +637,8 @@ class CarlaDepth(PreparedDataset):
     def settings(self) -> dict:
         return {"conditions": self.conditions_kept, "max_range": self.max_range}
 
+    def frame_files(self, split: str, frame: CarlaFrame) -> list[Path]:
+        return [frame.rgb, frame.depth, frame.radar]
+
     def load_frame(self, split: str, frame: CarlaFrame) -> PreparedFrame:
         return load_frame(frame, self.height, self.width, self.max_range)

@@ -20,6 +20,7 @@ import os
 import struct
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
@@ -284,6 +285,29 @@ def read_npy(
             is not what its header promises (truncated, or a header claiming more than the file
             holds: nothing is allocated for it).
     """
+    return _npy(path, dtype, shape, what, hint, read=True)
+
+
+def check_npy(
+    path: str | os.PathLike,
+    dtype: np.dtype | type,
+    shape: tuple[int | None, ...],
+    what: str,
+    hint: str = "",
+) -> tuple[int, ...]:
+    """The shape of the ``.npy`` file at ``path``, checked as :func:`read_npy` checks it (header,
+    dtype, shape, size) without reading its data. Raises as :func:`read_npy`."""
+    return _npy(path, dtype, shape, what, hint, read=False)
+
+
+def _npy(
+    path: str | os.PathLike,
+    dtype: np.dtype | type,
+    shape: tuple[int | None, ...],
+    what: str,
+    hint: str,
+    read: bool,
+) -> Any:
     path = Path(path)
     dtype = np.dtype(dtype)
     expected = f"{dtype} ({', '.join('N' if n is None else str(n) for n in shape)})"
@@ -313,6 +337,8 @@ def read_npy(
                     f"{what} of {size} data bytes, its header promises {dtype} {got_shape} "
                     f"({count * dtype.itemsize} bytes): truncated or damaged{tail}",
                 )
+            if not read:
+                return tuple(got_shape)
             array = np.fromfile(f, dtype=dtype, count=count)
     except DataFileError:
         raise

@@ -493,6 +493,13 @@ class KittiDepth(PreparedDataset):
     def check_frames(self, split: str, frames: dict[str, KittiFrame]) -> None:
         check_files(list(frames.values()), self.root, self.raw_root, split)
 
+    def frame_files(self, split: str, frame: KittiFrame) -> list[Path]:
+        return [
+            frame.image(self.root, self.raw_root),
+            frame.groundtruth(self.root),
+            frame.velodyne(self.root),
+        ]
+
     def load_frame(self, split: str, frame: KittiFrame) -> PreparedFrame:
         settings = FrameSettings(
             self.root,

@@ -725,7 +725,7 @@ class NuScenesDepth(PreparedDataset):
             name
             for i, name in enumerate(SPLITS)
             if folders[name] not in [folders[s] for s in SPLITS[:i]]
-            and not is_prepared(*folders[name])
+            and not is_prepared(*folders[name], params=sources[name][0])
         ]
         if todo:
             settings = FrameSettings(
@@ -790,6 +790,9 @@ def _prepare(
                 tokens,
                 lambda token, nusc=nusc, s=split_settings: load_frame(devkit, nusc, token, s),
                 params,
+                lambda token, nusc=nusc, s=split_settings: [
+                    path for path, _ in frame_files(nusc, nusc.get("sample", token), s)
+                ],
             )
         )
     prepare_splits(jobs, on_error=on_error)

@@ -66,9 +66,11 @@ from fusion_depth.data._procedural_render import sample_weather, shade
 from fusion_depth.data._procedural_scene import SKY_ID, cast_primary, sample_scene
 from fusion_depth.data._procedural_sensors import lidar_map, radar_returns
 from fusion_depth.data.base import check_conditions, check_size, check_split
-from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, DataFileError, short_reason
+from fusion_depth.data.cache import check_settings_file
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, DataFileError, check_npy, short_reason
 from fusion_depth.data.encoding import decode_sample, encode_sample
 from fusion_depth.data.radar_points import check_max_points, pad_points, point_rows
+from fusion_depth.utils.atomic import fsync_file, owner_tag, remove_orphaned_temporaries
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SENSORS = ("radar", "lidar")
@@ -243,19 +245,41 @@ class ProceduralDepth(Dataset):
         self.cache_dir = Path(root) / hashlib.sha256(text.encode()).hexdigest()[:12]
         self.split_dir = self.cache_dir / split
         self._length = int(counts[split])
-        if not _complete(self.split_dir, self.array_names):
+        if self.cache_dir.is_dir():
+            check_settings_file(self.cache_dir / "meta.json", self.params, self.cache_dir)
+            remove_orphaned_temporaries(self.cache_dir, SPLITS)
+        problem = _split_problem(self.split_dir, self._expected())
+        if problem is not None:
+            if self.split_dir.exists():
+                log.warning("%s: %s; generating the split again", self.split_dir, problem)
             self._generate()
         self._arrays: dict[str, np.ndarray] | None = None
         self.conditions: list[str] = json.loads((self.split_dir / "conditions.json").read_text())
+
+    def _expected(self) -> dict[str, tuple]:
+        """``name -> (dtype, shape)`` of each array of the split, and ``conditions.json``'s
+        list (under ``"conditions"``)."""
+        p = self.params
+        n, h, w = self._length, p["height"], p["width"]
+        shapes = {
+            "image": (np.uint8, (n, h, w, 3)),
+            "depth": (np.uint16, (n, h, w)),
+            "sparse": (np.uint16, (n, h, w)),
+            RADAR_ARRAY: (np.float32, (n, p.get("max_radar_points"), len(RADAR_POINT_FIELDS))),
+        }
+        expected: dict[str, tuple] = {name: shapes[name] for name in self.array_names}
+        expected["conditions"] = tuple(p["conditions"][i % len(p["conditions"])] for i in range(n))
+        return expected
 
     def _generate(self) -> None:
         """Renders the split into a private temporary folder, then renames it into place, so a
         reader only ever sees a complete split."""
         self.cache_dir.mkdir(parents=True, exist_ok=True)
-        _write_atomic(self.cache_dir / "meta.json", json.dumps(self.params, indent=2) + "\n")
+        check_settings_file(self.cache_dir / "meta.json", self.params, self.cache_dir)
         p = self.params
         n, h, w = self._length, p["height"], p["width"]
-        tmp = self.cache_dir / f".{self.split}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        # Named after this process, so that a later run removes it if this one is killed.
+        tmp = self.cache_dir / f".{self.split}.tmp.{owner_tag()}.{uuid.uuid4().hex[:8]}"
         tmp.mkdir()
         start = time.perf_counter()
         try:
@@ -272,10 +296,11 @@ class ProceduralDepth(Dataset):
                     (n, p["max_radar_points"], len(RADAR_POINT_FIELDS)),
                 )
             del out  # created at full size; the renderers open them for writing
-            conditions = [p["conditions"][i % len(p["conditions"])] for i in range(n)]
+            conditions = list(self._expected()["conditions"])
             _render_into(tmp, self.array_names, p, self.split, conditions, render_processes(n))
             (tmp / "conditions.json").write_text(json.dumps(conditions))
-            _publish(tmp, self.split_dir, self.array_names)
+            fsync_file(tmp / "conditions.json")  # the arrays' flush() wrote theirs to disk
+            _publish(tmp, self.split_dir, self._expected())
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         seconds = time.perf_counter() - start
@@ -295,14 +320,7 @@ class ProceduralDepth(Dataset):
         """The split's arrays, memory-mapped, each checked against the dtype and shape it was
         generated with (a DataFileError naming a damaged one)."""
         if self._arrays is None:
-            p = self.params
-            n, h, w = self._length, p["height"], p["width"]
-            expected = {
-                "image": (np.uint8, (n, h, w, 3)),
-                "depth": (np.uint16, (n, h, w)),
-                "sparse": (np.uint16, (n, h, w)),
-                RADAR_ARRAY: (np.float32, (n, p.get("max_radar_points"), len(RADAR_POINT_FIELDS))),
-            }
+            expected = self._expected()
             arrays = {}
             for name in self.array_names:
                 path = self.split_dir / f"{name}.npy"
@@ -438,28 +456,49 @@ def _render_range(
         array.flush()
 
 
-def _complete(split_dir: Path, names: Sequence[str] = _ARRAYS) -> bool:
-    """A split folder only appears by an atomic rename of a finished one."""
-    return (
-        all((split_dir / f"{name}.npy").is_file() for name in names)
-        and (split_dir / "conditions.json").is_file()
-    )
-
-
-def _publish(tmp: Path, split_dir: Path, names: Sequence[str] = _ARRAYS) -> None:
-    """Renames a finished split into place. When another process got there first its split is
-    kept (rename onto a non-empty folder fails); both rendered identical frames."""
+def _split_problem(split_dir: Path, expected: dict[str, tuple]) -> str | None:
+    """Why ``split_dir`` is not a whole generated split (None: it is): a missing folder, an
+    array missing or not of the dtype, shape and size ``expected``, or a ``conditions.json``
+    that is not the list expected. Reads headers and the small JSON, not the arrays."""
+    if not split_dir.is_dir():
+        return "not generated"
+    for name, spec in expected.items():
+        if name == "conditions":
+            continue
+        dtype, shape = spec
+        try:
+            check_npy(split_dir / f"{name}.npy", dtype, shape, "generated array")
+        except (OSError, ValueError) as err:
+            return str(err).removeprefix(f"{split_dir / name}.npy: ")
     try:
-        os.replace(tmp, split_dir)
-    except OSError:
-        if not _complete(split_dir, names):
-            raise
+        conditions = json.loads((split_dir / "conditions.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as err:
+        return f"conditions.json unreadable ({short_reason(err)})"
+    if conditions != list(expected["conditions"]):
+        return "conditions.json is not the list of the frames' conditions"
+    return None
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def _publish(tmp: Path, split_dir: Path, expected: dict[str, tuple]) -> None:
+    """Renames a finished split into place. When another process got there first its split is
+    kept (rename onto a non-empty folder fails); both rendered identical frames. A damaged
+    split in the way is moved aside and removed."""
+    for _ in range(3):
+        try:
+            os.replace(tmp, split_dir)
+            return
+        except OSError:
+            if _split_problem(split_dir, expected) is None:
+                return
+            aside = split_dir.with_name(
+                f".{split_dir.name}.damaged.{owner_tag()}.{uuid.uuid4().hex[:8]}"
+            )
+            try:
+                os.replace(split_dir, aside)
+            except FileNotFoundError:
+                continue  # another process moved it just now
+            shutil.rmtree(aside, ignore_errors=True)
+    os.replace(tmp, split_dir)  # fails naming both folders
 
 
 def _colorize(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:

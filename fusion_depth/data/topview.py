@@ -281,6 +281,9 @@ class TopViewDepth(PreparedDataset):
             "max_range": self.max_range,
         }
 
+    def frame_files(self, split: str, frame: TopViewFrame) -> list[Path]:
+        return [frame.rgb] if frame.depth is None else [frame.rgb, frame.depth]
+
     def load_frame(self, split: str, frame: TopViewFrame) -> PreparedFrame:
         return load_frame(
             frame, self.height, self.width, self.depth_unit, self.max_range, self.condition

@@ -14,7 +14,10 @@ the file. Running prepare again reuses every frame already written to that cache
 only the rest; note that CARLA and Top-View caches are keyed by every file's size and time, so
 replacing a file there starts a new cache. Problems that are not about one frame (a missing
 dataset folder, a bad setting, an unwritable cache) fail at once, as in training; a full disk in
-one line naming the cache.
+one line naming the cache. A split already prepared is verified (:func:`~fusion_depth.data.
+cache.is_prepared`): a frame whose source file changed is prepared again. Ctrl-C stops every
+worker within a second or two and prints one line (exit status 130); the frames finished are
+kept, nothing else is left.
 
 ``prepare.workers`` (default ``auto``: every core the process may use) prepares frames in that
 many processes; ``prepare.shard=I prepare.num_shards=N`` prepares every N-th frame from the
@@ -110,11 +113,21 @@ def main(cfg: DictConfig) -> None:
     (after printing one line per split)."""
     try:
         counts = prepare(cfg)
+    except KeyboardInterrupt:
+        print(
+            "prepare: interrupted (Ctrl-C); the frames finished so far are kept: run the same "
+            "command again to go on",
+            file=sys.stderr,
+        )
+        sys.exit(130)
     except IncompleteSplitError as err:
         shard = f"shard {cfg.prepare.shard} of {cfg.prepare.num_shards}"
         print(f"{shard}: its frames are prepared; waiting for the other shards:")
         for split in err.splits:
             print(f"  {split.split_dir.name}: {split.done} of {split.total} frames")
+        hint = next((split.hint for split in err.splits if split.hint), None)
+        if hint:
+            print(f"warning: {hint}", file=sys.stderr)
         return
     except CacheFullError as err:
         print(f"error: {err.strerror}", file=sys.stderr)

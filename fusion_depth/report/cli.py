@@ -107,6 +107,12 @@ from fusion_depth.report.groups import (
     group_runs,
     runs_preset,
 )
+from fusion_depth.report.output import (
+    check_plot_target,
+    check_target,
+    generated_table_file,
+    write_output,
+)
 from fusion_depth.report.plots import (
     PLOT_METRICS,
     plot_by,
@@ -117,7 +123,6 @@ from fusion_depth.report.plots import (
 )
 from fusion_depth.runner.bench_record import BENCH_FILE, load_bench_records
 from fusion_depth.runner.record import METRICS_FILE, load_runs
-from fusion_depth.utils.atomic import write_text_atomic
 
 # --- W&B: --wandb ------------------------------------------------------------------------------
 
@@ -332,10 +337,21 @@ def _bench_report(args: argparse.Namespace, argv: Sequence[str]) -> None:
     table = build_bench_table(records, args.bench, args.format)
     print(table)
     if args.output:
-        write_text_atomic(args.output, generated_table(table, args.format, argv))
+        write_output(args.output, generated_table(table, args.format, argv))
     if args.plot:
         plot = plot_speed if args.bench == "speed" else plot_engine_latency
         plot(records, args.plot, command_line(argv))
+
+
+def _check_targets(args: argparse.Namespace) -> None:
+    """Refuses an ``--output`` or ``--plot`` target report may not write (:mod:`.output`)
+    before any work is done; a CSV's header row is checked when the table exists."""
+    if args.output:
+        check_target(
+            args.output, "--output", None if args.format == "csv" else generated_table_file
+        )
+    if args.plot:
+        check_plot_target(args.plot)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -348,6 +364,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if given:
             parser.error(f"--bench tabulates bench records; {given[0]} is for metrics records")
         try:
+            _check_targets(args)
             _bench_report(args, argv)
         except (OSError, ValueError) as err:
             print(f"error: {err}", file=sys.stderr)
@@ -357,6 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     by_model = args.by == BY_MODEL
     section = SECTION if by_model else args.by  # the metrics.json breakdown of the columns
     try:
+        _check_targets(args)
         runs = load_runs(args.directory)
         if not runs:
             raise ValueError(f"{args.directory}: no {METRICS_FILE} found below it")
@@ -393,7 +411,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         table = render(args.format)
         print(table)
         if args.output:
-            write_text_atomic(args.output, generated_table(table, args.format, argv))
+            write_output(args.output, generated_table(table, args.format, argv))
         if args.plot:
             command = command_line(argv)
             if comparisons:

@@ -1,15 +1,77 @@
-"""Atomic writes: a file is written to a temporary sibling and renamed over its name, so a
-kill or a full disk never leaves a half-written file where a reader looks.
+"""Atomic writes: a file is written to a temporary sibling, flushed to disk and renamed over its
+name, so a kill, a power loss or a full disk never leaves a half-written file where a reader
+looks.
+
+A temporary name says which process made it (``.<name>.p<pid>h<host>.<random><suffix>``, where
+``<host>`` is a digest of the machine's name), so that a later run can tell the leftovers of a
+killed writer (:func:`remove_orphaned_temporaries`) from a file another process is writing now.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
+import shutil
+import socket
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+from fusion_depth.utils.processes import pid_alive
+
+# A temporary file on another machine (a shared cache) counts as orphaned once this old: its
+# writer cannot be asked whether it is alive, and a write takes seconds, not minutes.
+FOREIGN_STALE_S = 600.0
+_OWNER = re.compile(r"\.p(\d+)h([0-9a-f]{8})\.")
+
+
+def host_tag() -> str:
+    """8 hex digits naming this machine (a digest of its host name)."""
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def owner_tag() -> str:
+    """``p<pid>h<host_tag()>``: the writer a temporary name carries."""
+    return f"p{os.getpid()}h{host_tag()}"
+
+
+def temporary_orphaned(path: Path, max_age_s: float = FOREIGN_STALE_S) -> bool:
+    """Whether the temporary file ``path`` is a killed writer's: its owner tag names a process
+    of this machine that is gone, or it is older than ``max_age_s`` (another machine's, or a
+    name without a tag, as versions up to 0.2.0 wrote them)."""
+    match = _OWNER.search(path.name)
+    if match and match.group(2) == host_tag():
+        return not pid_alive(int(match.group(1)))
+    try:
+        return time.time() - path.lstat().st_mtime > max_age_s
+    except FileNotFoundError:
+        return False
+
+
+def remove_orphaned_temporaries(folder: Path, names: Sequence[str]) -> list[Path]:
+    """Removes the temporary files (or folders) of ``folder/<name>`` (for each of ``names``:
+    ``.<name>.*``) whose writer is gone (:func:`temporary_orphaned`); returns them. One another
+    live process is writing stays."""
+    removed = []
+    for name in names:
+        for path in folder.glob(f".{glob_escape(name)}.*"):
+            if not temporary_orphaned(path):
+                continue
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob's special characters taken literally."""
+    return re.sub(r"([*?\[])", r"[\1]", name)
 
 
 def _file_mode() -> int:
@@ -19,6 +81,16 @@ def _file_mode() -> int:
     return 0o666 & ~umask
 
 
+def fsync_file(path: Path) -> None:
+    """Flushes ``path``'s data to the disk (a rename after it publishes whole data even across
+    a power loss)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_atomic(
     path: str | os.PathLike,
     write: Callable[[Path], None],
@@ -26,9 +98,10 @@ def write_atomic(
     suffix: str = ".tmp",
     companions: Sequence[str] = (),
 ) -> Any:
-    """``write(tmp)`` then ``check(tmp)`` on a temporary sibling, renamed to ``path`` only if
-    both succeed: readers never see a half-written file, and an existing one survives a
-    failure. ``suffix`` is the temporary name's (for writers that go by the extension).
+    """``write(tmp)`` then ``check(tmp)`` on a temporary sibling, flushed to disk and renamed to
+    ``path`` only if both succeed: readers never see a half-written file, and an existing one
+    survives a failure. ``suffix`` is the temporary name's (for writers that go by the
+    extension).
 
     ``companions``: suffixes of files that ``write`` writes next to ``tmp`` with its stem
     (``tmp.with_suffix(".bin")``, as OpenVINO writes an IR's weights beside its ``.xml``); each
@@ -37,7 +110,8 @@ def write_atomic(
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    prefix = f".{path.name}.{owner_tag()}."
+    fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(name)
     # (temporary file, final file), the main file last: it appears once its companions have.
@@ -45,6 +119,8 @@ def write_atomic(
     try:
         write(tmp)
         result = check(tmp)
+        for source, _ in moves:
+            fsync_file(source)
         for source, target in moves:
             os.chmod(source, _file_mode())
             os.replace(source, target)
