@@ -510,7 +510,9 @@ def test_a_corrupt_file_read_in_a_loader_worker_is_a_short_error_naming_it(tmp_p
     prepared = run_module(["fusion_depth.prepare", *base], cwd=tmp_path, env=env)
     assert prepared.returncode == 0, prepared.stderr
     (bad,) = cache.rglob("train/000001.image.npy")
-    _truncate(bad)
+    # Garbled at its own size: loading a split checks each array's size, not its bytes (a
+    # truncated one would be prepared again), so the damage is found when the frame is read.
+    bad.write_bytes(b"garbage!" * 25 + bad.read_bytes()[200:])
     args = ["fusion_depth.train", *base, "data.num_workers=1", f"hydra.run.dir={tmp_path / 'r'}"]
     done = run_module(args, cwd=tmp_path, env=env)
     assert done.returncode == 1

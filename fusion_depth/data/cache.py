@@ -525,7 +525,8 @@ def prepare_split(
             pending = [
                 i
                 for i in pending
-                if frame_ids[i] not in bad and _done_record(split_dir, i, frame_ids[i]) is None
+                if frame_ids[i] not in bad
+                and _done_record(split_dir, i, frame_ids[i], warn=False) is None
             ]
             if pending:  # claimed by another live process: wait for it, or for its claim to lapse
                 log.info("waiting for %d frame(s) another process is preparing", len(pending))
@@ -668,7 +669,9 @@ def _prepare_frames(
 def _interrupts_deferred() -> Iterator[None]:
     """Ctrl-C is held back inside the block (in the main thread; it arrives after it), so that
     pressing it again cannot cut a cleanup short and leave workers or files behind."""
-    if threading.current_thread() is not threading.main_thread():
+    if not hasattr(signal, "pthread_sigmask") or (
+        threading.current_thread() is not threading.main_thread()
+    ):
         yield
         return
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -747,7 +750,7 @@ def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> l
             continue  # another worker or process is making it (or found it broken)
         release, made = True, False
         try:
-            if _done_record(job.split_dir, i, frame_id) is not None:
+            if _done_record(job.split_dir, i, frame_id, warn=False) is not None:
                 continue  # made by another process before this one claimed it
             made = True
             _remove_temporaries(job.split_dir, stem)
@@ -1045,16 +1048,18 @@ def _frame_problem(
     return None, {**record, "sources": refreshed}
 
 
-def _done_record(split_dir: Path, i: int, frame_id: str) -> dict | None:
+def _done_record(split_dir: Path, i: int, frame_id: str, warn: bool = True) -> dict | None:
     """Frame ``i``'s record when the frame is done and current (its arrays whole, its sources
-    unchanged; a record whose sources only changed in time is rewritten), else None."""
+    unchanged; a record whose sources only changed in time is rewritten), else None; ``warn``
+    logs why a recorded frame is not current."""
     path = split_dir / f"{i:06d}.json"
     record = _read_record(path)
     if record is None or record.get("id") != frame_id:
         return None
     problem, refreshed = _frame_problem(split_dir, record, headers=True)
     if problem is not None:
-        log.warning("%s: %s; preparing frame %s again", path, problem, frame_id)
+        if warn:
+            log.warning("%s: %s; preparing frame %s again", path, problem, frame_id)
         return None
     if refreshed is not None:
         write_json_atomic(path, refreshed)
@@ -1144,7 +1149,7 @@ def index_problem(data: Any, frame_ids: Sequence[str] | None = None) -> str | No
     if not frames:
         return "lists no frames"
     if len({bool(frame.get("radar_points")) for frame in frames}) > 1:
-        return "has some frames with radar points and others without, expected all or none"
+        return "says some frames have radar points and others not, expected all or none"
     ids = [frame["id"] for frame in frames]
     if any(frame["file"] != f"{i:06d}" for i, frame in enumerate(frames)):
         return "does not list each frame once, in the order of its files"
