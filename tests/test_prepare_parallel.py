@@ -283,7 +283,7 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_file_but_anothers_stays(
         (split / CLAIMS_DIR / "000011").write_text(json.dumps(claim))
         theirs = split / ".000011.image.npy.x1y2z3.npy"
         theirs.write_bytes(b"\x93NUMPY being written")
-        with pytest.raises(RuntimeError, match="a prepare worker died"):
+        with pytest.raises(ChildProcessError, match=r"a prepare worker died \(killed by SIGKILL"):
             prepare(cache, PrepareOptions(workers=2))
         assert [p.name for p in split.glob(".0*")] == [theirs.name]
     finally:
@@ -465,12 +465,9 @@ def test_two_takeovers_of_one_dead_claim_never_both_succeed(tmp_path) -> None:
     assert both == 0, f"both processes held the claim in {both} of {rounds} rounds"
 
 
-@pytest.mark.slow
-def test_ctrl_c_on_the_command_ends_within_2_s_in_one_line_leaving_nothing(tmp_path) -> None:
-    """``python -m fusion_depth.prepare`` with two workers, each deep in a frame's C work, gets
-    Ctrl-C: it exits within 2 s with status 130 and one line on stderr, no worker runs on, and
-    the cache holds finished frames only (no temporary file, no claim); the next run finishes
-    it."""
+def _start_prepare_command(tmp_path: Path) -> tuple[subprocess.Popen, Path, list[str], dict]:
+    """``python -m fusion_depth.prepare`` on a Top-View folder with two workers, each frame
+    spending :data:`BUSY` in C first; returns once the first frame is done."""
     from helpers.topview import write_folder
 
     root, cache = write_folder(tmp_path / "topview"), tmp_path / "cache"
@@ -502,6 +499,26 @@ def test_ctrl_c_on_the_command_ends_within_2_s_in_one_line_leaving_nothing(tmp_p
     deadline = time.monotonic() + 120
     while not list(cache.glob("topview/*/train/0*.json")) and time.monotonic() < deadline:
         time.sleep(0.05)
+    return process, cache, argv, env
+
+
+def _no_leftovers_and_the_next_run_finishes(cache: Path, argv: list[str], env: dict) -> None:
+    (folder,) = cache.glob("topview/*")
+    hidden = [str(p.relative_to(folder)) for p in folder.rglob(".*")]
+    assert hidden == [], f"left behind: {hidden}"
+    assert not list(folder.glob("*/index.json"))  # stopped before the first split's end
+    done = subprocess.run([sys.executable, "-m", "fusion_depth.prepare", *argv[1:]], env=env)
+    assert done.returncode == 0
+    assert len(list(folder.glob("*/index.json"))) == 3
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_the_command_ends_within_2_s_in_one_line_leaving_nothing(tmp_path) -> None:
+    """``python -m fusion_depth.prepare`` with two workers, each deep in a frame's C work, gets
+    Ctrl-C: it exits within 2 s with status 130 and one line on stderr, no worker runs on, and
+    the cache holds finished frames only (no temporary file, no claim); the next run finishes
+    it."""
+    process, cache, argv, env = _start_prepare_command(tmp_path)
     workers = _children(process.pid)
     time.sleep(0.3)  # into the next frames' C work
     os.killpg(process.pid, signal.SIGINT)
@@ -513,10 +530,22 @@ def test_ctrl_c_on_the_command_ends_within_2_s_in_one_line_leaving_nothing(tmp_p
     assert process.returncode == 130 and took < 2.0, why
     assert len(lines) == 1 and lines[0].startswith("prepare: interrupted"), why
     assert len(workers) == 2 and not [pid for pid in workers if _running(pid)], why
-    (folder,) = cache.glob("topview/*")
-    hidden = [str(p.relative_to(folder)) for p in folder.rglob(".*")]
-    assert hidden == [], f"left behind: {hidden}"
-    assert not list(folder.glob("*/index.json"))  # interrupted before the first split's end
-    done = subprocess.run([sys.executable, "-m", "fusion_depth.prepare", *argv[1:]], env=env)
-    assert done.returncode == 0
-    assert len(list(folder.glob("*/index.json"))) == 3
+    _no_leftovers_and_the_next_run_finishes(cache, argv, env)
+
+
+@pytest.mark.slow
+def test_a_killed_worker_stops_the_command_in_one_line_leaving_nothing(tmp_path) -> None:
+    """One worker is killed (as by the out-of-memory killer): prepare stops the other and says
+    so in one line (status 1), leaving finished frames only."""
+    process, cache, argv, env = _start_prepare_command(tmp_path)
+    workers = _children(process.pid)
+    os.kill(workers[0], signal.SIGKILL)
+    _, stderr = process.communicate(timeout=60)
+    lines = [line for line in stderr.decode().splitlines() if line.strip()]
+    assert process.returncode == 1, lines
+    # Hydra's job line, the error, Hydra's hint: as every short error of a command.
+    assert lines[0].startswith("Error executing job") and len(lines) == 3, lines
+    assert lines[1].startswith("a prepare worker died (killed by SIGKILL"), lines
+    assert "Traceback" not in stderr.decode(), lines
+    assert not [pid for pid in workers if _running(pid)]
+    _no_leftovers_and_the_next_run_finishes(cache, argv, env)

@@ -595,8 +595,9 @@ def _prepare_frames(
     ``workers`` forked ones, with a progress bar or log lines; returns the skipped ones.
 
     Workers ignore Ctrl-C and die with this process (:func:`~fusion_depth.utils.processes.
-    die_with_parent`). The first error a worker raises (with ``on_error="raise"``), an
-    interrupt, or a worker that dies stops every worker: each gets SIGTERM, which ends its
+    die_with_parent`); a worker that dies raises ChildProcessError here. The first error a
+    worker raises (with ``on_error="raise"``), an interrupt, or a worker that dies stops every
+    worker: each gets SIGTERM, which ends its
     write in progress by removing the temporary file, as any exception does, and SIGKILL after
     :data:`STOP_GRACE_S`. Once every worker has stopped (a second Ctrl-C does not cut this
     short), the temporary files and claims no live process holds are removed.
@@ -642,9 +643,11 @@ def _prepare_frames(
                     skipped += value
                 dead = [p for p in processes if p.exitcode not in (None, 0)]
                 if dead and results.empty():
-                    raise RuntimeError(
-                        f"a prepare worker died (exit code {dead[0].exitcode}); prepare again "
-                        "to go on (finished frames are kept)"
+                    code = dead[0].exitcode
+                    how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit {code}"
+                    raise ChildProcessError(
+                        f"a prepare worker died ({how}; out of memory?); prepare again to go on "
+                        "(finished frames are kept)"
                     )
                 now = counter.value
                 progress.advance(now - seen)
