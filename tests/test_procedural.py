@@ -9,6 +9,7 @@ import pickle
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -383,3 +384,33 @@ def test_a_killed_runs_temporary_folder_goes_and_a_live_ones_stays(tmp_path):
     assert sorted(p.name for p in first.cache_dir.iterdir()) == sorted(
         ["meta.json", "val", live.name]
     )
+
+
+def test_renderers_die_with_their_parent(tmp_path):
+    """A kill -9 of the process rendering a split in a pool leaves no renderer running."""
+    script = f"""
+import sys
+from fusion_depth.data import procedural
+procedural.render_processes = lambda num_frames: 2
+procedural._FRAMES_PER_TASK = 1
+real = procedural.render_frame
+procedural.render_frame = lambda *a, **k: (sum(range(400_000_000)), real(*a, **k))[1]
+procedural.ProceduralDepth("val", {str(tmp_path)!r}, **{SMALL!r})
+"""
+    process = subprocess.Popen([sys.executable, "-c", script])
+    children = Path(f"/proc/{process.pid}/task/{process.pid}/children")
+    deadline = time.monotonic() + 60
+    while len(children.read_text().split()) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    renderers = [int(pid) for pid in children.read_text().split()]
+    process.kill()
+    process.wait(timeout=10)
+    time.sleep(2.0)
+    running = []
+    for pid in renderers:
+        stat = Path(f"/proc/{pid}/stat")
+        if stat.exists() and stat.read_text().rsplit(")", 1)[1].split()[0] not in "ZX":
+            running.append(pid)
+    for pid in running:
+        os.kill(pid, 9)
+    assert len(renderers) == 2 and running == []

@@ -71,6 +71,7 @@ from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, DataFileError, check_npy
 from fusion_depth.data.encoding import decode_sample, encode_sample
 from fusion_depth.data.radar_points import check_max_points, pad_points, point_rows
 from fusion_depth.utils.atomic import fsync_file, owner_tag, remove_orphaned_temporaries
+from fusion_depth.utils.processes import die_with_parent
 
 GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
 SENSORS = ("radar", "lidar")
@@ -386,7 +387,7 @@ class ProceduralDepth(Dataset):
 
 # Frames per rendering process: below about this many, starting a process costs more than it saves.
 _FRAMES_PER_PROCESS = 400
-# Frames per task handed to a process, so that a process whose parent died stops soon after.
+# Frames per task handed to a process (its unit of work).
 _FRAMES_PER_TASK = 200
 
 
@@ -420,7 +421,10 @@ def _render_into(
     # fork where the platform has it (as DataLoader workers): no re-import in each process.
     methods = multiprocessing.get_all_start_methods()
     context = multiprocessing.get_context("fork" if "fork" in methods else None)
-    with ProcessPoolExecutor(processes, mp_context=context) as pool:
+    # Renderers die with this process: a kill -9 of it does not leave them rendering on.
+    with ProcessPoolExecutor(
+        processes, mp_context=context, initializer=die_with_parent, initargs=(os.getpid(),)
+    ) as pool:
         list(pool.map(_render_range, *zip(*tasks, strict=True)))  # raises a renderer's error
 
 
