@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -91,12 +93,16 @@ def test_the_earlier_releases_files_predict_the_same_depth(tmp_path: Path) -> No
 
 
 @pytest.mark.slow
-def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_path: Path) -> None:
+@pytest.mark.parametrize("bf16_cpu", [False, True], ids=["fp32-cpu", "bf16-cpu"])
+def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(
+    tmp_path: Path, bf16_cpu: bool
+) -> None:
     """A run folder that release wrote (interrupted before its test stage, so ``last.ckpt`` but
     no ``metrics.json``), moved to another place, resumes under the same command and finishes
     with the numbers that release's own run printed, testing the best checkpoint it kept. That
     release named run folders with ``=`` and ``,``: the same command, without a run folder on
-    its command line, finds the folder of that name."""
+    its command line, finds the folder of that name. It ran in fp32 (``precision=auto`` on a
+    CPU without bf16); on a CPU with bf16, ``auto`` goes on in fp32 as the run began."""
     hydra_record = yaml.safe_load(
         (FIXTURES / "interrupted_run" / ".hydra" / "hydra.yaml").read_text()
     )
@@ -105,7 +111,17 @@ def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_
     run_dir = tmp_path / "outputs" / legacy_name
     shutil.copytree(FIXTURES / "interrupted_run", run_dir)
     overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text())
-    result = run_module(["fusion_depth.train", *overrides], tmp_path)
+    script = (
+        "import sys\n"
+        "from fusion_depth.runner import speed\n"
+        f"speed.supports_bf16 = lambda device: {bf16_cpu}  # as this CPU would answer\n"
+        f"sys.argv = ['fusion_depth.train', *{overrides!r}]\n"
+        "from fusion_depth.train.cli import main\n"
+        "main()\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=1800
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     log = (run_dir / "train.log").read_text()
     assert f"resuming from {run_dir / 'checkpoints' / 'last.ckpt'}" in log
@@ -113,4 +129,6 @@ def test_an_interrupted_run_folder_of_the_earlier_release_resumes_elsewhere(tmp_
     assert Path(record["best_checkpoint"]).parent == run_dir / "checkpoints"
     for block in ("test", "test_by_condition"):
         _assert_same_numbers(record[block], EXPECTED["interrupted_run"][block], block)
+    resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    assert resolved["trainer"]["precision"] == "32-true"
     assert sorted(p.name for p in (tmp_path / "outputs").iterdir()) == [legacy_name]

@@ -277,6 +277,26 @@ def _recorded_config(output_dir: Path) -> Any:
         return None
 
 
+def recorded_precision(output_dir: Path, checkpoint_dir: Path | None) -> str | None:
+    """The ``trainer.precision`` the run in ``output_dir`` ran in, as recorded
+    (``config_resolved.yaml``, else its ``last.ckpt``'s run config), or None where there is
+    nothing to resume or skip (no ``last.ckpt``, no ``metrics.json``) or no readable record (a
+    damaged file is named later, by :func:`plan_start`)."""
+    last = None if checkpoint_dir is None else checkpoint_dir / LAST_CHECKPOINT
+    resumable = last is not None and last.is_file()
+    if not resumable and not (output_dir / METRICS_FILE).is_file():
+        return None  # nothing to go on from: a new run, whatever an earlier attempt recorded
+    config = _recorded_config(output_dir)
+    if not isinstance(config, Mapping) and resumable:
+        try:
+            config = load_weights_only(last, mmap=True).get(CONFIG_KEY)
+        except (CheckpointError, OSError, AttributeError):
+            return None
+    trainer = config.get("trainer") if isinstance(config, Mapping) else None
+    precision = trainer.get("precision") if isinstance(trainer, Mapping) else None
+    return precision if isinstance(precision, str) else None
+
+
 def _clear_previous(output_dir: Path, checkpoint_dir: Path) -> None:
     """Remove a previous run's results and checkpoints (``resume=never``), naming them."""
     stale = [output_dir / name for name in (METRICS_FILE, PER_IMAGE_FILE)]

@@ -44,6 +44,7 @@ from fusion_depth.runner.resume import (
     identity_overrides,
     is_lead_process,
     plan_start,
+    recorded_precision,
 )
 from fusion_depth.runner.run_folder import RESOLVED_CONFIG_FILE
 from fusion_depth.runner.speed import accelerator_device, resolve_precision
@@ -87,11 +88,17 @@ def train_record(cfg: DictConfig) -> RunRecord | None:
     """:func:`train`, returning the run's record (None on the ranks other than 0 of a
     data-parallel run that a cluster launcher started)."""
     run_config = validate_config(cfg)
-    precision = resolve_precision(
-        cfg.trainer.precision, accelerator_device(cfg.trainer.accelerator)
-    )
-    run_config["trainer"]["precision"] = precision  # what ran, not "auto"
+    device = accelerator_device(cfg.trainer.accelerator)
+    precision = resolve_precision(cfg.trainer.precision, device)
     output_dir = Path(cfg.paths.output_dir)
+    if cfg.trainer.precision == "auto" and cfg.resume != "never":
+        # A run goes on in the precision it began in: one started where the CPU has no bf16
+        # resumes in fp32 on one that has it (and the other way round).
+        last = cfg.callbacks.get("last_checkpoint")
+        recorded = recorded_precision(output_dir, Path(last.dirpath) if last else None)
+        if recorded in ("32-true", "bf16-mixed"):
+            precision = resolve_precision(recorded, device)
+    run_config["trainer"]["precision"] = precision  # what ran, not "auto"
     # One process per run folder (the lead one of a cluster-launched data-parallel run).
     with RunLock(output_dir) if is_lead_process() else contextlib.nullcontext():
         return _train_locked(cfg, run_config, output_dir)

@@ -9,6 +9,7 @@ killed writer (:func:`remove_orphaned_temporaries`) from a file another process 
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import json
 import os
@@ -58,7 +59,7 @@ def remove_orphaned_temporaries(folder: Path, names: Sequence[str]) -> list[Path
     live process is writing stays."""
     removed = []
     for name in names:
-        for path in folder.glob(f".{glob_escape(name)}.*"):
+        for path in folder.glob(f".{glob.escape(name)}.*"):
             if not temporary_orphaned(path):
                 continue
             if path.is_dir() and not path.is_symlink():
@@ -67,11 +68,6 @@ def remove_orphaned_temporaries(folder: Path, names: Sequence[str]) -> list[Path
                 path.unlink(missing_ok=True)
             removed.append(path)
     return removed
-
-
-def glob_escape(name: str) -> str:
-    """``name`` with glob's special characters taken literally."""
-    return re.sub(r"([*?\[])", r"[\1]", name)
 
 
 def _file_mode() -> int:
