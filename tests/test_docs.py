@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import re
 import shlex
+import subprocess
+from pathlib import Path
 
 import yaml
 from helpers import REPO
@@ -96,7 +98,7 @@ def test_every_generated_table_and_figure_is_what_its_command_makes(tmp_path, mo
     for table in tables:
         command = _command(table)
         argv = shlex.split(command)[3:]
-        assert argv[0].startswith("docs/results/records/"), f"{table}: read from committed records"
+        assert argv[0].startswith("results/records/"), f"{table}: read from committed records"
         argv_again = list(argv)
         named = _redirect(argv_again, "--output", tmp_path / table.name)
         assert named == str(table.relative_to(REPO)), f"{table}: its command writes another file"
@@ -132,3 +134,33 @@ def test_each_generated_file_is_on_a_results_page_with_its_command() -> None:
     for page, text in pages.items():
         for name in re.findall(r"generated/([\w.-]+\.(?:md|svg))", text):
             assert (GENERATED / name).is_file(), f"{page.name}: names generated/{name}"
+
+
+# --- What is committed names no machine ---------------------------------------------------------
+
+# The roots a machine's own paths live under (run folders, caches, checkouts, home folders).
+_MACHINE_PATH = re.compile(rb"(?<![\w.~-])/(?:tmp|work|root|home|Users|mnt|scratch|private)/")
+
+
+def test_no_committed_file_holds_an_absolute_machine_path() -> None:
+    """Records, configs, docs and fixtures hold relative paths (or ``~``): a resolved config
+    copied into results/records/ keeps no run folder of the machine that made it. Test sources
+    are left out: they spell made-up paths on purpose. The 0.1.0 fixtures name
+    ``/old-machine/...``, a root no machine has."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-z"], cwd=REPO, check=True, capture_output=True
+    ).stdout.decode()
+    files = [name for name in listed.split("\0") if name and not name.endswith(".py")]
+    assert len(files) > 100, "git lists the repository's files"
+    own = [str(REPO).encode()]
+    if len(str(Path.home())) > 1:
+        own.append(str(Path.home()).encode() + b"/")
+    found = []
+    for name in files:
+        path = REPO / name
+        if not path.is_file():
+            continue  # deleted in the work tree, not yet committed
+        data = path.read_bytes()
+        if _MACHINE_PATH.search(data) or any(root in data for root in own):
+            found.append(name)
+    assert not found, f"absolute machine paths in: {found[:10]}"
