@@ -22,10 +22,10 @@ from PIL import Image
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, check_config_values, validate_config
 from fusion_depth.config.hydra_main import unknown_key_message, user_message
 from fusion_depth.config.run_dirs import job_subdir, run_dir, run_dirname, sweep_dir
-from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.errors import ConfigError
 from fusion_depth.models import DepthNet
 from fusion_depth.runner.callbacks import ProgressLog
+from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
 from fusion_depth.runner.protocol import EvalProtocol
 from fusion_depth.train.fit import train
 

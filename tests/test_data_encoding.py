@@ -19,7 +19,6 @@ import fusion_depth.data.cache as prepared
 from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.base import FrameList, PreparedDataset
 from fusion_depth.data.cache import PreparedFrame, PreparedSplit, SkippedFramesError, prepare_split
-from fusion_depth.data.datamodule import DepthDataModule, IndexedDataset
 from fusion_depth.data.depth_io import (
     MAX_ENCODED_DEPTH,
     DataFileError,
@@ -34,6 +33,7 @@ from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.procedural import DEPTH_SCALE, ProceduralDepth
 from fusion_depth.data.radar_points import point_rows
 from fusion_depth.models import DepthNet
+from fusion_depth.runner.datamodule import DepthDataModule, IndexedDataset
 from fusion_depth.runner.module import DepthModule
 
 H, W = 32, 64

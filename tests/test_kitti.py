@@ -25,11 +25,11 @@ from PIL import Image
 import fusion_depth.data.kitti as kitti
 from fusion_depth.config import validate_config
 from fusion_depth.data.cache import SkippedFramesError
-from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.data.kitti import KittiDepth, parse_split_file
 from fusion_depth.errors import ConfigError
 from fusion_depth.metrics.depth import crop_mask
 from fusion_depth.prepare.cli import prepare
+from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
 from fusion_depth.runner.protocol import EvalProtocol
 from fusion_depth.train.fit import train
 

@@ -18,7 +18,6 @@ from helpers.carla import record_fixture
 from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.cache import PreparedFrame, PreparedSplit, prepare_split
 from fusion_depth.data.carla import CarlaDepth
-from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.depth_io import DataFileError
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.procedural import ProceduralDepth
@@ -36,6 +35,7 @@ from fusion_depth.data.radar_points import (
     same_pixel_float32,
     write_points,
 )
+from fusion_depth.runner.datamodule import DepthDataModule
 
 H, W = 64, 96
 SMALL = {"height": H, "width": W, "num_train": 12, "num_val": 4, "num_test": 4}

@@ -19,9 +19,9 @@ from helpers import compose_config, run_module
 from helpers.probe import PROBE, RESUMABLE, probe_env, probe_records
 
 from fusion_depth.config.run_dirs import run_dirname
-from fusion_depth.data.datamodule import EpochSampler, ResumableLoader
 from fusion_depth.metrics.depth import METRIC_KEYS
 from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO, CheckpointWriteError
+from fusion_depth.runner.datamodule import EpochSampler, ResumableLoader
 from fusion_depth.runner.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.train.fit import train
 from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
@@ -426,8 +426,8 @@ def test_a_run_that_would_train_or_score_nothing_is_refused(tmp_path, overrides,
 
 
 def test_a_split_without_frames_is_refused() -> None:
-    from fusion_depth.data.datamodule import DepthDataModule, check_batches
     from fusion_depth.errors import ConfigError
+    from fusion_depth.runner.datamodule import DepthDataModule, check_batches
 
     frames = {"train": 4, "val": 0, "test": 3}
     datamodule = DepthDataModule(reader=lambda split: [{}] * frames[split], num_workers=0)

@@ -110,7 +110,7 @@ def test_channels_last_gives_the_same_depth() -> None:
 def test_loader_defaults_use_workers_and_pinned_memory_only_with_a_gpu(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from fusion_depth.data.datamodule import DepthDataModule
+    from fusion_depth.runner.datamodule import DepthDataModule
 
     # The cores this process may use (a SLURM job's share, not the whole node's).
     monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(16)))

@@ -48,7 +48,6 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from fusion_depth.data.base import check_dataset
 from fusion_depth.data.cache import PreparedSplit, usable_cores
-from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
@@ -62,6 +61,7 @@ from fusion_depth.export import (
     sidecar_path,
 )
 from fusion_depth.models.inference import predict_depth
+from fusion_depth.runner.datamodule import DepthDataModule
 from fusion_depth.runner.module import DepthModule
 from fusion_depth.runner.run_folder import provenance
 from fusion_depth.runner.speed import (

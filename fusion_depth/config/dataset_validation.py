@@ -17,13 +17,17 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data.base import check_dataset
-from fusion_depth.errors import ConfigError, MissingValueError
+from fusion_depth.errors import ConfigError
+
+
+class MissingValueError(MissingMandatoryValue, ConfigError):
+    """A ``???`` value that must be set (still an OmegaConf MissingMandatoryValue)."""
 
 
 @contextmanager
 def one_line_errors() -> Iterator[None]:
     """OmegaConf's errors inside, as one-line errors naming the key: a ``???`` value as
-    :class:`~fusion_depth.errors.MissingValueError` (saying how to set it), any other as
+    :class:`MissingValueError` (saying how to set it), any other as
     :class:`~fusion_depth.errors.ConfigError`."""
     try:
         yield

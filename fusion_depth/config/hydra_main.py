@@ -42,7 +42,10 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, target_accepts, unknown_key_error
-from fusion_depth.errors import CommandError
+from fusion_depth.errors import CommandError, UserError
+
+# What prints as its message alone: Hydra's compact errors and the package's own.
+SHORT_ERRORS = (CompactHydraException, UserError)
 
 _PACKAGE_DIR = Path(__file__).resolve().parents[1]  # fusion_depth/
 
@@ -199,7 +202,7 @@ def user_message(err: BaseException) -> str | None:
         )
     if isinstance(err, OverrideParseException):
         return _override_message(err)
-    if isinstance(err, CompactHydraException):
+    if isinstance(err, SHORT_ERRORS):
         return _worker_error(text) or text
     if isinstance(err, OSError | ValueError):
         from_worker = _worker_error(text)
@@ -217,7 +220,7 @@ def _short_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], A
     def run(cfg: DictConfig) -> Any:
         try:
             return task(cfg)
-        except CompactHydraException as err:
+        except SHORT_ERRORS as err:
             message = user_message(err)
             if message != str(err).strip():
                 raise CommandError(message) from err
@@ -241,9 +244,7 @@ def _report(err: Exception) -> None:
         traceback.print_exception(err)
     else:
         sys.stderr.write(message + os.linesep)
-        if isinstance(err, CompactHydraException) and isinstance(
-            err.__cause__, OmegaConfBaseException
-        ):
+        if isinstance(err, SHORT_ERRORS) and isinstance(err.__cause__, OmegaConfBaseException):
             sys.stderr.write(str(err.__cause__) + os.linesep)
     sys.stderr.write(
         os.linesep

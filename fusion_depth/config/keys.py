@@ -18,7 +18,7 @@ from fusion_depth.utils.overrides import show
 # Nodes without a ``_target_`` whose keys are one callable's arguments: data → the datamodule
 # (``DepthDataModule(reader=..., **cfg.data)``), eval → the evaluation protocol.
 PLAIN_CONSUMERS: dict[str, str] = {
-    "data": "fusion_depth.data.datamodule.DepthDataModule",
+    "data": "fusion_depth.runner.datamodule.DepthDataModule",
     "eval": "fusion_depth.runner.protocol.EvalProtocol",
 }
 # Arguments the code passes itself, per node: not config keys (a value would clash with the

@@ -10,17 +10,22 @@ from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
+from fusion_depth.config.checks import (
+    check_backbone,
+    check_bottleneck,
+    check_model,
+    check_scheduler,
+)
 from fusion_depth.config.dataset_validation import one_line_errors
 from fusion_depth.config.keys import check_known_keys
-from fusion_depth.data import datamodule, transforms
+from fusion_depth.data import transforms
 from fusion_depth.data.base import check_dataset
 from fusion_depth.losses import depth_loss
 from fusion_depth.models import encoder, fusion
-from fusion_depth.models._registry import check_model
 from fusion_depth.optim import optimizers
-from fusion_depth.optim.schedules import check_scheduler
-from fusion_depth.runner import callbacks, module, protocol, resume, speed
-from fusion_depth.utils.schema import Schema, check_schema
+from fusion_depth.runner import callbacks, datamodule, module, protocol, resume, speed
+from fusion_depth.utils.config_values import check_schema
+from fusion_depth.utils.schema import Schema
 
 
 def _schema(schema: Schema) -> Callable[[DictConfig], None]:
@@ -33,12 +38,12 @@ def _schema(schema: Schema) -> Callable[[DictConfig], None]:
 VALUE_CHECKS: tuple[Callable[[DictConfig], None], ...] = (
     _schema(fusion.CONFIG_SCHEMA),
     _schema(depth_loss.CONFIG_SCHEMA),
-    encoder.check_backbone,
+    check_backbone,
     _schema(encoder.CONFIG_SCHEMA),
     check_model,
     lambda cfg: check_dataset(cfg.dataset, cfg.fusion.mode),
     _schema(datamodule.CONFIG_SCHEMA),
-    encoder.check_bottleneck,
+    check_bottleneck,
     _schema(transforms.CONFIG_SCHEMA),
     _schema(module.TRAINER_SCHEMA),
     _schema(optimizers.CONFIG_SCHEMA),

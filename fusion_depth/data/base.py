@@ -31,8 +31,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from omegaconf import DictConfig
-
 from fusion_depth.data import CONDITIONS, SPLITS
 from fusion_depth.data.cache import (
     OnError,
@@ -274,8 +272,9 @@ class PreparedDataset(PreparedSplit):
         return files
 
 
-def check_dataset(ds: DictConfig, fusion: str) -> None:
+def check_dataset(ds: Any, fusion: str) -> None:
     """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it.
+    ``ds`` is the ``dataset`` node (a DictConfig, or any object with its keys as attributes).
 
     Raises:
         ConfigError: a size, depth range or fusion mode the dataset cannot take, naming the key.

@@ -12,7 +12,7 @@ It is the one conversion every consumer goes through:
   ``evaluate``), before the training augmentation;
 * ``bench``'s data stage, before the augmentation it times;
 * a reader's ``__getitem__``, on the CPU, for code that reads a dataset directly (``predict``'s
-  ``split:`` input, :func:`~fusion_depth.data.datamodule.check_scorable`, tests).
+  ``split:`` input, :func:`~fusion_depth.runner.datamodule.check_scorable`, tests).
 
 So every path sees the same floats, bit for bit: ``image / 255`` and ``depth / 256`` in float32
 (the second exact: every uint16 / 256 is a float32), what the readers served before the encoded

@@ -22,10 +22,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.data import SPLITS
 from fusion_depth.data.base import check_dataset
-from fusion_depth.data.datamodule import DepthDataModule, check_scorable
 from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
 from fusion_depth.runner.callbacks import ProgressLog
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader
+from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
 from fusion_depth.runner.loggers import closing
 from fusion_depth.runner.module import DepthModule
 from fusion_depth.runner.protocol import EvalProtocol

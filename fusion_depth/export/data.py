@@ -22,10 +22,10 @@ import lightning as L
 import numpy as np
 import torch
 
-from fusion_depth.data.datamodule import DepthDataModule
 from fusion_depth.metrics.bootstrap import paired_bootstrap
 from fusion_depth.models import DepthModel
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, make_reader
+from fusion_depth.runner.datamodule import DepthDataModule
 from fusion_depth.runner.module import DepthModule
 from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult
 

@@ -39,10 +39,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from hydra.errors import CompactHydraException
 from torch import nn
 
-from fusion_depth.errors import ConfigError
+from fusion_depth.errors import ConfigError, UserError
 from fusion_depth.export.contract import QUANTIZATIONS, require_cuda, require_modules
 from fusion_depth.export.sidecar import sidecar_path
 from fusion_depth.export.torchscript import quiet_jit
@@ -64,12 +63,12 @@ TORCH_ENGINE = "torch"
 _REQUIRED = object()  # get()'s default: the key must be there
 
 
-class ModelFileError(ValueError, CompactHydraException):
+class ModelFileError(ValueError, UserError):
     """A model file its engine cannot load (truncated, or its weights missing), or whose
     inputs differ from what its sidecar says; the one-line message names the file."""
 
 
-class SidecarError(ValueError, CompactHydraException):
+class SidecarError(ValueError, UserError):
     """A model file's sidecar that is missing, not JSON, or has a missing or wrong key; the
     one-line message names the file and the key."""
 

@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from hydra.errors import CompactHydraException
+
+from fusion_depth.errors import UserError
 
 TOLERANCE = 1e-3  # fp32: the default tolerance, as it always was
 # What a file computes in → the default tolerance (relative), and the statistic it bounds.
@@ -32,7 +33,7 @@ CHECKED: dict[str, str] = {
 }
 
 
-class ExportError(RuntimeError, CompactHydraException):
+class ExportError(RuntimeError, UserError):
     """The export ran but its result is not usable (it disagrees with PyTorch, or it costs
     more accuracy than allowed); the message is one line and nothing was written."""
 

@@ -9,12 +9,7 @@ import inspect
 from dataclasses import dataclass
 from typing import Any
 
-from omegaconf import DictConfig
-
-from fusion_depth.errors import ConfigError
 from fusion_depth.models.base import DepthModel
-from fusion_depth.utils.overrides import show
-from fusion_depth.utils.schema import ABSENT, config_value
 
 
 @dataclass(frozen=True)
@@ -89,31 +84,3 @@ def create_model(name: str = DEFAULT_MODEL, **kwargs: Any) -> DepthModel:
         TypeError: an argument the model does not take.
     """
     return model_class(name)(**kwargs)
-
-
-def check_model(cfg: DictConfig) -> None:
-    """The chosen network (``model.net.name``, a key of the model table) takes the chosen fusion
-    mode, encoder and dataset.
-
-    Raises:
-        ConfigError: naming the model and the value it cannot take.
-    """
-    name = config_value(cfg, "model.net.name")
-    if name is ABSENT:
-        return
-    try:
-        entry = model_entry(name)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    checks = (
-        ("fusion", config_value(cfg, "model.net.fusion"), entry.fusions),
-        ("backbone", config_value(cfg, "model.net.backbone"), entry.backbones),
-        ("dataset.sensor", config_value(cfg, "dataset.sensor"), entry.sensors),
-    )
-    for key, value, allowed in checks:
-        if value is not ABSENT and allowed is not None and value not in allowed:
-            dataset = f" (dataset={cfg.dataset.name})" if key == "dataset.sensor" else ""
-            raise ConfigError(
-                f"model={name} cannot take {key}={show(value)}{dataset}: it takes "
-                f"{key}={'/'.join(allowed)} ({entry.paper})"
-            )

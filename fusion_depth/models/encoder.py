@@ -29,18 +29,11 @@ from urllib.parse import urlparse
 
 import timm
 import torch
-from omegaconf import DictConfig
 from torch import nn
 
-from fusion_depth.errors import ConfigError
 from fusion_depth.utils.schema import (
-    ABSENT,
     BOOLEAN,
     Schema,
-    check_schema,
-    config_value,
-    is_int,
-    one_of,
 )
 
 log = logging.getLogger(__name__)
@@ -401,46 +394,3 @@ class Encoder(nn.Module):
 
 # The ``backbone`` group's values besides its name (fusion_depth.utils.schema).
 CONFIG_SCHEMA: Schema = {"backbone.pretrained": BOOLEAN}
-
-
-def check_backbone(cfg: DictConfig) -> None:
-    """``backbone.name`` and ``model.net.backbone``: an encoder the network can build with its
-    taps (``backbone.taps``/``model.net.backbone_taps``: ``paper``, the default, takes the
-    paper's backbones; ``pyramid``, ``backbone=timm``, any timm model name, with a did-you-mean).
-    Whether a timm model has a usable feature pyramid is only known once it is built.
-
-    Raises:
-        ConfigError: a taps value or backbone name the network cannot build, naming the key.
-    """
-    taps = "paper"  # a network without backbone_taps takes the backbone group's (check_model)
-    for name_key, taps_key in (
-        ("backbone.name", "backbone.taps"),
-        ("model.net.backbone", "model.net.backbone_taps"),
-    ):
-        check_schema(cfg, {taps_key: one_of(*TAPS)})
-        name, value = config_value(cfg, name_key), config_value(cfg, taps_key)
-        taps = taps if value is ABSENT else value
-        if name is ABSENT:
-            continue
-        try:
-            check_backbone_name(name, taps, key=name_key)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
-
-
-def check_bottleneck(cfg: DictConfig) -> None:
-    """A training batch must hold more than one value per channel at the encoder's bottleneck
-    (1/32 of the input): batch norm in training mode cannot normalise a single value, so batch 1
-    at 32×32 would fail inside the first training step.
-
-    Raises:
-        ConfigError: naming ``data.batch_size`` and the dataset's size.
-    """
-    batch = config_value(cfg, "data.batch_size")
-    height, width = cfg.dataset.height, cfg.dataset.width
-    if is_int(batch) and batch * (height // 32) * (width // 32) < 2:
-        raise ConfigError(
-            f"data.batch_size={batch} with dataset.height={height}, dataset.width={width}: the "
-            "encoder's bottleneck (1/32 of the input) is 1×1, and batch norm needs more than one "
-            "value per channel to train; use data.batch_size=2 or a height or width of 64"
-        )

@@ -17,18 +17,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torch.optim.lr_scheduler import LambdaLR, LRScheduler, StepLR
-
-from fusion_depth.errors import ConfigError
-from fusion_depth.utils.schema import (
-    POSITIVE,
-    POSITIVE_INT,
-    Rule,
-    check_schema,
-    config_value,
-    is_number,
-)
 
 
 class WarmupCosine(LambdaLR):
@@ -205,40 +194,3 @@ def schedule_interval(factory: Callable[..., Any]) -> str:
     if factory is create_schedule:
         factory = schedule_class(keywords.get("name", "step"))
     return getattr(factory, "interval", "epoch")
-
-
-def check_scheduler(cfg: DictConfig) -> None:
-    """The ``scheduler`` group's values (fusion_depth.utils.schema). With
-    :func:`create_schedule` (``scheduler=for_densedepth``) only the arguments of the schedule it
-    names are set, the others are null, and those it names must be that schedule's.
-
-    Raises:
-        ConfigError: naming the key and what it accepts.
-    """
-    by_name = config_value(cfg, "scheduler._target_") == f"{__name__}.create_schedule"
-
-    def rule(ok: Callable[[Any], bool], expected: str) -> Rule:
-        return Rule((lambda v: v is None or ok(v)) if by_name else ok, expected)
-
-    check_schema(
-        cfg,
-        {
-            "scheduler.step_size": rule(POSITIVE_INT.ok, "an integer ≥ 1 (epochs)"),
-            "scheduler.gamma": rule(POSITIVE.ok, "a factor > 0"),
-            "scheduler.warmup_fraction": rule(
-                lambda v: is_number(v) and 0 <= v < 1, "a share in [0, 1)"
-            ),
-            "scheduler.final_lr_ratio": rule(
-                lambda v: is_number(v) and 0 <= v <= 1, "a ratio in [0, 1]"
-            ),
-        },
-    )
-    if by_name:
-        scheduler = OmegaConf.to_container(cfg.scheduler, resolve=True)
-        try:  # a key that is no schedule's argument is check_known_keys' to name
-            check_schedule_arguments(
-                scheduler.get("name", "step"),
-                {k: v for k, v in scheduler.items() if k in SCHEDULE_ARGUMENTS},
-            )
-        except ValueError as err:
-            raise ConfigError(str(err)) from None

@@ -10,14 +10,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.errors import CompactHydraException
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
+from fusion_depth.errors import UserError
 from fusion_depth.utils.atomic import write_atomic
 from fusion_depth.utils.checkpoint_file import load_weights_only
 
 
-class CheckpointWriteError(OSError, CompactHydraException):
+class CheckpointWriteError(OSError, UserError):
     """A checkpoint could not be written (e.g. a full disk); the previous one is intact."""
 
 

@@ -32,7 +32,8 @@ from fusion_depth.metrics.depth import (
 from fusion_depth.models.inference import UPSAMPLING
 from fusion_depth.runner.speed import cpu_model
 from fusion_depth.utils.atomic import write_text_atomic
-from fusion_depth.utils.schema import ABSENT, BOOLEAN, Rule, Schema, config_value, is_number, one_of
+from fusion_depth.utils.config_values import ABSENT, config_value
+from fusion_depth.utils.schema import BOOLEAN, Rule, Schema, is_number, one_of
 from fusion_depth.utils.tables import format_table
 
 BEFORE_PRESETS: dict[str, Any] = {

@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from hydra.errors import CompactHydraException
 
+from fusion_depth.errors import UserError
 from fusion_depth.runner.protocol import BEFORE_PRESETS
 from fusion_depth.runner.record import METRICS_FILE, RunIdentity, read_finished
 from fusion_depth.runner.run_folder import (
@@ -61,11 +61,11 @@ class RunStart:
     pending_log_row: dict | None = None  # the log row written right after that checkpoint
 
 
-class OtherRunError(ValueError, CompactHydraException):
+class OtherRunError(ValueError, UserError):
     """The run folder holds another configuration's run."""
 
 
-class RunLockedError(RuntimeError, CompactHydraException):
+class RunLockedError(RuntimeError, UserError):
     """Another live process is using the run folder."""
 
 

@@ -15,16 +15,16 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import CompactHydraException
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
-from fusion_depth.data.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
+from fusion_depth.errors import UserError
 from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
+from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
 from fusion_depth.runner.loggers import closing
 from fusion_depth.runner.module import DepthModule
@@ -152,7 +152,7 @@ def checkpoint_room(callbacks: DictConfig, model: torch.nn.Module) -> int:
     return room
 
 
-class NoTrainingError(RuntimeError, CompactHydraException):
+class NoTrainingError(RuntimeError, UserError):
     """Fit ended without training a single batch: there is nothing to test or report."""
 
 

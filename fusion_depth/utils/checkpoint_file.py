@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.errors import CompactHydraException
+
+from fusion_depth.errors import UserError
 
 CONFIG_KEY = "fusion_depth_config"
 
@@ -32,7 +33,7 @@ INSTANTIATION_KEYS = ("_target_", "_partial_", "_args_", "_recursive_", "_conver
 _PLAIN_TYPES = (str, int, float, bool, type(None))
 
 
-class CheckpointError(ValueError, CompactHydraException):
+class CheckpointError(ValueError, UserError):
     """A checkpoint that cannot be used as asked; the message names the file and the problem
     (Hydra prints it alone, without a traceback)."""
 

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
-
-from omegaconf import ListConfig
 
 
 def show(value: Any) -> str:
@@ -13,6 +12,6 @@ def show(value: Any) -> str:
         return "null"
     if isinstance(value, bool):
         return str(value).lower()
-    if isinstance(value, list | tuple | ListConfig):
+    if isinstance(value, Sequence) and not isinstance(value, str | bytes):  # a ListConfig too
         return "[" + ", ".join(show(v) for v in value) + "]"
     return str(value)

@@ -15,12 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
-
-from fusion_depth.errors import ConfigError
 from fusion_depth.utils.overrides import show
-
-ABSENT = object()  # what :func:`config_value` returns for a key the config does not have
 
 
 @dataclass(frozen=True)
@@ -65,26 +60,3 @@ NON_NEGATIVE_INT = Rule(lambda v: is_int(v) and v >= 0, "an integer ≥ 0")
 NON_NEGATIVE = Rule(lambda v: is_number(v) and v >= 0, "a number ≥ 0")
 POSITIVE = Rule(lambda v: is_number(v) and v > 0, "a number > 0")
 PROBABILITY = Rule(lambda v: is_number(v) and 0 <= v <= 1, "a probability in [0, 1]")
-
-
-def config_value(cfg: DictConfig, key: str) -> Any:
-    """The resolved value at ``key`` (containers as plain lists and dicts), or :data:`ABSENT`; a
-    ``???`` value raises OmegaConf's MissingMandatoryValue (one line from
-    :func:`~fusion_depth.config.validate_config`)."""
-    value = OmegaConf.select(cfg, key, default=ABSENT, throw_on_missing=True)
-    if isinstance(value, DictConfig | ListConfig):
-        return OmegaConf.to_container(value, resolve=True)
-    return value
-
-
-def check_schema(cfg: DictConfig, schema: Schema) -> None:
-    """Check every key of ``schema`` that ``cfg`` has, in the schema's order.
-
-    Raises:
-        ConfigError: ``<key>=<value>: expected <what the rule accepts>``, for the first value
-            that fails.
-    """
-    for key, rule in schema.items():
-        value = config_value(cfg, key)
-        if value is not ABSENT and not rule.ok(value):
-            raise ConfigError(f"{key}={show(value)}: expected {rule.expected}")

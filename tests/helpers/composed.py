@@ -9,6 +9,9 @@ from omegaconf import OmegaConf
 
 from . import compose_config
 
+# A real dataset's folders, which a command must be given.
+_KITTI = ["dataset=kitti", "dataset.root=DATA", "dataset.raw_root=RAW"]
+
 # The four, then a real dataset with each model (a model's published recipe, no
 # dataset recipe), and each of the four groups a command line names (its choice wins).
 CASES: dict[str, list[str]] = {
@@ -17,8 +20,8 @@ CASES: dict[str, list[str]] = {
     "radarnet": ["model=radarnet"],
     "paper": ["experiment=paper"],
     "paper_radarnet": ["experiment=paper", "model=radarnet"],
-    "kitti": ["dataset=kitti", "dataset.root=DATA", "dataset.raw_root=RAW"],
-    "kitti_sparse_to_dense": ["dataset=kitti", "dataset.root=DATA", "dataset.raw_root=RAW", "model=sparse_to_dense"],
+    "kitti": [*_KITTI],
+    "kitti_sparse_to_dense": [*_KITTI, "model=sparse_to_dense"],
     "nuscenes_radarnet": ["dataset=nuscenes", "dataset.root=DATA", "model=radarnet"],
     "backbone_resnet18": ["backbone=resnet18"],
     "loss_berhu": ["loss=berhu"],
