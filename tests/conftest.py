@@ -15,6 +15,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config import SWEEPS_DIR
 from fusion_depth.config.hydra_main import register_sweeps
+from fusion_depth.config.recipes import register_model_recipes
+
+# conf/train.yaml's defaults pick each model's recipe options, which its commands store first.
+register_model_recipes()
 
 # Under pytest-xdist (pyproject's addopts) every worker trains at once: each gets its share of
 # the cores, and the runs it starts as subprocesses inherit that share, so that the workers do

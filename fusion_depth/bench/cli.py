@@ -74,6 +74,9 @@ quiet_known_noise()
 def compose_train_config(overrides: Sequence[str]) -> DictConfig:
     """``conf/train.yaml`` with ``overrides``; errors name the offending override (an unknown
     key in one line: :func:`fusion_depth.config.hydra_main.unknown_key_message`)."""
+    from fusion_depth.config.recipes import register_model_recipes
+
+    register_model_recipes()
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(CONF_DIR, version_base="1.3"):

@@ -284,6 +284,10 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
                 return hydra_task(cfg_passthrough)
             overrides, config_dir = _hydra_flags(sys.argv[1:])
             register_sweeps(config_dir)
+            if config_name == "train":  # its defaults pick each model's recipe options
+                from fusion_depth.config.recipes import register_model_recipes
+
+                register_model_recipes()
             if os.environ.get("HYDRA_FULL_ERROR"):  # the user asked for Hydra's tracebacks
                 return hydra_task()
             # Hydra then raises its errors instead of printing them, so that they are reported

@@ -5,10 +5,12 @@ from fusion_depth.models._registry import (
     DEFAULT_MODEL,
     MODELS,
     ModelEntry,
+    Recipe,
     create_model,
     model_arguments,
     model_class,
     model_entry,
+    register_model,
 )
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder, UpBlock
@@ -27,10 +29,12 @@ __all__ = [
     "Encoder",
     "InputFusion",
     "ModelEntry",
+    "Recipe",
     "UpBlock",
     "WeightsUnavailableError",
     "create_model",
     "model_arguments",
     "model_class",
     "model_entry",
+    "register_model",
 ]

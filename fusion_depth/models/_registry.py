@@ -6,52 +6,152 @@ from __future__ import annotations
 
 import importlib
 import inspect
-from dataclasses import dataclass
+import pkgutil
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from fusion_depth.models.base import DepthModel
 
 
 @dataclass(frozen=True)
+class Recipe:
+    """A model's published training recipe: what ``model=<name>`` trains with unless the command
+    line (``backbone=``, ``loss=``, ``optimizer=``, ``scheduler=``, or a key) or a dataset's own
+    recipe (``conf/experiment/<dataset>_<model>.yaml``) says otherwise. Names are options of the
+    config groups (``conf/<group>/<name>.yaml``); the arguments replace that option's values.
+
+    Attributes:
+        backbone: the encoder (``densenet169``, ``resnet18``, ...).
+        loss: the loss (``l1``: SSIM + edge + L1 on reciprocal depth; ``l1_only``: L1 alone).
+        optimizer: the optimizer (``adam``, ``adamw``, ``sgd``) and ``optimizer_args`` its values.
+        schedule: the schedule (``step``, ``cosine``, ``constant``:
+            :func:`fusion_depth.optim.schedules.create_schedule`'s table) and ``schedule_args``.
+        batch_size: the training batch; None keeps ``conf/train.yaml``'s (2, the paper's).
+        max_epochs: the epochs; None keeps the trainer's (20, the paper's).
+    """
+
+    backbone: str
+    loss: str
+    optimizer: str
+    schedule: str
+    optimizer_args: Mapping[str, Any] = field(default_factory=dict)
+    schedule_args: Mapping[str, Any] = field(default_factory=dict)
+    batch_size: int | None = None
+    max_epochs: int | None = None
+
+
+@dataclass(frozen=True)
 class ModelEntry:
-    """One network of the table: where its class lives, and what it can take."""
+    """One network of the table: where its class lives, what it can take, how it trains."""
 
     module: str
     cls: str
     label: str  # how tables and plots name it
     paper: str  # the publication it follows
     fusions: tuple[str, ...]  # the fusion modes it takes
+    recipe: Recipe  # its authors' training recipe
     backbones: tuple[str, ...] | None = None  # the encoders it takes (None: any the platform has)
     sensors: tuple[str, ...] | None = None  # the sparse sensors it needs (None: any)
 
 
-MODELS: dict[str, ModelEntry] = {
-    "densedepth": ModelEntry(
-        "fusion_depth.models.depth_net",
-        "DepthNet",
-        "DenseDepth",
-        "Alhashim & Wonka 2018, fused as in the paper (Sec. 3)",
-        ("rgb", "concat", "add"),
-    ),
-    "sparse_to_dense": ModelEntry(
-        "fusion_depth.models.sparse_to_dense",
-        "SparseToDense",
-        "Sparse-to-Dense",
-        "Ma & Karaman, ICRA 2018",
-        ("rgb", "concat"),
-        ("resnet18", "resnet50"),
-    ),
-    "radarnet": ModelEntry(
-        "fusion_depth.models.radarnet",
-        "RadarNet",
-        "RadarNet",
-        "Singh et al., CVPR 2023 (radar-camera association, then fusion)",
-        ("concat",),
-        ("resnet18",),
-        ("radar",),
-    ),
-}
+# The built-in models' modules, in the order tables list them; any other module of this package
+# that registers a model follows, by name.
+_BUILT_IN = ("depth_net", "sparse_to_dense", "radarnet")
+
+
+class _ModelTable(dict):
+    """``name → ModelEntry``, filled by :func:`register_model` as the package's model modules
+    are imported; the first look-up imports every module of ``fusion_depth.models`` (the
+    package's own code, found by listing its folder), so that each registers its model."""
+
+    _discovered = False
+
+    def _discover(self) -> None:
+        if self._discovered:
+            return
+        self._discovered = True
+        package = importlib.import_module("fusion_depth.models")
+        found = sorted(m.name for m in pkgutil.iter_modules(package.__path__))
+        for name in (*_BUILT_IN, *(n for n in found if n not in _BUILT_IN)):
+            if not name.startswith("_"):
+                importlib.import_module(f"fusion_depth.models.{name}")
+
+    def __getitem__(self, name: str) -> ModelEntry:
+        self._discover()
+        return super().__getitem__(name)
+
+    def __contains__(self, name: object) -> bool:
+        self._discover()
+        return super().__contains__(name)
+
+    def __iter__(self):  # noqa: ANN204 - dict's own iterator
+        self._discover()
+        return super().__iter__()
+
+    def __len__(self) -> int:
+        self._discover()
+        return super().__len__()
+
+    def get(self, name: Any, default: Any = None) -> Any:
+        self._discover()
+        return super().get(name, default)
+
+    def items(self):  # noqa: ANN201 - dict's own view
+        self._discover()
+        return super().items()
+
+    def keys(self):  # noqa: ANN201 - dict's own view
+        self._discover()
+        return super().keys()
+
+    def values(self):  # noqa: ANN201 - dict's own view
+        self._discover()
+        return super().values()
+
+
+MODELS: dict[str, ModelEntry] = _ModelTable()
 DEFAULT_MODEL = "densedepth"  # what a checkpoint written before models had names holds
+
+
+def register_model(
+    name: str,
+    *,
+    label: str,
+    paper: str,
+    fusions: tuple[str, ...],
+    recipe: Recipe,
+    backbones: tuple[str, ...] | None = None,
+    sensors: tuple[str, ...] | None = None,
+) -> Callable[[type[DepthModel]], type[DepthModel]]:
+    """Put the decorated network in the table as ``name`` (what ``model=`` and
+    ``model.net.name`` say), as timm's ``@register_model`` does: the class, what it takes and
+    its recipe are declared in one place, beside the network.
+
+    Args:
+        name: the model's name; a Python identifier.
+        label: how tables and plots name it.
+        paper: the publication it follows (named in errors about what it cannot take).
+        fusions: the ``fusion=`` modes it takes.
+        recipe: its authors' training recipe (:class:`Recipe`).
+        backbones: the encoders it takes; None: any the platform has.
+        sensors: the sparse sensors it needs (``("radar",)``); None: any.
+
+    Raises:
+        ValueError: ``name`` is not an identifier, or another class has it.
+    """
+
+    def register(cls: type[DepthModel]) -> type[DepthModel]:
+        known = dict.get(MODELS, name)
+        if not name.isidentifier() or (known is not None and known.cls != cls.__name__):
+            raise ValueError(f"register_model: name={name!r} is taken or not an identifier")
+        entry = ModelEntry(
+            cls.__module__, cls.__name__, label, paper, tuple(fusions), recipe, backbones, sensors
+        )
+        dict.__setitem__(MODELS, name, entry)
+        return cls
+
+    return register
 
 
 def model_entry(name: Any) -> ModelEntry:

@@ -5,12 +5,29 @@ from __future__ import annotations
 
 import torch
 
+from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder
 from fusion_depth.models.encoder import Encoder
 from fusion_depth.models.fusion import InputFusion
 
 
+# The paper's recipe (Siddiqui et al., Sec. IV): DenseNet-169 from ImageNet, SSIM + edge + L1 on
+# reciprocal depth 1:1:1, Adam 1e-4 (DenseDepth's too: Alhashim & Wonka 2018, Sec. 3.4), lr × 0.2
+# every 7 epochs, batch 2 and 20 epochs (conf/train.yaml and the trainer's defaults).
+@register_model(
+    "densedepth",
+    label="DenseDepth",
+    paper="Alhashim & Wonka 2018, fused as in the paper (Sec. 3)",
+    fusions=("rgb", "concat", "add"),
+    recipe=Recipe(
+        backbone="densenet169",
+        loss="l1",
+        optimizer="adam",
+        schedule="step",
+        schedule_args={"step_size": 7, "gamma": 0.2},
+    ),
+)
 class DepthNet(DepthModel):
     """Predicts reciprocal depth ``depth_scale / depth`` at half the input resolution.
 

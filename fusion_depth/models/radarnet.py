@@ -66,6 +66,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 
@@ -316,6 +317,28 @@ class RadarInput(nn.Module):
         return True
 
 
+# The reference code's fusion-network recipe (nesl/radar-camera-fusion-depth at c95c67d,
+# bash/train_fusionnet_nuscenes.sh lines 24, 41-46, src/fusionnet_main.py lines 307-312):
+# ResNet-18 encoders, L1 on metres, Adam 1e-3 without weight decay at one rate for all 450 epochs,
+# batch 16. Its association stage trains with 2e-4, batch 6, 200 epochs
+# (bash/train_radarnet_nuscenes.sh): with model.net.stage=association give optimizer.lr=2e-4.
+@register_model(
+    "radarnet",
+    label="RadarNet",
+    paper="Singh et al., CVPR 2023 (radar-camera association, then fusion)",
+    fusions=("concat",),
+    backbones=("resnet18",),
+    sensors=("radar",),
+    recipe=Recipe(
+        backbone="resnet18",
+        loss="l1_only",
+        optimizer="adam",
+        optimizer_args={"lr": 1.0e-3, "weight_decay": 0.0},
+        schedule="constant",
+        batch_size=16,
+        max_epochs=450,
+    ),
+)
 class RadarNet(DepthModel):
     """Singh et al. 2023 (module docstring): association, quasi-dense depth, fusion.
 

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 
@@ -129,6 +130,27 @@ class RGBdInput(nn.Module):
         return torch.cat([image, sparse.to(image.dtype)], dim=1)
 
 
+# Its authors' recipe (fangchangma/sparse-to-dense.pytorch at 10efc6d): ResNet-18, L1 on metres,
+# SGD 0.01 with momentum 0.9 and weight decay 1e-4 (main.py lines 127-128, utils.py lines 45-50),
+# lr ÷ 10 every 5 epochs (utils.py lines 80-84, adjust_learning_rate), batch 8 and 15 epochs
+# (utils.py lines 40-44).
+@register_model(
+    "sparse_to_dense",
+    label="Sparse-to-Dense",
+    paper="Ma & Karaman, ICRA 2018",
+    fusions=("rgb", "concat"),
+    backbones=("resnet18", "resnet50"),
+    recipe=Recipe(
+        backbone="resnet18",
+        loss="l1_only",
+        optimizer="sgd",
+        optimizer_args={"lr": 1.0e-2, "momentum": 0.9, "weight_decay": 1.0e-4},
+        schedule="step",
+        schedule_args={"step_size": 5, "gamma": 0.1},
+        batch_size=8,
+        max_epochs=15,
+    ),
+)
 class SparseToDense(DepthModel):
     """Ma & Karaman 2018's network (module docstring): depth in metres at the input resolution.
 

@@ -151,8 +151,8 @@ def create_schedule(
     """Schedule ``name`` (:data:`SCHEDULES`) over ``optimizer``, built with the arguments that
     are set; the others must be None.
 
-    How model=densedepth's default schedule follows a dataset's recipe
-    (``conf/scheduler/for_densedepth.yaml`` reads ``recipe.schedule``): Hydra does not let a
+    How a model's default schedule follows a dataset's recipe (``scheduler=for_<model>``,
+    made by :mod:`fusion_depth.config.recipes`, reads ``recipe.schedule``): Hydra does not let a
     preset that the defaults select by interpolation switch the scheduler group, so the recipe
     names the schedule instead, and the name is looked up here, never imported.
 

@@ -40,7 +40,7 @@ from fusion_depth.utils.tables import format_table
 COMPARE_KEYS = ("fusion", "loss", "backbone", "model", "engine")
 # Every identity field of a group, in the tables' order (a comparison holds all but its keys).
 _GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting", "engine")
-# What a model brings with it (conf/backbone/for_<model>.yaml, conf/loss/for_<model>.yaml).
+# What a model brings with it (its Recipe: fusion_depth.models.register_model).
 _MODEL_PARTS = ("backbone", "loss")
 # Protocol fields that change how per-image results are aggregated, not the results themselves.
 _AGGREGATION_ONLY = {"distance_bins", "bin_width", "averaging"}
