@@ -1,6 +1,8 @@
 """The package's layers hold (``[tool.importlinter]`` in ``pyproject.toml``, checked by
-``lint-imports`` in CI): the contract passes on the package as it is, names every top-level
-part, and fails as soon as a lower layer imports a higher one, inside a function too."""
+``lint-imports`` in CI): the contracts pass on the package as it is, the layers name every
+top-level part, and a contract fails as soon as a lower layer imports a higher one (inside a
+function too), or a science package imports Hydra, OmegaConf or Lightning (through a helper of
+``utils`` too)."""
 
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ def _lint_imports(cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_the_contract_names_every_part_of_the_package() -> None:
-    (layers,) = CONTRACT["contracts"]
+    (layers,) = [c for c in CONTRACT["contracts"] if c["id"] == "layers"]
     assert layers["type"] == "layers" and layers["exhaustive"] is True
     named = {
         part.strip() for layer in layers["layers"] for part in layer.replace(":", "|").split("|")
@@ -38,7 +40,7 @@ def test_the_contract_names_every_part_of_the_package() -> None:
 def test_the_package_keeps_its_layers() -> None:
     result = _lint_imports(REPO)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert "1 kept, 0 broken" in result.stdout
+    assert f"{len(CONTRACT['contracts'])} kept, 0 broken" in result.stdout
 
 
 @pytest.mark.parametrize(
@@ -67,3 +69,28 @@ def test_an_upward_import_breaks_the_contract(
     assert result.returncode == 1, result.stdout[-3000:]
     lower = "fusion_depth." + module.removesuffix(".py").replace("/", ".")
     assert f"{lower} -> {upward}" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("module", "line", "broken"),
+    [
+        ("models/fusion.py", "import omegaconf", "fusion_depth.models.fusion -> omegaconf"),
+        ("losses/depth_loss.py", "import lightning", "fusion_depth.losses.depth_loss -> lightning"),
+        # A helper the science packages import brings Hydra with it.
+        ("utils/overrides.py", "import hydra", "fusion_depth.utils.overrides -> hydra"),
+        # The science packages in order: data is below the models.
+        ("data/base.py", "import fusion_depth.models.fusion", "fusion_depth.data.base -> "),
+    ],
+)
+def test_a_science_import_breaks_a_contract(
+    tmp_path: Path, module: str, line: str, broken: str
+) -> None:
+    shutil.copytree(
+        REPO / "fusion_depth", tmp_path / "fusion_depth", ignore=shutil.ignore_patterns("*.pyc")
+    )
+    shutil.copy(REPO / "pyproject.toml", tmp_path)
+    path = tmp_path / "fusion_depth" / module
+    path.write_text(path.read_text() + f"\n\n{line}  # noqa\n")
+    result = _lint_imports(tmp_path)
+    assert result.returncode == 1, result.stdout[-3000:]
+    assert broken in result.stdout and "BROKEN" in result.stdout, result.stdout[-3000:]
