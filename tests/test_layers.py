@@ -19,6 +19,18 @@ CONTRACT = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importl
 LINT_IMPORTS = str(Path(sys.executable).with_name("lint-imports"))
 
 
+def _lint_imports_with(root: Path, module: str, code: str) -> subprocess.CompletedProcess:
+    """``lint-imports`` on a copy of the package under ``root`` with ``code`` appended to
+    ``module`` (a path inside the package)."""
+    shutil.copytree(
+        REPO / "fusion_depth", root / "fusion_depth", ignore=shutil.ignore_patterns("*.pyc")
+    )
+    shutil.copy(REPO / "pyproject.toml", root)
+    path = root / "fusion_depth" / module
+    path.write_text(path.read_text() + f"\n\n{code}\n")
+    return _lint_imports(root)
+
+
 def _lint_imports(cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
         [LINT_IMPORTS, "--no-cache"], cwd=cwd, capture_output=True, text=True, timeout=300
@@ -56,16 +68,10 @@ def test_the_package_keeps_its_layers() -> None:
 def test_an_upward_import_breaks_the_contract(
     tmp_path: Path, module: str, upward: str, in_function: bool
 ) -> None:
-    shutil.copytree(
-        REPO / "fusion_depth", tmp_path / "fusion_depth", ignore=shutil.ignore_patterns("*.pyc")
-    )
-    shutil.copy(REPO / "pyproject.toml", tmp_path)
     statement = f"import {upward}"
     if in_function:
         statement = f"def _upward():\n    {statement}\n\n    return {upward}"
-    path = tmp_path / "fusion_depth" / module
-    path.write_text(path.read_text() + f"\n\n{statement}\n")
-    result = _lint_imports(tmp_path)
+    result = _lint_imports_with(tmp_path, module, statement)
     assert result.returncode == 1, result.stdout[-3000:]
     lower = "fusion_depth." + module.removesuffix(".py").replace("/", ".")
     assert f"{lower} -> {upward}" in result.stdout
@@ -85,12 +91,6 @@ def test_an_upward_import_breaks_the_contract(
 def test_a_science_import_breaks_a_contract(
     tmp_path: Path, module: str, line: str, broken: str
 ) -> None:
-    shutil.copytree(
-        REPO / "fusion_depth", tmp_path / "fusion_depth", ignore=shutil.ignore_patterns("*.pyc")
-    )
-    shutil.copy(REPO / "pyproject.toml", tmp_path)
-    path = tmp_path / "fusion_depth" / module
-    path.write_text(path.read_text() + f"\n\n{line}  # noqa\n")
-    result = _lint_imports(tmp_path)
+    result = _lint_imports_with(tmp_path, module, f"{line}  # noqa")
     assert result.returncode == 1, result.stdout[-3000:]
     assert broken in result.stdout and "BROKEN" in result.stdout, result.stdout[-3000:]
