@@ -9,7 +9,7 @@ from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder
 from fusion_depth.models.encoder import Encoder
-from fusion_depth.models.fusion import InputFusion
+from fusion_depth.models.fusion import FUSION_MODES, InputFusion
 
 
 # The paper's recipe (Siddiqui et al., Sec. IV): DenseNet-169 from ImageNet, SSIM + edge + L1 on
@@ -19,7 +19,7 @@ from fusion_depth.models.fusion import InputFusion
     "densedepth",
     label="DenseDepth",
     paper="Alhashim & Wonka 2018, fused as in the paper (Sec. 3)",
-    fusions=("rgb", "concat", "add"),
+    fusions=FUSION_MODES,  # every mode InputFusion has
     recipe=Recipe(
         backbone="densenet169",
         loss="l1",

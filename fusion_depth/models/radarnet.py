@@ -326,7 +326,7 @@ class RadarInput(nn.Module):
     "radarnet",
     label="RadarNet",
     paper="Singh et al., CVPR 2023 (radar-camera association, then fusion)",
-    fusions=("concat",),
+    fusions=FUSIONS,
     backbones=("resnet18",),
     sensors=("radar",),
     recipe=Recipe(

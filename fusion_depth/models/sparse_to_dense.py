@@ -138,7 +138,7 @@ class RGBdInput(nn.Module):
     "sparse_to_dense",
     label="Sparse-to-Dense",
     paper="Ma & Karaman, ICRA 2018",
-    fusions=("rgb", "concat"),
+    fusions=FUSIONS,
     backbones=("resnet18", "resnet50"),
     recipe=Recipe(
         backbone="resnet18",
