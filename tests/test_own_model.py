@@ -101,3 +101,16 @@ def test_a_model_added_as_the_guide_says_composes_trains_evaluates_and_exports(c
     exported = _run(export.replace(folder, where), checkout)
     assert exported.returncode == 0, exported.stderr[-3000:]
     assert (checkout / "fpn_depth.onnx").stat().st_size > 10_000
+
+
+def test_a_recipe_naming_a_loss_that_does_not_exist_is_one_line() -> None:
+    import dataclasses
+
+    from fusion_depth.config.recipes import recipe_options
+    from fusion_depth.errors import ConfigError
+    from fusion_depth.models import MODELS
+
+    entry = MODELS["radarnet"]
+    wrong = dataclasses.replace(entry, recipe=dataclasses.replace(entry.recipe, loss="l3"))
+    with pytest.raises(ConfigError, match=r"model=radarnet: its Recipe's loss='l3'; expected one"):
+        recipe_options("radarnet", wrong)

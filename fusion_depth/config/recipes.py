@@ -15,12 +15,14 @@ group"), which is why a dataset's recipe gives values rather than choices.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from fusion_depth.config import CONF_DIR
+from fusion_depth.errors import ConfigError
 from fusion_depth.models import MODELS, ModelEntry
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS
 
@@ -39,14 +41,25 @@ def _select(key: str, default: Any) -> str:
     return f"${{oc.select:recipe.{key},{'null' if default is None else default}}}"
 
 
-def recipe_options(entry: ModelEntry) -> dict[str, dict]:
+def recipe_options(name: str, entry: ModelEntry) -> dict[str, dict]:
     """The config options of ``entry``'s recipe, by ``<group>``: each a node with a defaults
-    list naming the group's option and the values that replace that option's."""
+    list naming the group's option and the values that replace that option's.
+
+    Raises:
+        ConfigError: the recipe names a loss that ``conf/loss/`` does not have (the other groups'
+            options are checked by Hydra when the config is composed).
+    """
     recipe = entry.recipe
     backbone: dict[str, Any] = {"defaults": [recipe.backbone, "_self_"]}
     if entry.backbones is None:  # a model that takes any encoder takes a dataset's
         backbone["name"] = _select("backbone", recipe.backbone)
-    loss_values = OmegaConf.load(f"{CONF_DIR}/loss/{recipe.loss}.yaml")
+    loss_file = Path(CONF_DIR) / "loss" / f"{recipe.loss}.yaml"
+    if not loss_file.is_file():
+        options = sorted(p.stem for p in loss_file.parent.glob("*.yaml"))
+        raise ConfigError(
+            f"model={name}: its Recipe's loss={recipe.loss!r}; expected one of {options}"
+        )
+    loss_values = OmegaConf.load(loss_file)
     loss = {"defaults": [recipe.loss, "_self_"]}
     loss |= {key: _select(at, loss_values[key]) for key, at in _LOSS_KEYS.items()}
     schedule = {
@@ -77,6 +90,6 @@ def register_model_recipes() -> None:
     that compose ``conf/train.yaml`` call it first (train, bench; the tests' compose)."""
     store = ConfigStore.instance()
     for name, entry in MODELS.items():
-        for group, node in recipe_options(entry).items():
+        for group, node in recipe_options(name, entry).items():
             option = name if group == "model_recipe" else f"for_{name}"
             store.store(group=group, name=option, node=node, provider=_PROVIDER)
