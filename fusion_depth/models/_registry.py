@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import pkgutil
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,12 +60,14 @@ class ModelEntry:
 _BUILT_IN = ("depth_net", "sparse_to_dense", "radarnet")
 
 
-class _ModelTable(dict):
+class _ModelTable(Mapping[str, ModelEntry]):
     """``name → ModelEntry``, filled by :func:`register_model` as the package's model modules
     are imported; the first look-up imports every module of ``fusion_depth.models`` (the
     package's own code, found by listing its folder), so that each registers its model."""
 
-    _discovered = False
+    def __init__(self) -> None:
+        self.entries: dict[str, ModelEntry] = {}  # as registered, before any discovery
+        self._discovered = False
 
     def _discover(self) -> None:
         if self._discovered:
@@ -79,38 +81,18 @@ class _ModelTable(dict):
 
     def __getitem__(self, name: str) -> ModelEntry:
         self._discover()
-        return super().__getitem__(name)
+        return self.entries[name]
 
-    def __contains__(self, name: object) -> bool:
+    def __iter__(self) -> Iterator[str]:
         self._discover()
-        return super().__contains__(name)
-
-    def __iter__(self):  # noqa: ANN204 - dict's own iterator
-        self._discover()
-        return super().__iter__()
+        return iter(self.entries)
 
     def __len__(self) -> int:
         self._discover()
-        return super().__len__()
-
-    def get(self, name: Any, default: Any = None) -> Any:
-        self._discover()
-        return super().get(name, default)
-
-    def items(self):  # noqa: ANN201 - dict's own view
-        self._discover()
-        return super().items()
-
-    def keys(self):  # noqa: ANN201 - dict's own view
-        self._discover()
-        return super().keys()
-
-    def values(self):  # noqa: ANN201 - dict's own view
-        self._discover()
-        return super().values()
+        return len(self.entries)
 
 
-MODELS: dict[str, ModelEntry] = _ModelTable()
+MODELS = _ModelTable()
 DEFAULT_MODEL = "densedepth"  # what a checkpoint written before models had names holds
 
 
@@ -142,13 +124,13 @@ def register_model(
     """
 
     def register(cls: type[DepthModel]) -> type[DepthModel]:
-        known = dict.get(MODELS, name)
+        known = MODELS.entries.get(name)
         if not name.isidentifier() or (known is not None and known.cls != cls.__name__):
             raise ValueError(f"register_model: name={name!r} is taken or not an identifier")
         entry = ModelEntry(
             cls.__module__, cls.__name__, label, paper, tuple(fusions), recipe, backbones, sensors
         )
-        dict.__setitem__(MODELS, name, entry)
+        MODELS.entries[name] = entry
         return cls
 
     return register
