@@ -85,7 +85,7 @@ def test_a_model_added_as_the_guide_says_composes_trains_evaluates_and_exports(c
     assert composed.returncode == 0, composed.stderr[-3000:]
     job = yaml.safe_load(composed.stdout)
     assert job["model"]["net"]["name"] == "fpn_depth"  # its recipe's encoder, unless a dataset's
-    assert job["backbone"]["name"] == "${oc.select:recipe.backbone,resnet18}"
+    assert job["backbone"]["name"] == "resnet18"
 
     trained = _run(smoke, checkout)
     assert trained.returncode == 0, trained.stderr[-3000:]
@@ -106,11 +106,26 @@ def test_a_model_added_as_the_guide_says_composes_trains_evaluates_and_exports(c
 def test_a_recipe_naming_a_loss_that_does_not_exist_is_one_line() -> None:
     import dataclasses
 
-    from fusion_depth.config.recipes import recipe_options
+    from fusion_depth.config.recipes import model_options
     from fusion_depth.errors import ConfigError
     from fusion_depth.models import MODELS
 
     entry = MODELS["radarnet"]
     wrong = dataclasses.replace(entry, recipe=dataclasses.replace(entry.recipe, loss="l3"))
     with pytest.raises(ConfigError, match=r"model=radarnet: its Recipe's loss='l3'; expected one"):
-        recipe_options("radarnet", wrong)
+        model_options("radarnet", wrong)
+
+
+def test_a_dataset_recipe_that_does_more_than_switch_groups_is_one_line() -> None:
+    """A dataset's recipe is read as data for the default run: its defaults list may only switch
+    the four groups a recipe sets."""
+    from pathlib import Path
+
+    from fusion_depth.config.recipes import _switched
+    from fusion_depth.errors import ConfigError
+
+    recipe = Path("kitti_densedepth.yaml")
+    assert _switched(recipe, {"defaults": [{"override /loss": "l2"}]}) == {"loss": "l2"}
+    for entry in ("/dataset/kitti", {"override /trainer": "gpu"}, {"override /loss": 3}):
+        with pytest.raises(ConfigError, match=r"kitti_densedepth.yaml: defaults entry .*only"):
+            _switched(recipe, {"defaults": [entry]})

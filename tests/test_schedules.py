@@ -142,7 +142,7 @@ def test_the_recipe_names_its_schedule_and_the_command_line_adjusts_it(make_conf
     tuned = make_config("scheduler.warmup_fraction=0.1")
     assert (tuned.scheduler.name, tuned.scheduler.warmup_fraction) == ("cosine", 0.1)
     validate_config(tuned)
-    smoke = make_config("experiment=smoke", "scheduler.step_size=3")  # no recipe: the paper's
+    smoke = make_config("experiment=smoke", "scheduler.step_size=3")  # the model's own: the paper's
     assert (smoke.scheduler.name, smoke.scheduler.step_size, smoke.scheduler.gamma) == (
         "step",
         3,
@@ -155,9 +155,9 @@ def test_the_recipe_names_its_schedule_and_the_command_line_adjusts_it(make_conf
     with pytest.raises(ConfigError, match=r"scheduler.step_size=3: the cosine schedule takes no"):
         validate_config(make_config("scheduler.step_size=3"))
     with pytest.raises(ConfigError, match=r"scheduler.name='bogus': unknown schedule"):
-        validate_config(make_config("recipe.schedule.name=bogus"))
+        validate_config(make_config("scheduler.name=bogus"))
     with pytest.raises(ConfigError, match=r"scheduler.warmup_fraction=1.5: expected a share"):
-        validate_config(make_config("recipe.schedule.warmup_fraction=1.5"))
+        validate_config(make_config("scheduler.warmup_fraction=1.5"))
     with pytest.raises(ConfigError, match=r"scheduler.step_size: the step schedule needs it"):
         validate_config(make_config("experiment=smoke", "scheduler.step_size=null"))
     # A schedule chosen by group keeps its own arguments required.

@@ -66,8 +66,8 @@ def check_bottleneck(cfg: DictConfig) -> None:
 
 def check_scheduler(cfg: DictConfig) -> None:
     """The ``scheduler`` group's values (fusion_depth.utils.schema). With
-    :func:`create_schedule` (``scheduler=for_densedepth``) only the arguments of the schedule it
-    names are set, the others are null, and those it names must be that schedule's.
+    :func:`create_schedule` (``scheduler=for_<dataset>_<model>``) only the arguments of the
+    schedule it names are set, the others are null, and those it names must be that schedule's.
 
     Raises:
         ConfigError: naming the key and what it accepts.

@@ -1,22 +1,31 @@
 """Each model's published recipe (:class:`~fusion_depth.models.Recipe`, declared beside the
-network with ``@register_model``) as the config options ``model=<name>`` selects: for each model
-``<name>``, ``backbone/for_<name>``, ``loss/for_<name>``, ``optimizer/for_<name>`` and
-``scheduler/for_<name>`` in Hydra's config store, and ``model_recipe/<name>`` (its batch and
-epochs). ``conf/train.yaml`` picks ``for_${model}`` in each group, so ``backbone=``, ``loss=``,
-``optimizer=`` or ``scheduler=`` on the command line replaces the model's choice, values and all.
+network with ``@register_model``), and each dataset's own recipe for a model
+(``conf/experiment/<dataset>_<model>.yaml``), as the config options ``conf/train.yaml`` selects.
 
-A dataset's own recipe for a model (``conf/experiment/<dataset>_<model>.yaml``, which the
-defaults select by interpolation) may name the encoder (for a model that takes any), the pixel
-loss and its weights, and the schedule under ``recipe:``; the options here read those values and
-fall back to the model's. Hydra allows no defaults-list override in a config selected by
-interpolation ("Default List Overrides are not allowed in the subtree of an interpolated config
-group"), which is why a dataset's recipe gives values rather than choices.
+For each model ``<m>`` and dataset ``<d>``, in Hydra's config store:
+
+- ``backbone``, ``loss``, ``optimizer``, ``scheduler``: ``for_<m>`` (the model's own choice and
+  values) and ``for_<d>_<m>`` (the same, with the choices the dataset's recipe switches);
+  ``backbone/smallest_for_<m>``: :data:`SMALLEST_BACKBONE` for a model that takes any encoder,
+  else its own (``experiment=smoke``).
+- ``model_recipe``: ``<m>`` (the model's batch and epochs) and ``<d>_<m>`` (those, then the
+  dataset recipe's other values).
+
+``conf/train.yaml`` picks ``for_${dataset}_${model}`` in each group, so ``backbone=`` and the
+others on the command line replace that choice, values and all; an experiment returns to the
+model's own with ``override /<group>: for_${model}`` (``experiment=paper``).
+
+Why generated: Hydra allows no defaults-list override in a config selected by interpolation
+("Default List Overrides are not allowed in the subtree of an interpolated config group"), and a
+dataset's recipe depends on the model. So the dataset's recipe is a plain experiment file
+(``override /<group>: <option>`` lines, then values), which ``experiment=<d>_<m>`` also loads as
+Hydra does; here it is read as data, and each group it switches becomes that group's
+``for_<d>_<m>`` option, with the values the file gives under that group.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
@@ -26,70 +35,119 @@ from fusion_depth.errors import ConfigError
 from fusion_depth.models import MODELS, ModelEntry
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS
 
-# The loss keys a dataset's recipe may set, and where it sets them (under ``recipe:``).
-_LOSS_KEYS = {
-    "pixel": "pixel_loss",
-    "w_ssim": "loss_weights.ssim",
-    "w_edge": "loss_weights.edge",
-    "w_pixel": "loss_weights.pixel",
-}
+GROUPS = ("backbone", "loss", "optimizer", "scheduler")
+# experiment=smoke's encoder for a model that takes any: 4× faster a step than DenseNet-169.
+SMALLEST_BACKBONE = "resnet10t"
 _PROVIDER = "fusion_depth.models"
+_CREATE_SCHEDULE = "fusion_depth.optim.schedules.create_schedule"
 
 
-def _select(key: str, default: Any) -> str:
-    """The interpolation that reads ``recipe.<key>``, or ``default`` when it is not set."""
-    return f"${{oc.select:recipe.{key},{'null' if default is None else default}}}"
-
-
-def recipe_options(name: str, entry: ModelEntry) -> dict[str, dict]:
-    """The config options of ``entry``'s recipe, by ``<group>``: each a node with a defaults
-    list naming the group's option and the values that replace that option's.
+def _option_values(group: str, option: str, where: str) -> dict:
+    """The values of ``conf/<group>/<option>.yaml``, unresolved.
 
     Raises:
-        ConfigError: the recipe names a loss that ``conf/loss/`` does not have (the other groups'
-            options are checked by Hydra when the config is composed).
+        ConfigError: there is no such option, naming ``where`` it was asked for and the options.
+    """
+    path = Path(CONF_DIR) / group / f"{option}.yaml"
+    if not path.is_file():
+        options = sorted(p.stem for p in path.parent.glob("*.yaml") if "for_" not in p.stem)
+        raise ConfigError(f"{where} {group}={option!r}; expected one of {options}")
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+
+
+def _schedule(name: str, values: dict) -> dict:
+    """The scheduler option that builds schedule ``name`` by name (:func:`create_schedule`), with
+    ``values`` for its arguments and null for the others."""
+    arguments = {key: values.get(key) for key in SCHEDULE_ARGUMENTS}
+    return {"_target_": _CREATE_SCHEDULE, "_partial_": True, "name": name, **arguments}
+
+
+def model_options(name: str, entry: ModelEntry) -> dict[str, dict]:
+    """The model's own option of each group (:data:`GROUPS`), as the node stored there.
+
+    Raises:
+        ConfigError: the recipe names a loss that ``conf/loss/`` does not have (the other
+            groups' options are checked by Hydra when the config is composed).
     """
     recipe = entry.recipe
-    backbone: dict[str, Any] = {"defaults": [recipe.backbone, "_self_"]}
-    if entry.backbones is None:  # a model that takes any encoder takes a dataset's
-        backbone["name"] = _select("backbone", recipe.backbone)
-    loss_file = Path(CONF_DIR) / "loss" / f"{recipe.loss}.yaml"
-    if not loss_file.is_file():
-        options = sorted(p.stem for p in loss_file.parent.glob("*.yaml"))
-        raise ConfigError(
-            f"model={name}: its Recipe's loss={recipe.loss!r}; expected one of {options}"
-        )
-    loss_values = OmegaConf.load(loss_file)
-    loss = {"defaults": [recipe.loss, "_self_"]}
-    loss |= {key: _select(at, loss_values[key]) for key, at in _LOSS_KEYS.items()}
-    schedule = {
-        "_target_": "fusion_depth.optim.schedules.create_schedule",
-        "_partial_": True,
-        "name": _select("schedule.name", recipe.schedule),
-    }
-    for key in SCHEDULE_ARGUMENTS:
-        schedule[key] = _select(f"schedule.{key}", recipe.schedule_args.get(key))
-    options = {
-        "backbone": backbone,
-        "loss": loss,
+    _option_values("loss", recipe.loss, f"model={name}: its Recipe's")
+    return {
+        "backbone": {"defaults": [recipe.backbone, "_self_"]},
+        "loss": {"defaults": [recipe.loss, "_self_"]},
         "optimizer": {"defaults": [recipe.optimizer, "_self_"], **recipe.optimizer_args},
-        "scheduler": schedule,
+        "scheduler": _schedule(recipe.schedule, dict(recipe.schedule_args)),
     }
-    data, trainer = {"batch_size": recipe.batch_size}, {"max_epochs": recipe.max_epochs}
-    length = {"data": data, "trainer": trainer}
-    options["model_recipe"] = {
+
+
+def _length(entry: ModelEntry) -> dict:
+    """The model's batch and epochs, where its recipe sets them."""
+    data, trainer = {"batch_size": entry.recipe.batch_size}, {"max_epochs": entry.recipe.max_epochs}
+    return {
         node: {key: value for key, value in keys.items() if value is not None}
-        for node, keys in length.items()
+        for node, keys in {"data": data, "trainer": trainer}.items()
         if any(value is not None for value in keys.values())
     }
-    return options
+
+
+def _switched(path: Path, values: dict) -> dict[str, str]:
+    """The groups a dataset recipe switches (``override /<group>: <option>``), by group.
+
+    Raises:
+        ConfigError: a defaults entry that switches no group of :data:`GROUPS`.
+    """
+    switched = {}
+    for item in values.get("defaults", []):
+        ((key, option),) = item.items() if isinstance(item, dict) and len(item) == 1 else ((0, 0),)
+        group = str(key).removeprefix("override /")
+        if group not in GROUPS or not isinstance(option, str):
+            raise ConfigError(
+                f"{path.name}: defaults entry {item!r}; a dataset's recipe may only have "
+                f"'override /<group>: <option>' entries, <group> one of {list(GROUPS)}"
+            )
+        switched[group] = option
+    return switched
+
+
+def dataset_options(dataset: str, name: str, entry: ModelEntry) -> dict[str, dict]:
+    """The options ``for_<dataset>_<name>`` of each group and the ``model_recipe`` node, from the
+    model's own and ``conf/experiment/<dataset>_<name>.yaml`` if there is one."""
+    options = model_options(name, entry)
+    length = _length(entry)
+    path = Path(CONF_DIR) / "experiment" / f"{dataset}_{name}.yaml"
+    if path.is_file():
+        values = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        for group, option in _switched(path, values).items():
+            given = values.pop(group, None) or {}
+            if group == "scheduler":
+                where = f"{path.name}: its"
+                options[group] = _schedule(option, _option_values(group, option, where) | given)
+            else:
+                options[group] = {"defaults": [option, "_self_"], **given}
+        values.pop("defaults", None)
+        length = OmegaConf.to_container(OmegaConf.merge(length, values))
+    return options | {"model_recipe": length}
+
+
+def _dataset_names() -> list[str]:
+    return sorted(p.stem for p in (Path(CONF_DIR) / "dataset").glob("*.yaml"))
 
 
 def register_model_recipes() -> None:
-    """Every registered model's recipe options in Hydra's config store (idempotent). Commands
-    that compose ``conf/train.yaml`` call it first (train, bench; the tests' compose)."""
+    """Every registered model's options, alone and with each dataset, in Hydra's config store
+    (idempotent). Commands that compose ``conf/train.yaml`` call it first (train, bench; the
+    tests' compose)."""
     store = ConfigStore.instance()
+
+    def put(group: str, option: str, node: dict) -> None:
+        store.store(group=group, name=option, node=node, provider=_PROVIDER)
+
     for name, entry in MODELS.items():
-        for group, node in recipe_options(name, entry).items():
-            option = name if group == "model_recipe" else f"for_{name}"
-            store.store(group=group, name=option, node=node, provider=_PROVIDER)
+        for group, node in model_options(name, entry).items():
+            put(group, f"for_{name}", node)
+        put("model_recipe", name, _length(entry))
+        smallest = entry.recipe.backbone if entry.backbones else SMALLEST_BACKBONE
+        put("backbone", f"smallest_for_{name}", {"defaults": [smallest, "_self_"]})
+        for dataset in _dataset_names():
+            for group, node in dataset_options(dataset, name, entry).items():
+                option = f"{dataset}_{name}" if group == "model_recipe" else f"for_{dataset}_{name}"
+                put(group, option, node)

@@ -151,10 +151,9 @@ def create_schedule(
     """Schedule ``name`` (:data:`SCHEDULES`) over ``optimizer``, built with the arguments that
     are set; the others must be None.
 
-    How a model's default schedule follows a dataset's recipe (``scheduler=for_<model>``,
-    made by :mod:`fusion_depth.config.recipes`, reads ``recipe.schedule``): Hydra does not let a
-    preset that the defaults select by interpolation switch the scheduler group, so the recipe
-    names the schedule instead, and the name is looked up here, never imported.
+    A model's or dataset recipe's schedule (``scheduler=for_<dataset>_<model>``, made by
+    :mod:`fusion_depth.config.recipes`) is built through this: the schedule is named, looked up
+    here, never imported.
 
     Args:
         optimizer: the run's optimizer; its ``lr`` is the peak.

@@ -38,9 +38,9 @@ RUN_DIR, CACHE_DIR = "RUN", "CACHE"
 
 def composed_values(overrides: list[str]) -> dict:
     """The job config ``python -m fusion_depth.train <overrides>`` receives, every interpolation
-    resolved; FUSION_DEPTH_CACHE must be ``CACHE``. The ``recipe`` node, which only carried
-    values to the groups, is left out: its values are compared where they land."""
+    resolved; FUSION_DEPTH_CACHE must be ``CACHE``. (The fixtures were written without the
+    ``recipe`` node that carried values to the groups then; the values are compared where they
+    landed, and a config that still has the node differs.)"""
     cfg = compose_config(overrides, Path(RUN_DIR))
     values = OmegaConf.to_container(cfg, resolve=True)
-    values.pop("recipe", None)
     return values
