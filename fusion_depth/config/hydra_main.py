@@ -287,7 +287,7 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
             if config_name == "train":  # its defaults pick each model's recipe options
                 from fusion_depth.config.recipes import register_model_recipes
 
-                register_model_recipes()
+                register_model_recipes(config_dir, overrides)
             if os.environ.get("HYDRA_FULL_ERROR"):  # the user asked for Hydra's tracebacks
                 return hydra_task()
             # Hydra then raises its errors instead of printing them, so that they are reported

@@ -2,29 +2,33 @@
 network with ``@register_model``), and each dataset's own recipe for a model
 (``conf/experiment/<dataset>_<model>.yaml``), as the config options ``conf/train.yaml`` selects.
 
-For each model ``<m>`` and dataset ``<d>``, in Hydra's config store:
+For each model ``<m>``, dataset ``<d>`` and source ``<s>`` of :data:`SOURCES` (the
+``recipe_from`` group), in Hydra's config store, an option ``<s>_<d>_<m>`` of ``backbone``,
+``loss``, ``optimizer``, ``scheduler`` and ``model_recipe`` (batch, epochs and the dataset
+recipe's other values):
 
-- ``backbone``, ``loss``, ``optimizer``, ``scheduler``: ``for_<m>`` (the model's own choice and
-  values) and ``for_<d>_<m>`` (the same, with the choices the dataset's recipe switches);
-  ``backbone/smallest_for_<m>``: :data:`SMALLEST_BACKBONE` for a model that takes any encoder,
-  else its own (``experiment=smoke``).
-- ``model_recipe``: ``<m>`` (the model's batch and epochs) and ``<d>_<m>`` (those, then the
-  dataset recipe's other values).
+- ``dataset`` (the default): the dataset's recipe for the model where it has one, on top of the
+  model's own: the choices it switches, with the values it gives under them;
+- ``model`` (``experiment=paper``): the model's own, whatever the dataset;
+- ``smoke`` (``experiment=smoke``): the model's own with :data:`SMALLEST_BACKBONE` where it takes
+  any encoder.
 
-``conf/train.yaml`` picks ``for_${dataset}_${model}`` in each group, so ``backbone=`` and the
-others on the command line replace that choice, values and all; an experiment returns to the
-model's own with ``override /<group>: for_${model}`` (``experiment=paper``).
+``for_<m>`` in the four groups is the model's own choice, to name on the command line
+(``scheduler=for_radarnet``). ``backbone=`` and the others on the command line replace the choice,
+values and all.
 
 Why generated: Hydra allows no defaults-list override in a config selected by interpolation
 ("Default List Overrides are not allowed in the subtree of an interpolated config group"), and a
 dataset's recipe depends on the model. So the dataset's recipe is a plain experiment file
 (``override /<group>: <option>`` lines, then values), which ``experiment=<d>_<m>`` also loads as
-Hydra does; here it is read as data, and each group it switches becomes that group's
-``for_<d>_<m>`` option, with the values the file gives under that group.
+Hydra does; here it is read as data, and each group it switches becomes that group's option, with
+the values the file gives under that group. ``experiment=smoke`` switches only ``recipe_from``, a
+group ``evaluate``, ``export`` and ``predict`` also have, so that they take it too.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from hydra.core.config_store import ConfigStore
@@ -36,6 +40,7 @@ from fusion_depth.models import MODELS, ModelEntry
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS
 
 GROUPS = ("backbone", "loss", "optimizer", "scheduler")
+SOURCES = ("dataset", "model", "smoke")
 # experiment=smoke's encoder for a model that takes any: 4× faster a step than DenseNet-169.
 SMALLEST_BACKBONE = "resnet10t"
 _PROVIDER = "fusion_depth.models"
@@ -108,12 +113,16 @@ def _switched(path: Path, values: dict) -> dict[str, str]:
     return switched
 
 
-def dataset_options(dataset: str, name: str, entry: ModelEntry) -> dict[str, dict]:
-    """The options ``for_<dataset>_<name>`` of each group and the ``model_recipe`` node, from the
-    model's own and ``conf/experiment/<dataset>_<name>.yaml`` if there is one."""
+def dataset_options(
+    dataset: str, name: str, entry: ModelEntry, config_dir: str | None = None
+) -> dict[str, dict]:
+    """The option of each group (:data:`GROUPS` and ``model_recipe``) for ``recipe_from=dataset``:
+    the model's own, and ``experiment/<dataset>_<name>.yaml`` on top if there is one (in
+    ``config_dir``, the command line's ``--config-dir``, or else ``conf/``)."""
     options = model_options(name, entry)
     length = _length(entry)
-    path = Path(CONF_DIR) / "experiment" / f"{dataset}_{name}.yaml"
+    paths = [Path(f) / "experiment" / f"{dataset}_{name}.yaml" for f in (config_dir, CONF_DIR) if f]
+    path = next((p for p in paths if p.is_file()), paths[-1])
     if path.is_file():
         values = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
         for group, option in _switched(path, values).items():
@@ -128,14 +137,35 @@ def dataset_options(dataset: str, name: str, entry: ModelEntry) -> dict[str, dic
     return options | {"model_recipe": length}
 
 
-def _dataset_names() -> list[str]:
-    return sorted(p.stem for p in (Path(CONF_DIR) / "dataset").glob("*.yaml"))
+def source_options(
+    source: str, dataset: str, name: str, entry: ModelEntry, config_dir: str | None = None
+) -> dict[str, dict]:
+    """The option of each group (:data:`GROUPS` and ``model_recipe``) for ``recipe_from=source``.
+
+    Raises:
+        ConfigError: as :func:`dataset_options`.
+    """
+    if source == "dataset":
+        return dataset_options(dataset, name, entry, config_dir)
+    options = model_options(name, entry) | {"model_recipe": _length(entry)}
+    if source == "smoke" and entry.backbones is None:
+        options["backbone"] = {"defaults": [SMALLEST_BACKBONE, "_self_"]}
+    return options
 
 
-def register_model_recipes() -> None:
-    """Every registered model's options, alone and with each dataset, in Hydra's config store
+def _dataset_names(config_dir: str | None, overrides: Sequence[str]) -> set[str]:
+    """The package's datasets, those of ``--config-dir``, and one named by ``dataset=`` (a
+    dataset on ``hydra.searchpath``)."""
+    folders = [Path(CONF_DIR), *([Path(config_dir)] if config_dir else [])]
+    names = {p.stem for folder in folders for p in (folder / "dataset").glob("*.yaml")}
+    return names | {o.partition("=")[2] for o in overrides if o.startswith("dataset=")}
+
+
+def register_model_recipes(config_dir: str | None = None, overrides: Sequence[str] = ()) -> None:
+    """Every registered model's options, for each source and dataset, in Hydra's config store
     (idempotent). Commands that compose ``conf/train.yaml`` call it first (train, bench; the
-    tests' compose)."""
+    tests' compose), with the command line's ``--config-dir`` and overrides, where a dataset of
+    the user's own may be."""
     store = ConfigStore.instance()
 
     def put(group: str, option: str, node: dict) -> None:
@@ -144,10 +174,7 @@ def register_model_recipes() -> None:
     for name, entry in MODELS.items():
         for group, node in model_options(name, entry).items():
             put(group, f"for_{name}", node)
-        put("model_recipe", name, _length(entry))
-        smallest = entry.recipe.backbone if entry.backbones else SMALLEST_BACKBONE
-        put("backbone", f"smallest_for_{name}", {"defaults": [smallest, "_self_"]})
-        for dataset in _dataset_names():
-            for group, node in dataset_options(dataset, name, entry).items():
-                option = f"{dataset}_{name}" if group == "model_recipe" else f"for_{dataset}_{name}"
-                put(group, option, node)
+        for dataset in sorted(_dataset_names(config_dir, overrides)):
+            for source in SOURCES:
+                for group, node in source_options(source, dataset, name, entry, config_dir).items():
+                    put(group, f"{source}_{dataset}_{name}", node)

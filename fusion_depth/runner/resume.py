@@ -177,6 +177,10 @@ _ADDED_KEYS: dict[str, Any] = {
     for block in ("eval", "model.evaluation")
     for key, value in BEFORE_PRESETS.items()
 }
+# Nodes a later version no longer writes, that computed nothing themselves: 0.2.0's `recipe:` (a
+# dataset recipe's encoder and loss weights, which reached the run only through the backbone,
+# loss and scheduler values, compared as they are).
+_REMOVED_NODES = ("recipe",)
 
 # Where a run's folder and the dataset cache are: not part of what it computes, so a run folder
 # that was moved, or a cache that moved, still resumes.
@@ -216,7 +220,8 @@ def config_changes(
 
     Keys that do not change what a run computes are left out: a key added since, that the
     stored config lacks, at the value that computes as before (:data:`_ADDED_KEYS`: the
-    evaluation presets' keys at ``eval=paper``'s values); ``excluded`` ones (the override
+    evaluation presets' keys at ``eval=paper``'s values); a node no longer written
+    (:data:`_REMOVED_NODES`); ``excluded`` ones (the override
     keys of ``hydra.job.config.override_dirname.exclude_keys``, with everything below them) and
     ``paths``; the run folder and the dataset cache, wherever a value names them, count as the
     same place (each config's own ``paths.output_dir`` and ``paths.cache_dir``). Both are
@@ -230,6 +235,8 @@ def config_changes(
         before, after = old.get(key, absent), new.get(key, absent)
         if before is absent and key in _ADDED_KEYS and after == _ADDED_KEYS[key]:
             continue  # a key added later, at the value that computes as before
+        if after is absent and key.split(".")[0] in _REMOVED_NODES:
+            continue
         if before != after:
             shown = ["absent" if v is absent else repr(v) for v in (before, after)]
             changes.append(f"{key}: {shown[0]} → {shown[1]}")
