@@ -1,10 +1,13 @@
 """The errors the package raises about a user's input. Each is a line naming the key, file or
 value and what it may be; the commands print it as its message alone (no traceback, unless
 ``HYDRA_FULL_ERROR=1``; :mod:`fusion_depth.config.hydra_main`). They still are the built-in
-error types, so callers can catch ValueError / OSError / ImportError. This module imports
-nothing: the science packages raise these without knowing of Hydra."""
+error types, so callers can catch ValueError / OSError / ImportError. This module imports only
+the standard library: the science packages raise these without knowing of Hydra, naming their
+arguments (:class:`ArgumentError`), which the commands report as config keys."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 
 class UserError(Exception):
@@ -28,3 +31,33 @@ class OutputDirError(OSError, UserError):
 class CommandError(RuntimeError, UserError):
     """A user-facing error (bad data, config value or file) shown as its message alone; the
     original exception is its ``__cause__`` (shown with ``HYDRA_FULL_ERROR=1``)."""
+
+
+class ArgumentError(ValueError, UserError):
+    """A value a science function or class cannot take, naming its argument, not a config key:
+    the science packages know no config. The commands report it naming where the user set it
+    (:func:`fusion_depth.config.arguments.config_message`: ``weights`` → ``backbone.weights``).
+
+    Args:
+        message: the message, each argument it names written ``{name}``:
+            ``f"{{weights}}={weights}: no such file"``.
+        arguments: the arguments it names.
+        owner: the function or class that takes them, or its dotted name: the config layer
+            looks up where its arguments come from by it.
+    """
+
+    def __init__(self, message: str, *arguments: str, owner: object) -> None:
+        self.template, self.arguments = message, arguments
+        self.owner = owner if isinstance(owner, str) else f"{owner.__module__}.{owner.__qualname__}"
+        super().__init__(self.naming(str))
+
+    def naming(self, key: Callable[[str], str]) -> str:
+        """The message with each argument named ``key(argument)``."""
+        message = self.template
+        for name in self.arguments:
+            message = message.replace("{" + name + "}", key(name))
+        return message
+
+
+class ArgumentFileError(ArgumentError, FileNotFoundError):
+    """An :class:`ArgumentError` about a file that is not there (still a FileNotFoundError)."""

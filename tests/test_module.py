@@ -175,3 +175,18 @@ def test_a_zero_prediction_is_scored_unless_the_network_declares_partial_output(
     filled_only = module.val_metrics.compute()
     assert scored["rmse"] > 5.0
     assert filled_only["rmse"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_evaluation_range_comes_from_the_config_not_the_network(make_config) -> None:
+    """A run scores by its eval block, and null limits take the dataset's, whatever range the
+    network was given (it is not read back from the network)."""
+    from fusion_depth.runner.module import module_from_config
+
+    cfg = make_config(
+        "experiment=smoke", "dataset.max_depth=50", "model.net.max_depth=60", "eval.min_depth=1"
+    )
+    module = module_from_config(cfg)
+    assert module.net.max_depth == 60
+    assert (module.protocol.min_depth, module.protocol.max_depth) == (1.0, (50.0,))
+    capped = module_from_config(make_config("experiment=smoke", "eval.max_depth=[40,50]"))
+    assert capped.protocol.max_depth == (40.0, 50.0)

@@ -102,6 +102,11 @@ def test_a_model_added_as_the_guide_says_composes_trains_evaluates_and_exports(c
     assert exported.returncode == 0, exported.stderr[-3000:]
     assert (checkout / "fpn_depth.onnx").stat().st_size > 10_000
 
+    # Step 5: the class's ARGUMENT_RULES refuse a bad value of its own before any work
+    refused = _run(f"{smoke} model.net.width=0", checkout)
+    assert refused.returncode == 1
+    assert "model.net.width=0: expected an integer ≥ 1" in refused.stderr, refused.stderr[-2000:]
+
 
 def test_a_recipe_naming_a_loss_that_does_not_exist_is_one_line() -> None:
     import dataclasses

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from helpers import file_bytes
 
+from fusion_depth.config.arguments import config_message
 from fusion_depth.data import cache as cache_module
 from fusion_depth.data.cache import (
     CLAIMS_DIR,
@@ -33,6 +34,7 @@ from fusion_depth.data.cache import (
     prepare_options,
     prepare_split,
 )
+from fusion_depth.errors import ArgumentError
 from fusion_depth.utils.atomic import write_atomic
 
 FRAMES = [f"scene/{k:03d}" for k in range(12)]
@@ -367,8 +369,10 @@ def test_an_unrelated_write_error_is_not_called_a_full_disk(tmp_path, monkeypatc
     ],
 )
 def test_bad_options_are_refused_naming_the_key(options, message) -> None:
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ArgumentError) as err:  # naming the argument; a command, the key
         PrepareOptions(**options)
+    assert re.match(message, config_message(err.value))
+    assert re.match(message.removeprefix("prepare."), str(err.value))
 
 
 # --- processes: workers die with their parent, takeovers are atomic, Ctrl-C is quick ------------

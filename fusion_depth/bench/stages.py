@@ -46,7 +46,7 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader
 from torch.utils.flop_counter import FlopCounterMode
 
-from fusion_depth.data.base import check_dataset
+from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data.cache import PreparedSplit, usable_cores
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 from fusion_depth.data.encoding import decode_sample
@@ -62,7 +62,7 @@ from fusion_depth.export import (
 )
 from fusion_depth.models.inference import predict_depth
 from fusion_depth.runner.datamodule import DepthDataModule
-from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.module import DepthModule, module_from_config
 from fusion_depth.runner.run_folder import provenance
 from fusion_depth.runner.speed import (
     accelerator_device,
@@ -423,7 +423,7 @@ def build_module(cfg: DictConfig, device: torch.device) -> DepthModule:
     cfg.backbone.pretrained = False
     cfg.backbone.weights = None
     torch.manual_seed(int(cfg.seed))
-    return instantiate(cfg.model, _convert_="all").to(device)
+    return module_from_config(cfg).to(device)
 
 
 def run_bench(

@@ -1,4 +1,4 @@
-"""The config checks that read several keys at once (the rest are the ``CONFIG_SCHEMA`` tables
+"""The config checks that read several keys at once (the rest are the ``ARGUMENT_RULES`` tables
 beside the code, :mod:`fusion_depth.utils.schema`): the encoder and its taps, the network against
 the fusion mode, encoder and dataset it is given, the batch against the encoder's bottleneck, and
 the schedule's arguments. Each reads the config and asks the science code, which takes plain
@@ -11,13 +11,13 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.errors import ConfigError
-from fusion_depth.models._registry import model_entry
+from fusion_depth.config.arguments import config_message
+from fusion_depth.errors import ArgumentError, ConfigError
+from fusion_depth.models._registry import check_model_takes, model_class
 from fusion_depth.models.encoder import TAPS, check_backbone_name
 from fusion_depth.optim import schedules
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS, check_schedule_arguments
 from fusion_depth.utils.config_values import ABSENT, check_schema, config_value
-from fusion_depth.utils.overrides import show
 from fusion_depth.utils.schema import POSITIVE, POSITIVE_INT, Rule, is_int, is_number, one_of
 
 
@@ -41,9 +41,10 @@ def check_backbone(cfg: DictConfig) -> None:
         if name is ABSENT:
             continue
         try:
-            check_backbone_name(name, taps, key=name_key)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
+            check_backbone_name(name, taps)
+        except ArgumentError as err:
+            keys = {"name": name_key, "taps": taps_key}
+            raise ConfigError(config_message(err, keys)) from None
 
 
 def check_bottleneck(cfg: DictConfig) -> None:
@@ -66,8 +67,9 @@ def check_bottleneck(cfg: DictConfig) -> None:
 
 def check_scheduler(cfg: DictConfig) -> None:
     """The ``scheduler`` group's values (fusion_depth.utils.schema). With
-    :func:`create_schedule` (``scheduler=for_<dataset>_<model>``) only the arguments of the
-    schedule it names are set, the others are null, and those it names must be that schedule's.
+    :func:`create_schedule` (a recipe's ``scheduler=<recipe_from>_<dataset>_<model>``) only the
+    arguments of the schedule it names are set, the others are null, and those it names must be
+    that schedule's.
 
     Raises:
         ConfigError: naming the key and what it accepts.
@@ -97,13 +99,28 @@ def check_scheduler(cfg: DictConfig) -> None:
                 scheduler.get("name", "step"),
                 {k: v for k, v in scheduler.items() if k in SCHEDULE_ARGUMENTS},
             )
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
+        except ArgumentError as err:
+            raise ConfigError(config_message(err)) from None
+
+
+# Where the arguments of check_model_takes are set, and how its messages name them (the groups).
+_MODEL_TAKES = {
+    "fusion": "model.net.fusion",
+    "backbone": "model.net.backbone",
+    "sensor": "dataset.sensor",
+}
+_MODEL_TAKES_NAMED = {
+    "name": "model.net.name",
+    "fusion": "fusion",
+    "backbone": "backbone",
+    "sensor": "dataset.sensor",
+}
 
 
 def check_model(cfg: DictConfig) -> None:
     """The chosen network (``model.net.name``, a key of the model table) takes the chosen fusion
-    mode, encoder and dataset.
+    mode, encoder and dataset, and its own arguments pass the rules its class declares
+    (``ARGUMENT_RULES``: argument → :class:`~fusion_depth.utils.schema.Rule`).
 
     Raises:
         ConfigError: naming the model and the value it cannot take.
@@ -111,19 +128,14 @@ def check_model(cfg: DictConfig) -> None:
     name = config_value(cfg, "model.net.name")
     if name is ABSENT:
         return
+    given = {argument: config_value(cfg, key) for argument, key in _MODEL_TAKES.items()}
     try:
-        entry = model_entry(name)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    checks = (
-        ("fusion", config_value(cfg, "model.net.fusion"), entry.fusions),
-        ("backbone", config_value(cfg, "model.net.backbone"), entry.backbones),
-        ("dataset.sensor", config_value(cfg, "dataset.sensor"), entry.sensors),
-    )
-    for key, value, allowed in checks:
-        if value is not ABSENT and allowed is not None and value not in allowed:
-            dataset = f" (dataset={cfg.dataset.name})" if key == "dataset.sensor" else ""
-            raise ConfigError(
-                f"model={name} cannot take {key}={show(value)}{dataset}: it takes "
-                f"{key}={'/'.join(allowed)} ({entry.paper})"
-            )
+        check_model_takes(name, **{a: None if v is ABSENT else v for a, v in given.items()})
+    except ArgumentError as err:
+        message = config_message(err, _MODEL_TAKES_NAMED)
+        if err.arguments == ("sensor",):  # say which dataset lacks it
+            message = message.replace(": it takes", f" (dataset={cfg.dataset.name}): it takes", 1)
+        raise ConfigError(message) from None
+    # What the network's own arguments accept, declared on its class (fusion_depth.utils.schema)
+    rules = getattr(model_class(name), "ARGUMENT_RULES", {})
+    check_schema(cfg, {f"model.net.{argument}": rule for argument, rule in rules.items()})

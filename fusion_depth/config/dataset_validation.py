@@ -9,15 +9,20 @@ were a fixed cost that no number of workers shortens.
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
+from fusion_depth.config.arguments import config_message
 from fusion_depth.config.keys import check_known_keys
-from fusion_depth.data.base import check_dataset
-from fusion_depth.errors import ConfigError
+from fusion_depth.data.base import check_size
+from fusion_depth.errors import ArgumentError, ConfigError, MissingDependencyError
+from fusion_depth.utils.overrides import show
+from fusion_depth.utils.schema import is_number
 
 
 class MissingValueError(MissingMandatoryValue, ConfigError):
@@ -43,10 +48,47 @@ def one_line_errors() -> Iterator[None]:
         raise ConfigError(f"{err.full_key or 'config'}: {first}") from None
 
 
+def check_dataset(ds: Any, fusion: str) -> None:
+    """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it.
+    ``ds`` is the ``dataset`` node (a DictConfig, or any object with its keys as attributes).
+
+    Raises:
+        ConfigError: a size, depth range or fusion mode the dataset cannot take, naming the key.
+        MissingDependencyError: the dataset's optional package is not installed (with the
+            command that installs it).
+    """
+    try:
+        check_size(ds.height, ds.width)
+    except ArgumentError as err:
+        raise ConfigError(
+            config_message(err, {"height": "dataset.height", "width": "dataset.width"})
+        ) from None
+    for key in ("min_depth", "max_depth", "depth_scale"):
+        if not is_number(ds[key]) or not ds[key] > 0:
+            raise ConfigError(f"dataset.{key}={show(ds[key])}: expected a positive number")
+    if not 0 < ds.min_depth < ds.max_depth:
+        raise ConfigError(
+            f"dataset.min_depth={ds.min_depth}, dataset.max_depth={ds.max_depth}: "
+            "expected 0 < min_depth < max_depth"
+        )
+    needs = ds.get("requires")
+    if needs is not None and importlib.util.find_spec(needs.module) is None:
+        raise MissingDependencyError(
+            f"dataset={ds.name} needs {needs.package} (module {needs.module!r}), which is not "
+            f"installed: {needs.install}"
+        )
+    allowed = ds.get("fusions")
+    if allowed is not None and fusion not in allowed:
+        raise ConfigError(
+            f"fusion={fusion}: dataset={ds.name} has no sparse sensor input, so only "
+            f"fusion={'/'.join(allowed)} is possible (dataset.fusions)"
+        )
+
+
 def validate_dataset_config(cfg: DictConfig) -> dict:
     """Fail before touching data, as :func:`~fusion_depth.config.validate_config` does, for the
     ``dataset`` node alone: missing values, the dataset's values
-    (:func:`fusion_depth.data.base.check_dataset`, against ``fusion.mode``), and unknown keys of
+    (:func:`check_dataset`, against ``fusion.mode``), and unknown keys of
     ``dataset`` and ``prepare`` (:func:`~fusion_depth.config.keys.check_known_keys`). The rest of
     the config is training's; ``train`` checks it.
 

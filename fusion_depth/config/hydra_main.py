@@ -42,7 +42,8 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, target_accepts, unknown_key_error
-from fusion_depth.errors import CommandError, UserError
+from fusion_depth.config.arguments import config_message
+from fusion_depth.errors import ArgumentError, CommandError, UserError
 
 # What prints as its message alone: Hydra's compact errors and the package's own.
 SHORT_ERRORS = (CompactHydraException, UserError)
@@ -188,10 +189,21 @@ def _disk_full_message(err: BaseException) -> str | None:
     )
 
 
+def _argument_error(err: BaseException | None) -> ArgumentError | None:
+    """The :class:`ArgumentError` ``err`` is, or was raised from (Hydra's instantiate wraps what
+    a target raises)."""
+    while err is not None and not isinstance(err, ArgumentError):
+        err = err.__cause__
+    return err
+
+
 def user_message(err: BaseException) -> str | None:
     """The message to show instead of a traceback for an error about the user's input (data,
     config values, files), or None for anything else (a bug keeps its traceback)."""
     text = str(err).strip()
+    argument = _argument_error(err)
+    if argument is not None:  # a science function's argument: named as the config key
+        return config_message(argument)
     full = _disk_full_message(err)
     if full is not None:
         return full
@@ -221,12 +233,14 @@ def _short_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], A
         try:
             return task(cfg)
         except SHORT_ERRORS as err:
-            message = user_message(err)
+            argument = _argument_error(err)  # named as the key where cfg sets it
+            message = user_message(err) if argument is None else config_message(argument, cfg=cfg)
             if message != str(err).strip():
                 raise CommandError(message) from err
             raise
         except (OSError, ValueError) as err:
-            message = user_message(err)
+            argument = _argument_error(err)
+            message = user_message(err) if argument is None else config_message(argument, cfg=cfg)
             if message is None:
                 raise
             raise CommandError(message) from err

@@ -1,7 +1,9 @@
 """The checks a config must pass before any work, together: :func:`validate_config`.
 
-What each key may hold is declared beside the code that reads it (a ``CONFIG_SCHEMA``, see
-:mod:`fusion_depth.utils.schema`, or a check of values that depend on each other);
+What each key may hold is declared beside the code that reads it (an ``ARGUMENT_RULES`` table
+by argument name, placed here at the node that sets them, or a runner module's
+``CONFIG_SCHEMA`` by key; see :mod:`fusion_depth.utils.schema`), or is a check of values that
+depend on each other;
 :data:`VALUE_CHECKS` lists them in the order they run."""
 
 from __future__ import annotations
@@ -16,10 +18,9 @@ from fusion_depth.config.checks import (
     check_model,
     check_scheduler,
 )
-from fusion_depth.config.dataset_validation import one_line_errors
+from fusion_depth.config.dataset_validation import check_dataset, one_line_errors
 from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data import transforms
-from fusion_depth.data.base import check_dataset
 from fusion_depth.losses import depth_loss
 from fusion_depth.models import encoder, fusion
 from fusion_depth.optim import optimizers
@@ -32,21 +33,27 @@ def _schema(schema: Schema) -> Callable[[DictConfig], None]:
     return lambda cfg: check_schema(cfg, schema)
 
 
+def _arguments(node: str, rules: Schema) -> Callable[[DictConfig], None]:
+    """The rules of a science function's arguments (by name), at the keys of ``node``."""
+    return _schema({f"{node}.{argument}": rule for argument, rule in rules.items()})
+
+
 # Every value check, in order: the fusion mode first (a mode no model takes is named alone), then
 # the model against the encoder and dataset it is given, before the dataset's own checks (so a
 # model that needs a sensor the dataset lacks is refused naming both), then the rest.
 VALUE_CHECKS: tuple[Callable[[DictConfig], None], ...] = (
-    _schema(fusion.CONFIG_SCHEMA),
-    _schema(depth_loss.CONFIG_SCHEMA),
+    _schema({"fusion.mode": fusion.ARGUMENT_RULES["fusion"]}),
+    _arguments("model.net", fusion.ARGUMENT_RULES),
+    _arguments("loss", depth_loss.ARGUMENT_RULES),
     check_backbone,
-    _schema(encoder.CONFIG_SCHEMA),
+    _arguments("backbone", encoder.ARGUMENT_RULES),
     check_model,
     lambda cfg: check_dataset(cfg.dataset, cfg.fusion.mode),
     _schema(datamodule.CONFIG_SCHEMA),
     check_bottleneck,
-    _schema(transforms.CONFIG_SCHEMA),
+    _arguments("augment", transforms.ARGUMENT_RULES),
     _schema(module.TRAINER_SCHEMA),
-    _schema(optimizers.CONFIG_SCHEMA),
+    _arguments("optimizer", optimizers.ARGUMENT_RULES),
     check_scheduler,
     _schema(callbacks.CONFIG_SCHEMA),
     _schema(speed.CONFIG_SCHEMA),

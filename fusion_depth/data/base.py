@@ -23,7 +23,6 @@ through one.
 
 from __future__ import annotations
 
-import importlib.util
 import numbers
 import os
 from collections.abc import Callable, Sequence
@@ -44,9 +43,7 @@ from fusion_depth.data.cache import (
 )
 from fusion_depth.data.folders import require_root
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, check_max_points
-from fusion_depth.errors import ConfigError, MissingDependencyError
-from fusion_depth.utils.overrides import show
-from fusion_depth.utils.schema import is_number
+from fusion_depth.errors import ArgumentError
 
 # The encoder halves the resolution five times, and the decoder's skips must line up.
 SIZE_MULTIPLE = 32
@@ -60,26 +57,33 @@ def check_split(split: str) -> str:
 
 
 def check_size(height: int, width: int) -> tuple[int, int]:
-    """``(height, width)`` as ints, or a ValueError naming ``dataset.height``/``dataset.width``
-    when one is not a positive multiple of :data:`SIZE_MULTIPLE` (the encoder downsamples by 32)."""
+    """``(height, width)`` as ints, or an ArgumentError naming ``height`` or ``width`` when one is
+    not a positive multiple of :data:`SIZE_MULTIPLE` (the encoder downsamples by 32)."""
     for name, size in (("height", height), ("width", width)):
         whole = isinstance(size, numbers.Integral) and not isinstance(size, bool)
         if not whole or size <= 0 or size % SIZE_MULTIPLE:
-            raise ValueError(
-                f"dataset.{name}={size!r}: expected a positive multiple of {SIZE_MULTIPLE} (the "
-                f"encoder downsamples by {SIZE_MULTIPLE})"
+            raise ArgumentError(
+                f"{{{name}}}={size!r}: expected a positive multiple of {SIZE_MULTIPLE} (the "
+                f"encoder downsamples by {SIZE_MULTIPLE})",
+                name,
+                owner=check_size,
             )
     return int(height), int(width)
 
 
 def check_conditions(
-    conditions: Sequence[str], allowed: Sequence[str] = CONDITIONS, key: str = "dataset.conditions"
+    conditions: Sequence[str], allowed: Sequence[str] = CONDITIONS, argument: str = "conditions"
 ) -> list[str]:
-    """``conditions`` as a list of str, or a ValueError naming ``key`` when it is empty or holds
-    a name not in ``allowed`` (a dataset's subset of :data:`~fusion_depth.data.CONDITIONS`)."""
+    """``conditions`` as a list of str, or an ArgumentError naming ``argument`` (the caller's
+    argument that holds them) when it is empty or holds a name not in ``allowed`` (a dataset's
+    subset of :data:`~fusion_depth.data.CONDITIONS`)."""
     conditions = [str(c) for c in conditions]
     if not conditions or any(c not in allowed for c in conditions):
-        raise ValueError(f"{key}={conditions}: expected a non-empty subset of {list(allowed)}")
+        raise ArgumentError(
+            f"{{{argument}}}={conditions}: expected a non-empty subset of {list(allowed)}",
+            argument,
+            owner=check_conditions,
+        )
     return conditions
 
 
@@ -270,38 +274,3 @@ class PreparedDataset(PreparedSplit):
             return self.frame_files(split, by_id[frame_id]) or []
 
         return files
-
-
-def check_dataset(ds: Any, fusion: str) -> None:
-    """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it.
-    ``ds`` is the ``dataset`` node (a DictConfig, or any object with its keys as attributes).
-
-    Raises:
-        ConfigError: a size, depth range or fusion mode the dataset cannot take, naming the key.
-        MissingDependencyError: the dataset's optional package is not installed (with the
-            command that installs it).
-    """
-    try:
-        check_size(ds.height, ds.width)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    for key in ("min_depth", "max_depth", "depth_scale"):
-        if not is_number(ds[key]) or not ds[key] > 0:
-            raise ConfigError(f"dataset.{key}={show(ds[key])}: expected a positive number")
-    if not 0 < ds.min_depth < ds.max_depth:
-        raise ConfigError(
-            f"dataset.min_depth={ds.min_depth}, dataset.max_depth={ds.max_depth}: "
-            "expected 0 < min_depth < max_depth"
-        )
-    needs = ds.get("requires")
-    if needs is not None and importlib.util.find_spec(needs.module) is None:
-        raise MissingDependencyError(
-            f"dataset={ds.name} needs {needs.package} (module {needs.module!r}), which is not "
-            f"installed: {needs.install}"
-        )
-    allowed = ds.get("fusions")
-    if allowed is not None and fusion not in allowed:
-        raise ConfigError(
-            f"fusion={fusion}: dataset={ds.name} has no sparse sensor input, so only "
-            f"fusion={'/'.join(allowed)} is possible (dataset.fusions)"
-        )

@@ -108,6 +108,7 @@ from fusion_depth.data.radar_points import (
     read_points,
     write_points,
 )
+from fusion_depth.errors import ArgumentError
 from fusion_depth.utils.atomic import remove_orphaned_temporaries, write_json_atomic
 from fusion_depth.utils.processes import die_with_parent, pid_alive
 from fusion_depth.utils.progress import Progress
@@ -274,12 +275,19 @@ class PrepareOptions:
             ("num_shards", self.num_shards, 1),
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-                raise ValueError(f"prepare.{name}={value!r}: expected an integer >= {minimum}")
+                raise ArgumentError(
+                    f"{{{name}}}={value!r}: expected an integer >= {minimum}",
+                    name,
+                    owner=PrepareOptions,
+                )
         shard_ok = isinstance(self.shard, int) and not isinstance(self.shard, bool)
         if not shard_ok or not 0 <= self.shard < self.num_shards:
-            raise ValueError(
-                f"prepare.shard={self.shard!r}: expected an integer in [0, {self.num_shards}) "
-                f"(prepare.num_shards={self.num_shards})"
+            raise ArgumentError(
+                f"{{shard}}={self.shard!r}: expected an integer in [0, {self.num_shards}) "
+                f"({{num_shards}}={self.num_shards})",
+                "shard",
+                "num_shards",
+                owner=PrepareOptions,
             )
 
 
@@ -604,7 +612,7 @@ def _prepare_frames(
     """
     workers = min(workers, len(todo))
     if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
-        log.warning("prepare.workers=%d: this platform cannot fork; preparing in one", workers)
+        log.warning("%d workers: this platform cannot fork; preparing in one", workers)
         workers = 1
     with Progress(len(todo), description, unit="frames", transient=True, logger=log) as progress:
         if workers <= 1:

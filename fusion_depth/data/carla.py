@@ -121,6 +121,7 @@ from fusion_depth.data.folders import (
     resize_rgb,
 )
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
+from fusion_depth.errors import ArgumentError
 
 FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
 SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
@@ -556,9 +557,11 @@ def scan_recording(
                 dict(skipped),
             )
         if not kept:
-            raise ValueError(
+            raise ArgumentError(
                 f"{split_dir}: none of its {sum(skipped.values())} frames has a condition in "
-                f"dataset.conditions={list(conditions)} (found {dict(skipped)})"
+                f"{{conditions}}={list(conditions)} (found {dict(skipped)})",
+                "conditions",
+                owner=scan_recording,
             )
         frames[split] = {frame.id: frame for frame in kept}
     return FrameList(frames, fingerprint(entries))

@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image
 
 from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH
+from fusion_depth.errors import ArgumentError, ArgumentFileError
 
 # The prepared cache stores uint16 depth × 256, so nothing beyond this fits.
 CACHE_MAX_DEPTH = MAX_ENCODED_DEPTH
@@ -25,9 +26,11 @@ CACHE_MAX_DEPTH = MAX_ENCODED_DEPTH
 def check_max_range(max_range: float) -> float:
     """Depths are cached as uint16 1/256 m, so a valid range must stay below 256 m."""
     if not 0 < max_range <= CACHE_MAX_DEPTH:
-        raise ValueError(
-            f"dataset.reader.max_range={max_range}: expected metres in (0, {CACHE_MAX_DEPTH:.2f}] "
-            "(the prepared cache stores depth as uint16 in 1/256 m)"
+        raise ArgumentError(
+            f"{{max_range}}={max_range}: expected metres in (0, {CACHE_MAX_DEPTH:.2f}] "
+            "(the prepared cache stores depth as uint16 in 1/256 m)",
+            "max_range",
+            owner=check_max_range,
         )
     return float(max_range)
 
@@ -35,10 +38,12 @@ def check_max_range(max_range: float) -> float:
 def require_root(root: str | os.PathLike, layout: str) -> Path:
     """The dataset folder, resolved; a missing one fails naming it and the layout expected."""
     if str(root) in ("", "???", "None"):
-        raise ValueError(f"dataset.root is not set: expected {layout}")
+        raise ArgumentError(f"{{root}} is not set: expected {layout}", "root", owner=require_root)
     path = Path(root).expanduser().resolve()
     if not path.is_dir():
-        raise FileNotFoundError(f"dataset.root={path}: no such folder; expected {layout}")
+        raise ArgumentFileError(
+            f"{{root}}={path}: no such folder; expected {layout}", "root", owner=require_root
+        )
     return path
 
 

@@ -79,6 +79,7 @@ from fusion_depth.data.base import FrameList, PreparedDataset, check_size
 from fusion_depth.data.cache import OnError, PreparedFrame, not_a_file
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
+from fusion_depth.errors import ArgumentError, ArgumentFileError
 
 SUBSETS: tuple[str, ...] = ("train", "val")  # what KITTI publishes ground truth for
 CAMERAS: dict[str, str] = {"l": "image_02", "r": "image_03"}
@@ -148,14 +149,18 @@ class KittiFrame:
 def check_layout(root: Path, raw_root: Path) -> None:
     """The published top-level folders exist, or an error saying which and what was expected."""
     if not root.is_dir():
-        raise FileNotFoundError(
-            f"dataset.root={root}: no such folder; expected the KITTI depth completion folder "
-            f"holding {ANNOTATED}/ and {VELODYNE}/"
+        raise ArgumentFileError(
+            f"{{root}}={root}: no such folder; expected the KITTI depth completion folder "
+            f"holding {ANNOTATED}/ and {VELODYNE}/",
+            "root",
+            owner=check_layout,
         )
     if root.name in (ANNOTATED, VELODYNE):
-        raise ValueError(
-            f"dataset.root={root}: this is the {root.name} folder itself; pass its parent, "
-            f"the folder holding both {ANNOTATED}/ and {VELODYNE}/"
+        raise ArgumentError(
+            f"{{root}}={root}: this is the {root.name} folder itself; pass its parent, "
+            f"the folder holding both {ANNOTATED}/ and {VELODYNE}/",
+            "root",
+            owner=check_layout,
         )
     for name, below in ((ANNOTATED, "groundtruth"), (VELODYNE, "velodyne_raw")):
         if not (root / name).is_dir():
@@ -164,9 +169,11 @@ def check_layout(root: Path, raw_root: Path) -> None:
                 f"<root>/{name}/{{train,val}}/<drive>/proj_depth/{below}/image_0{{2,3}}/<frame>.png"
             )
     if not raw_root.is_dir():
-        raise FileNotFoundError(
-            f"dataset.raw_root={raw_root}: no such folder; expected the KITTI raw data, "
-            "<raw_root>/<date>/<drive>/image_0{2,3}/data/<frame>.png"
+        raise ArgumentFileError(
+            f"{{raw_root}}={raw_root}: no such folder; expected the KITTI raw data, "
+            "<raw_root>/<date>/<drive>/image_0{2,3}/data/<frame>.png",
+            "raw_root",
+            owner=check_layout,
         )
 
 
@@ -205,9 +212,12 @@ def list_selection(root: Path) -> list[KittiFrame]:
     folder = root / SELECTION_FOLDER / "groundtruth_depth"
     expected = "<drive>_groundtruth_depth_<frame>_image_0{2,3}.png"
     if not folder.is_dir():
-        raise FileNotFoundError(
-            f"{folder}: missing; dataset.test_split={SELECTION} reads KITTI's "
-            f"data_depth_selection.zip unpacked into dataset.root: {folder}/{expected}"
+        raise ArgumentFileError(
+            f"{folder}: missing; {{test_split}}={SELECTION} reads KITTI's "
+            f"data_depth_selection.zip unpacked into {{root}}: {folder}/{expected}",
+            "test_split",
+            "root",
+            owner=list_selection,
         )
     frames = []
     for png in sorted(folder.glob("*.png")):
@@ -224,7 +234,9 @@ def list_selection(root: Path) -> list[KittiFrame]:
 def parse_split_file(path: Path) -> list[tuple[str, str, str]]:
     """``(drive, camera, 10-digit frame)`` per listed frame, in file order, duplicates dropped."""
     if not path.is_file():
-        raise FileNotFoundError(f"dataset.split_file={path}: no such file")
+        raise ArgumentFileError(
+            f"{{split_file}}={path}: no such file", "split_file", owner=parse_split_file
+        )
     entries: dict[tuple[str, str, str], None] = {}
     for number, raw in enumerate(path.read_text().splitlines(), 1):
         line = raw.split("#", 1)[0].strip()
@@ -240,7 +252,9 @@ def parse_split_file(path: Path) -> list[tuple[str, str, str]]:
             )
         entries[entry] = None
     if not entries:
-        raise ValueError(f"dataset.split_file={path}: lists no frames")
+        raise ArgumentError(
+            f"{{split_file}}={path}: lists no frames", "split_file", owner=parse_split_file
+        )
     return list(entries)
 
 
@@ -269,11 +283,13 @@ def locate_listed(
             frames.append(found)
     if missing:
         shown = "\n  ".join(str(f.groundtruth(root)) for f in missing[:_SHOWN])
-        raise FileNotFoundError(
-            f"dataset.split_file={source}: {len(missing)} of {len(missing) + len(frames)} listed "
+        raise ArgumentFileError(
+            f"{{split_file}}={source}: {len(missing)} of {len(missing) + len(frames)} listed "
             f"frames have no annotated depth in {root / ANNOTATED}/{{train,val}}, e.g.\n  {shown}\n"
             "(the 697-frame Eigen test list has 45 such frames; use the 652-frame list of those "
-            "with annotated depth, monodepth2's splits/eigen_benchmark/test_files.txt)"
+            "with annotated depth, monodepth2's splits/eigen_benchmark/test_files.txt)",
+            "split_file",
+            owner=locate_listed,
         )
     return frames
 
@@ -384,6 +400,14 @@ def load_frame(frame: KittiFrame, settings: FrameSettings, training: bool) -> Pr
 # --- the dataset ------------------------------------------------------------------------------
 
 
+def _whole(value: object, minimum: int) -> bool:
+    """A whole number (``3`` or ``3.0``) of at least ``minimum``."""
+    try:
+        return int(value) == value and value >= minimum  # type: ignore[call-overload, operator]
+    except (TypeError, ValueError):
+        return False
+
+
 class KittiDepth(PreparedDataset):
     """One split of KITTI depth completion, prepared on first use (see the module docstring),
     served as :class:`~fusion_depth.data.Sample` dicts; ``depth`` is the filled ground truth in
@@ -416,27 +440,40 @@ class KittiDepth(PreparedDataset):
         test_split: str = "val",
     ) -> None:
         check_size(height, width)  # before the options, as the other datasets do
-        if sparse_points is not None and (int(sparse_points) != sparse_points or sparse_points < 1):
-            raise ValueError(
-                f"dataset.sparse_points={sparse_points}: expected null (every Velodyne return) "
-                "or a number of points >= 1"
-            )
-        if fill not in FILL_METHODS:
-            raise ValueError(f"dataset.fill={fill!r}: expected one of {list(FILL_METHODS)}")
-        if int(seed) != seed or seed < 0:
-            raise ValueError(f"dataset.seed={seed}: expected a non-negative integer")
-        if int(train_stride) != train_stride or train_stride < 1:
-            raise ValueError(
-                f"dataset.train_stride={train_stride}: expected an integer >= 1 (every n-th frame)"
-            )
-        if test_split not in TEST_SPLITS:
-            raise ValueError(
-                f"dataset.test_split={test_split!r}: expected one of {', '.join(TEST_SPLITS)}"
-            )
+        checks = (
+            (
+                "sparse_points",
+                sparse_points,
+                sparse_points is None or _whole(sparse_points, 1),
+                "null (every Velodyne return) or a number of points >= 1",
+            ),
+            ("fill", repr(fill), fill in FILL_METHODS, f"one of {list(FILL_METHODS)}"),
+            ("seed", seed, _whole(seed, 0), "a non-negative integer"),
+            (
+                "train_stride",
+                train_stride,
+                _whole(train_stride, 1),
+                "an integer >= 1 (every n-th frame)",
+            ),
+            (
+                "test_split",
+                repr(test_split),
+                test_split in TEST_SPLITS,
+                f"one of {', '.join(TEST_SPLITS)}",
+            ),
+        )
+        for argument, shown, ok, expected in checks:
+            if not ok:
+                raise ArgumentError(
+                    f"{{{argument}}}={shown}: expected {expected}", argument, owner=KittiDepth
+                )
         if test_split != "val" and split_file is not None:
-            raise ValueError(
-                f"dataset.test_split={test_split} and dataset.split_file={split_file} both name "
-                "the test frames; give one"
+            raise ArgumentError(
+                f"{{test_split}}={test_split} and {{split_file}}={split_file} both name the "
+                "test frames; give one",
+                "test_split",
+                "split_file",
+                owner=KittiDepth,
             )
         self.test_split = test_split
         self.raw_root = Path(raw_root).expanduser().resolve()
@@ -540,13 +577,16 @@ def split_frames(
         drives = {f.drive for f in test}
         kept = [f for f in train if f.drive not in drives]
         if not kept:
-            raise ValueError(
+            raise ArgumentError(
                 f"train split: every drive of {root / ANNOTATED / 'train'} is a test drive of "
-                f"dataset.split_file={split_file}, nothing is left to train on (set "
-                "dataset.exclude_test_drives=false to keep them)"
+                f"{{split_file}}={split_file}, nothing is left to train on (set "
+                "{exclude_test_drives}=false to keep them)",
+                "split_file",
+                "exclude_test_drives",
+                owner=split_frames,
             )
         log.info(
-            "kitti: %d train frames of %d test drives left out (dataset.exclude_test_drives)",
+            "kitti: %d train frames of %d test drives left out (exclude_test_drives)",
             len(train) - len(kept),
             len(drives),
         )

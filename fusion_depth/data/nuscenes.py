@@ -112,6 +112,7 @@ from fusion_depth.data.cache import (
 from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
+from fusion_depth.errors import ArgumentError
 
 FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
 INSTALL = 'pip install -e ".[nuscenes]"'
@@ -299,9 +300,16 @@ def radar_filter_states(
 
     ``default`` and ``off`` are the devkit's own ``RadarPointCloud.default_filters()`` and
     ``disable_filters()``; ``custom`` takes the three lists.
+
+    Raises:
+        ArgumentError: naming the reader's argument (``radar_filters``, ``radar_<name>``).
     """
     if mode not in RADAR_FILTERS:
-        raise ValueError(f"dataset.reader.radar_filters={mode!r}: expected one of {RADAR_FILTERS}")
+        raise ArgumentError(
+            f"{{radar_filters}}={mode!r}: expected one of {RADAR_FILTERS}",
+            "radar_filters",
+            owner=radar_filter_states,
+        )
     if mode == "custom":
         states = {
             "invalid_states": invalid_states,
@@ -312,9 +320,12 @@ def radar_filter_states(
             limit = RADAR_STATE_RANGES[name]
             values = list(values) if values is not None else []
             if not values or any(int(v) != v or not 0 <= v < limit for v in values):
-                raise ValueError(
-                    f"dataset.reader.radar_{name}={values}: expected a non-empty list of integers "
-                    f"in [0, {limit - 1}] (or radar_filters=off to keep every return)"
+                raise ArgumentError(
+                    f"{{radar_{name}}}={values}: expected a non-empty list of integers "
+                    f"in [0, {limit - 1}] (or {{radar_filters}}=off to keep every return)",
+                    f"radar_{name}",
+                    "radar_filters",
+                    owner=radar_filter_states,
                 )
         return {name: sorted({int(v) for v in values}) for name, values in states.items()}
     filters = type("RadarFilters", (require_devkit().RadarPointCloud,), {})
@@ -538,10 +549,12 @@ def split_frames(
     present = sorted(set(scene_names) & set(by_name))
     table = Path(nusc.dataroot) / nusc.version / "scene.json"
     if not present:
-        raise ValueError(
+        raise ArgumentError(
             f"{table}: none of the {len(scene_names)} scenes of {what} "
             f"({', '.join(sorted(scene_names)[:4])}, ...) is listed; expected the {nusc.version} "
-            "tables as published, or another dataset.version"
+            "tables as published, or another {version}",
+            "version",
+            owner=split_frames,
         )
     tokens: list[str] = []
     skipped: dict[str, int] = {}
@@ -560,10 +573,12 @@ def split_frames(
                 tokens.append(token)
             token, index = sample["next"], index + 1
     if not tokens:
-        raise ValueError(
-            f"{table}: {what} has no keyframe left: dataset.conditions={list(conditions)} "
+        raise ArgumentError(
+            f"{table}: {what} has no keyframe left: {{conditions}}={list(conditions)} "
             f"excludes all its {len(present)} scenes (conditions: {skipped}); expected at least "
-            "one scene with a keyframe"
+            "one scene with a keyframe",
+            "conditions",
+            owner=split_frames,
         )
     return tokens
 
@@ -604,6 +619,11 @@ def load_tables(devkit: Devkit, root: Path, version: str) -> Any:
             f"{root / version}: the nuScenes devkit could not load the {version} tables "
             f"({type(err).__name__}: {err}); expected {LAYOUT}"
         ) from err
+
+
+def _reader_error(message: str, argument: str) -> ArgumentError:
+    """An :class:`ArgumentError` about :class:`NuScenesDepth`'s ``argument``."""
+    return ArgumentError(message, argument, owner=NuScenesDepth)
 
 
 class NuScenesDepth(PreparedDataset):
@@ -647,23 +667,25 @@ class NuScenesDepth(PreparedDataset):
     ) -> None:
         require_devkit()  # first: without it nothing else can work
         for name, value, allowed in (
-            ("dataset.version", version, list(VERSIONS)),
-            ("dataset.fill", fill, FILL_METHODS),
-            ("dataset.reader.test_split", test_split, TEST_SPLITS),
+            ("version", version, list(VERSIONS)),
+            ("fill", fill, FILL_METHODS),
+            ("test_split", test_split, TEST_SPLITS),
         ):
             if value not in allowed:
-                raise ValueError(f"{name}={value!r}: expected one of {list(allowed)}")
+                raise _reader_error(f"{{{name}}}={value!r}: expected one of {list(allowed)}", name)
         self.conditions_kept = check_conditions(conditions, NUSCENES_CONDITIONS)
-        self.radar_channels = check_conditions(
-            radar_channels, RADAR_CHANNELS, "dataset.reader.radar_channels"
-        )
-        for name, value in (("radar_nsweeps", radar_nsweeps), ("lidar_nsweeps", lidar_nsweeps)):
+        self.radar_channels = check_conditions(radar_channels, RADAR_CHANNELS, "radar_channels")
+        for name, value in (
+            ("radar_nsweeps", radar_nsweeps),
+            ("lidar_nsweeps", lidar_nsweeps),
+            ("stride", stride),
+        ):
             if int(value) != value or value < 1:
-                raise ValueError(f"dataset.reader.{name}={value}: expected an integer >= 1")
-        if int(stride) != stride or stride < 1:
-            raise ValueError(f"dataset.reader.stride={stride}: expected an integer >= 1")
+                raise _reader_error(f"{{{name}}}={value}: expected an integer >= 1", name)
         if not (math.isfinite(min_distance) and min_distance > 0):
-            raise ValueError(f"dataset.reader.min_distance={min_distance}: expected metres > 0")
+            raise _reader_error(
+                f"{{min_distance}}={min_distance}: expected metres > 0", "min_distance"
+            )
         self.radar_states = radar_filter_states(
             radar_filters, radar_invalid_states, radar_dynprop_states, radar_ambig_states
         )

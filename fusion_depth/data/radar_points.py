@@ -22,6 +22,7 @@ import numpy as np
 
 from fusion_depth.data import RADAR_POINT_FIELDS
 from fusion_depth.data.depth_io import DataFileError, read_npy, write_npy
+from fusion_depth.errors import ArgumentError
 
 NUM_FIELDS = len(RADAR_POINT_FIELDS)
 U, V, DEPTH, RCS, VELOCITY, VALID = (RADAR_POINT_FIELDS.index(name) for name in RADAR_POINT_FIELDS)
@@ -30,13 +31,16 @@ U, V, DEPTH, RCS, VELOCITY, VALID = (RADAR_POINT_FIELDS.index(name) for name in 
 DEFAULT_MAX_RADAR_POINTS = 128
 
 
-def check_max_points(value: int, key: str = "dataset.max_radar_points") -> int:
-    """``value`` as an int, or a ValueError naming ``key`` when it is not an integer >= 1."""
+def check_max_points(value: int, argument: str = "max_radar_points") -> int:
+    """``value`` as an int, or an ArgumentError naming ``argument`` when it is not an integer
+    >= 1."""
     whole = isinstance(value, numbers.Integral) and not isinstance(value, bool)
     if not whole or value < 1:
-        raise ValueError(
-            f"{key}={value!r}: expected an integer >= 1 (the radar returns each sample keeps, "
-            "the nearest first)"
+        raise ArgumentError(
+            f"{{{argument}}}={value!r}: expected an integer >= 1 (the radar returns each sample "
+            "keeps, the nearest first)",
+            argument,
+            owner=check_max_points,
         )
     return int(value)
 

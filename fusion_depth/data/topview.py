@@ -68,6 +68,7 @@ from fusion_depth.data.folders import (
     resize_depth_nearest,
     resize_rgb,
 )
+from fusion_depth.errors import ArgumentError
 
 FORMAT_VERSION = 1  # bump when decoding changes, so old caches are not reused
 RGB_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -91,7 +92,7 @@ def read_depth_file(path: str | os.PathLike, depth_unit: float) -> np.ndarray:
         raise DataFileError(
             path,
             "EXR depth maps are not supported (no EXR reader is installed); export or convert "
-            "them to .npy (float array, metres = value x dataset.reader.depth_unit) or 16-bit PNG",
+            "them to .npy (float array, metres = value x the reader's depth_unit) or 16-bit PNG",
         )
     if suffix == ".png":
         depth = read_depth_png(path, scale=1.0).astype(np.float64) * depth_unit
@@ -258,13 +259,17 @@ class TopViewDepth(PreparedDataset):
         on_error: OnError = "raise",
     ) -> None:
         if not depth_unit > 0:
-            raise ValueError(
-                f"dataset.reader.depth_unit={depth_unit}: expected metres per stored unit > 0 "
-                "(0.01 for Unreal's centimetres, 1.0 for metres)"
+            raise ArgumentError(
+                f"{{depth_unit}}={depth_unit}: expected metres per stored unit > 0 "
+                "(0.01 for Unreal's centimetres, 1.0 for metres)",
+                "depth_unit",
+                owner=TopViewDepth,
             )
         if condition not in CONDITIONS:
-            raise ValueError(
-                f"dataset.reader.condition={condition!r}: expected one of {list(CONDITIONS)}"
+            raise ArgumentError(
+                f"{{condition}}={condition!r}: expected one of {list(CONDITIONS)}",
+                "condition",
+                owner=TopViewDepth,
             )
         self.depth_unit = float(depth_unit)
         self.condition = condition

@@ -62,11 +62,10 @@ _FACTOR_RANGE = Rule(
     ),
     "[low, high] factors with 0 < low ≤ high",
 )
-# The ``augment`` block's values (:class:`TrainAugmentation`'s arguments;
-# fusion_depth.utils.schema).
-CONFIG_SCHEMA: Schema = {
-    "augment.flip_p": PROBABILITY,
-    "augment.color_p": PROBABILITY,
-    "augment.brightness": _FACTOR_RANGE,
-    "augment.contrast": _FACTOR_RANGE,
+# What :class:`TrainAugmentation`'s arguments accept (fusion_depth.utils.schema).
+ARGUMENT_RULES: Schema = {
+    "flip_p": PROBABILITY,
+    "color_p": PROBABILITY,
+    "brightness": _FACTOR_RANGE,
+    "contrast": _FACTOR_RANGE,
 }

@@ -20,8 +20,8 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data import SPLITS
-from fusion_depth.data.base import check_dataset
 from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
 from fusion_depth.runner.callbacks import ProgressLog
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader

@@ -266,11 +266,11 @@ class DepthLoss(nn.Module):
         )
 
 
-# The ``loss`` group's values (:class:`DepthLoss`'s arguments; fusion_depth.utils.schema).
-CONFIG_SCHEMA: Schema = {
-    "loss.pixel": one_of(*PIXEL_LOSSES),
-    "loss.w_ssim": NON_NEGATIVE,
-    "loss.w_edge": NON_NEGATIVE,
-    "loss.w_pixel": NON_NEGATIVE,
-    "loss.berhu_threshold": POSITIVE,
+# What :class:`DepthLoss`'s arguments accept (fusion_depth.utils.schema).
+ARGUMENT_RULES: Schema = {
+    "pixel": one_of(*PIXEL_LOSSES),
+    "w_ssim": NON_NEGATIVE,
+    "w_edge": NON_NEGATIVE,
+    "w_pixel": NON_NEGATIVE,
+    "berhu_threshold": POSITIVE,
 }

@@ -44,6 +44,8 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
+from fusion_depth.errors import ArgumentError
+
 __all__ = [
     "AVERAGING",
     "EVAL_CROPS",
@@ -190,7 +192,9 @@ def crop_mask(
     is the frame. Rows ``top + int(f · height)`` follow the KITTI scripts' rounding.
     """
     if crop not in EVAL_CROPS:
-        raise ValueError(f"eval.crop={crop!r}: expected one of {list(EVAL_CROPS)}")
+        raise ArgumentError(
+            f"{{crop}}={crop!r}: expected one of {list(EVAL_CROPS)}", "crop", owner=crop_mask
+        )
     height, width = shape
     fractions = EVAL_CROPS[crop]
     if fractions is None:
@@ -315,13 +319,21 @@ def _aggregate(sums: Tensor, counts: Tensor, averaging: str) -> dict[str, float]
 
 def _check_averaging(averaging: str) -> str:
     if averaging not in AVERAGING:
-        raise ValueError(f"eval.averaging={averaging!r}: expected one of {list(AVERAGING)}")
+        raise ArgumentError(
+            f"{{averaging}}={averaging!r}: expected one of {list(AVERAGING)}",
+            "averaging",
+            owner=_check_averaging,
+        )
     return averaging
 
 
 def _check_relative_to(relative_to: str) -> str:
     if relative_to not in RELATIVE_TO:
-        raise ValueError(f"eval.relative_to={relative_to!r}: expected one of {list(RELATIVE_TO)}")
+        raise ArgumentError(
+            f"{{relative_to}}={relative_to!r}: expected one of {list(RELATIVE_TO)}",
+            "relative_to",
+            owner=_check_relative_to,
+        )
     return relative_to
 
 

@@ -11,7 +11,9 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from fusion_depth.errors import ArgumentError
 from fusion_depth.models.base import DepthModel
+from fusion_depth.utils.overrides import show
 
 
 @dataclass(frozen=True)
@@ -140,10 +142,12 @@ def model_entry(name: Any) -> ModelEntry:
     """The table's entry of ``name``.
 
     Raises:
-        ValueError: ``name`` is not a model of the table (naming the choices).
+        ArgumentError: ``name`` is not a model of the table (naming the choices).
     """
     if not isinstance(name, str) or name not in MODELS:
-        raise ValueError(f"model.net.name={name!r}: expected one of {sorted(MODELS)}")
+        raise ArgumentError(
+            f"{{name}}={name!r}: expected one of {sorted(MODELS)}", "name", owner=model_entry
+        )
     return MODELS[name]
 
 
@@ -158,11 +162,40 @@ def model_arguments(name: str) -> tuple[str, ...]:
     return tuple(inspect.signature(model_class(name)).parameters)
 
 
+def check_model_takes(
+    name: str, fusion: Any = None, backbone: Any = None, sensor: Any = None
+) -> None:
+    """Model ``name`` takes fusion mode ``fusion``, encoder ``backbone`` and a dataset whose
+    sparse sensor is ``sensor``, as its registration says (None: not checked). The one place
+    these are checked: :func:`create_model` and the config checks call it.
+
+    Raises:
+        ArgumentError: an unknown name, or the first argument the model does not take, naming
+            what it takes and its paper.
+    """
+    entry = model_entry(name)
+    given = (
+        ("fusion", fusion, entry.fusions),
+        ("backbone", backbone, entry.backbones),
+        ("sensor", sensor, entry.sensors),
+    )
+    for argument, value, allowed in given:
+        if value is not None and allowed is not None and value not in allowed:
+            raise ArgumentError(
+                f"model={name} cannot take {{{argument}}}={show(value)}: it takes "
+                f"{{{argument}}}={'/'.join(allowed)} ({entry.paper})",
+                argument,
+                owner=check_model_takes,
+            )
+
+
 def create_model(name: str = DEFAULT_MODEL, **kwargs: Any) -> DepthModel:
     """Model ``name`` built with ``kwargs`` (its constructor's arguments).
 
     Raises:
-        ValueError: an unknown name, or an argument the model rejects.
+        ArgumentError: an unknown name, a fusion mode or encoder the model does not take
+            (:func:`check_model_takes`), or an argument the model rejects.
         TypeError: an argument the model does not take.
     """
+    check_model_takes(name, kwargs.get("fusion"), kwargs.get("backbone"))
     return model_class(name)(**kwargs)

@@ -31,6 +31,7 @@ import timm
 import torch
 from torch import nn
 
+from fusion_depth.errors import ArgumentError, ArgumentFileError
 from fusion_depth.utils.schema import (
     BOOLEAN,
     Schema,
@@ -39,7 +40,7 @@ from fusion_depth.utils.schema import (
 log = logging.getLogger(__name__)
 
 
-class WeightsUnavailableError(RuntimeError):
+class WeightsUnavailableError(ArgumentError, RuntimeError):
     """ImageNet weights were asked for but can be had neither from disk nor from the hub."""
 
 
@@ -72,9 +73,9 @@ STRIDES: tuple[int, ...] = (2, 4, 8, 16, 32)  # the decoder's contract, finest f
 _PROBE_SIZE = 64  # side of the all-zero image each encoder is checked on when built
 
 
-def check_backbone_name(name: Any, taps: str = "paper", key: str = "backbone.name") -> None:
-    """Refuse a backbone ``name`` the encoder cannot build with ``taps``, in one line naming
-    ``key``, before anything is built (no model is created; this takes milliseconds).
+def check_backbone_name(name: Any, taps: str = "paper") -> None:
+    """Refuse a backbone ``name`` the encoder cannot build with ``taps``, in one line, before
+    anything is built (no model is created; this takes milliseconds).
 
     ``paper``: one of :data:`ENCODER_SPECS`. ``pyramid``: a timm architecture
     (``timm.list_models()``), optionally with a pretrained tag (``convnext_tiny.fb_in22k``, as
@@ -82,19 +83,24 @@ def check_backbone_name(name: Any, taps: str = "paper", key: str = "backbone.nam
     known once it is built (:class:`Encoder` refuses it then).
 
     Raises:
-        ValueError: ``{key}={name}: ...`` with a did-you-mean for a misspelt timm name.
+        ArgumentError: ``name=...`` (or ``taps=...``), with a did-you-mean for a misspelt timm
+            name.
     """
+
+    def error(rest: str, argument: str = "name") -> ArgumentError:
+        return ArgumentError("{" + argument + "}" + rest, argument, owner=check_backbone_name)
+
     if taps == "paper":
         if name not in ENCODER_SPECS:
-            raise ValueError(
-                f"{key}={name}: expected one of {', '.join(sorted(ENCODER_SPECS))} (the paper's "
+            raise error(
+                f"={name}: expected one of {', '.join(sorted(ENCODER_SPECS))} (the paper's "
                 "taps); any other timm model: backbone=timm"
             )
         return
     if taps != "pyramid":
-        raise ValueError(f"backbone.taps={taps}: expected one of {', '.join(TAPS)}")
+        raise error(f"={taps}: expected one of {', '.join(TAPS)}", "taps")
     if not isinstance(name, str) or not name:
-        raise ValueError(f"{key}={name}: expected a timm model name (timm.list_models())")
+        raise error(f"={name}: expected a timm model name (timm.list_models())")
     arch, tag = timm.models.split_model_name_tag(name)
     known = timm.list_pretrained(f"{arch}.*") if tag else timm.list_models()
     if (name if tag else arch) in known:
@@ -102,9 +108,8 @@ def check_backbone_name(name: Any, taps: str = "paper", key: str = "backbone.nam
     what = "not a timm model" if arch not in timm.list_models() else f"no pretrained tag {tag!r}"
     close = difflib.get_close_matches(name, known or timm.list_pretrained(), n=1)
     hint = f" (did you mean {close[0]}?)" if close else ""
-    raise ValueError(
-        f"{key}={name}: {what}{hint}; expected a name from timm.list_models() or "
-        "timm.list_pretrained()"
+    raise error(
+        f"={name}: {what}{hint}; expected a name from timm.list_models() or timm.list_pretrained()"
     )
 
 
@@ -138,19 +143,23 @@ def create_timm_model(name: str, pretrained: bool, weights: str | None, **kwargs
     and missing-keys checks below hold for a feature pyramid too).
 
     Raises:
-        ValueError, FileNotFoundError: ``weights`` is not a checkpoint file.
-        RuntimeError: ``weights`` is not a state dict of ``name`` (a key the model needs is
-            missing, or a shape differs).
+        ArgumentError: ``weights`` is not a checkpoint file, or not a state dict of ``name`` (a
+            key the model needs is missing, or a shape differs).
+        ArgumentFileError: ``weights`` does not exist (a FileNotFoundError).
         WeightsUnavailableError: ``pretrained`` without a cached or downloadable checkpoint.
     """
     if weights:
         path = Path(weights).expanduser()
         if path.suffix not in {".safetensors", ".pth", ".pt", ".bin"}:
-            raise ValueError(
-                f"backbone.weights={weights}: expected a .safetensors, .pth, .pt or .bin file"
+            raise ArgumentError(
+                f"{{weights}}={weights}: expected a .safetensors, .pth, .pt or .bin file",
+                "weights",
+                owner=create_timm_model,
             )
         if not path.is_file():
-            raise FileNotFoundError(f"backbone.weights={weights}: no such file")
+            raise ArgumentFileError(
+                f"{{weights}}={weights}: no such file", "weights", owner=create_timm_model
+            )
         # timm's loader applies the model's checkpoint filter (key remapping) and drops the
         # classifier because num_classes=0 differs from the checkpoint's. It then loads
         # non-strictly, so a checkpoint of another architecture would load nothing in silence:
@@ -165,12 +174,16 @@ def create_timm_model(name: str, pretrained: bool, weights: str | None, **kwargs
                     **kwargs,
                 )
             except RuntimeError as err:
-                raise RuntimeError(
-                    f"backbone.weights={weights}: not a state dict for {name} ({err})"
+                raise ArgumentError(
+                    f"{{weights}}={weights}: not a state dict for {name} ({err})",
+                    "weights",
+                    owner=create_timm_model,
                 ) from err
         if missing:
-            raise RuntimeError(
-                f"backbone.weights={weights}: not a state dict for {name}; it lacks {missing[0]}"
+            raise ArgumentError(
+                f"{{weights}}={weights}: not a state dict for {name}; it lacks {missing[0]}",
+                "weights",
+                owner=create_timm_model,
             )
         return model
     if not pretrained:
@@ -221,8 +234,11 @@ def _create_from_hub(name: str, **kwargs: Any) -> nn.Module:
             reason = f"the download failed ({type(err).__name__}: {str(err).splitlines()[0]})"
     raise WeightsUnavailableError(
         f"ImageNet weights for backbone '{name}' are not in the local cache and {reason}. "
-        f"Either pass a local file with backbone.weights=/path/to/{name}.safetensors (or .pth), "
-        "or train from scratch with backbone.pretrained=false."
+        f"Either pass a local file with {{weights}}=/path/to/{name}.safetensors (or .pth), "
+        "or train from scratch with {pretrained}=false.",
+        "weights",
+        "pretrained",
+        owner=create_timm_model,
     )
 
 
@@ -244,10 +260,12 @@ def _pyramid_levels(info: list[dict[str, Any]], name: str) -> dict[int, int]:
             chosen[level["reduction"]] = position  # later levels at one stride are deeper
     if not all(stride in chosen for stride in STRIDES[1:]):
         strides = ", ".join(str(r) for r in sorted({level["reduction"] for level in info}))
-        raise ValueError(
-            f"backbone.name={name}: its feature pyramid has levels at strides {strides}; "
+        raise ArgumentError(
+            f"{{name}}={name}: its feature pyramid has levels at strides {strides}; "
             "expected levels at strides 4, 8, 16 and 32 (and optionally 2) for the DenseDepth "
-            "decoder"
+            "decoder",
+            "name",
+            owner=Encoder,
         )
     return chosen
 
@@ -321,19 +339,23 @@ class Encoder(nn.Module):
             try:
                 feats = self(probe)
             except Exception as err:  # noqa: BLE001 - any failure: the model cannot run here
-                raise ValueError(
-                    f"backbone.name={name}: cannot run on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
+                raise ArgumentError(
+                    f"{{name}}={name}: cannot run on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
                     f"({_first_line(err)}); expected a model that takes any size that is a "
-                    "multiple of 32 (fixed-size models such as ViT or Swin are not supported)"
+                    "multiple of 32 (fixed-size models such as ViT or Swin are not supported)",
+                    "name",
+                    owner=Encoder,
                 ) from None
             finally:
                 self.train(was_training)
         sizes = [tuple(f.shape[-2:]) for f in feats]
         wanted = [(_PROBE_SIZE // s, _PROBE_SIZE // s) for s in STRIDES]
         if sizes != wanted:
-            raise ValueError(
-                f"backbone.name={name}: its feature maps on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
-                f"are {sizes}; expected strides 2, 4, 8, 16, 32, i.e. {wanted}"
+            raise ArgumentError(
+                f"{{name}}={name}: its feature maps on a {_PROBE_SIZE}×{_PROBE_SIZE} image "
+                f"are {sizes}; expected strides 2, 4, 8, 16, 32, i.e. {wanted}",
+                "name",
+                owner=Encoder,
             )
         self.channels: tuple[int, ...] = tuple(f.shape[1] for f in feats)
 
@@ -345,10 +367,12 @@ class Encoder(nn.Module):
         try:
             probe = timm.create_model(name, pretrained=False, features_only=True)
         except Exception as err:  # noqa: BLE001 - any failure means "no feature pyramid"
-            raise ValueError(
-                f"backbone.name={name}: timm cannot build its feature pyramid "
+            raise ArgumentError(
+                f"{{name}}={name}: timm cannot build its feature pyramid "
                 f"(features_only=True: {_first_line(err)}); expected a model that supports "
-                "features_only"
+                "features_only",
+                "name",
+                owner=Encoder,
             ) from None
         info = probe.feature_info.info
         chosen = _pyramid_levels(info, name)
@@ -392,5 +416,5 @@ class Encoder(nn.Module):
         return features
 
 
-# The ``backbone`` group's values besides its name (fusion_depth.utils.schema).
-CONFIG_SCHEMA: Schema = {"backbone.pretrained": BOOLEAN}
+# What :class:`Encoder`'s arguments besides its name accept (fusion_depth.utils.schema).
+ARGUMENT_RULES: Schema = {"pretrained": BOOLEAN}

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from fusion_depth.errors import ArgumentError
 from fusion_depth.utils.schema import Schema, one_of
 
 FUSION_MODES = ("rgb", "concat", "add")
@@ -46,7 +47,11 @@ class InputFusion(nn.Module):
     ) -> None:
         super().__init__()
         if mode not in FUSION_MODES:
-            raise ValueError(f"fusion.mode={mode!r}: expected one of {list(FUSION_MODES)}")
+            raise ArgumentError(
+                f"{{mode}}={mode!r}: expected one of {list(FUSION_MODES)}",
+                "mode",
+                owner=InputFusion,
+            )
         if not 0 < min_depth < max_depth:
             raise ValueError(
                 f"min_depth={min_depth}, max_depth={max_depth}: expected 0 < min_depth < max_depth"
@@ -91,10 +96,8 @@ class InputFusion(nn.Module):
         return self.mix(torch.cat([(image - self.mean) / self.std, s], dim=1))
 
 
-# The values of the keys this module reads (fusion_depth.utils.schema); the fusion mode comes
-# first, so a mode no model takes is named alone.
-CONFIG_SCHEMA: Schema = {
-    "fusion.mode": one_of(*FUSION_MODES),
-    "model.net.fusion": one_of(*FUSION_MODES),
-    "model.net.sparse_encoding": one_of(*SPARSE_ENCODINGS),
+# What a network's fusion arguments accept (fusion_depth.utils.schema).
+ARGUMENT_RULES: Schema = {
+    "fusion": one_of(*FUSION_MODES),
+    "sparse_encoding": one_of(*SPARSE_ENCODINGS),
 }

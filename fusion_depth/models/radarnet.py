@@ -66,9 +66,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
+from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
 
 BACKBONES = ("resnet18",)  # the reference's encoders are ResNet-18 style (fusionnet18, radarnetv1)
 FUSIONS = ("concat",)  # image + quasi-dense radar depth
@@ -302,15 +304,28 @@ class FusionNet(nn.Module):
         return self.decoder(latent, skips)
 
 
+class AssociationWeightsError(ArgumentError, CheckpointError):
+    """``association_weights`` is no usable association checkpoint (a CheckpointError)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, "association_weights", owner=RadarNet)
+
+
+def _is_count(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
+
+
+def _is_window(width: object) -> bool:
+    return width is None or (_is_count(width) and width % 32 == 0)
+
+
 class RadarInput(nn.Module):
     """The fusion-mode holder the platform reads (``mode``, ``uses_sparse``): RadarNet takes the
     image and the radar (``concat``) only."""
 
     def __init__(self, mode: str) -> None:
         super().__init__()
-        if mode not in FUSIONS:
-            raise ValueError(f"fusion.mode={mode!r}: model=radarnet takes one of {list(FUSIONS)}")
-        self.mode = mode
+        self.mode = mode  # one of FUSIONS: create_model checks it against the registration
 
     @property
     def uses_sparse(self) -> bool:
@@ -395,30 +410,27 @@ class RadarNet(DepthModel):
         depth_scale: float = 10.0,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
-        if backbone not in BACKBONES:
-            raise ValueError(
-                f"backbone.name={backbone!r}: model=radarnet takes one of {list(BACKBONES)}"
-            )
-        if stage not in STAGES:
-            raise ValueError(f"model.net.stage={stage!r}: expected one of {list(STAGES)}")
-        if window_width is not None and (
-            isinstance(window_width, bool)
-            or not isinstance(window_width, int)
-            or window_width <= 0
-            or window_width % 32
-        ):
-            raise ValueError(
-                f"model.net.window_width={window_width!r}: expected null or a positive multiple "
-                "of 32"
-            )
-        for key, value in (("max_distance", max_distance), ("positive_weight", positive_weight)):
-            if not value > 0:
-                raise ValueError(f"model.net.{key}={value!r}: expected a positive number")
-        if not 0 < threshold < 1:
-            raise ValueError(f"model.net.threshold={threshold!r}: expected a number in (0, 1)")
-        for key, value in (("train_points", train_points), ("max_points", max_points)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"model.net.{key}={value!r}: expected an integer >= 1")
+        # The backbone and fusion mode are the registration's (BACKBONES, FUSIONS), checked by
+        # create_model; these arguments are RadarNet's own.
+        checks = (
+            ("stage", stage, stage in STAGES, f"one of {list(STAGES)}"),
+            (
+                "window_width",
+                window_width,
+                _is_window(window_width),
+                "null or a positive multiple of 32",
+            ),
+            ("max_distance", max_distance, max_distance > 0, "a positive number"),
+            ("positive_weight", positive_weight, positive_weight > 0, "a positive number"),
+            ("threshold", threshold, 0 < threshold < 1, "a number in (0, 1)"),
+            ("train_points", train_points, _is_count(train_points), "an integer >= 1"),
+            ("max_points", max_points, _is_count(max_points), "an integer >= 1"),
+        )
+        for argument, value, ok, expected in checks:
+            if not ok:
+                raise ArgumentError(
+                    f"{{{argument}}}={value!r}: expected {expected}", argument, owner=RadarNet
+                )
         self.fusion = RadarInput(fusion)
         self.stage = stage
         self.window_width = window_width
@@ -451,15 +463,13 @@ class RadarNet(DepthModel):
             CheckpointError: the file is not a readable training checkpoint, or not one of
                 ``model=radarnet`` with an association network of this shape.
         """
-        from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
-
-        key = f"model.net.association_weights={path}"
+        key = f"{{association_weights}}={path}"
         try:
             checkpoint = read_checkpoint(path)
         except (CheckpointError, FileNotFoundError) as err:
             # read_checkpoint names the file as ckpt_path=...; here it is this setting's.
             reason = str(err).split(": ", 1)[-1]
-            raise CheckpointError(f"{key}: {reason}") from None
+            raise AssociationWeightsError(f"{key}: {reason}") from None
         model = checkpoint["fusion_depth_config"].get("model")
         net = model.get("net") if isinstance(model, Mapping) else None
         name = net.get("name") if isinstance(net, Mapping) else None
@@ -468,13 +478,13 @@ class RadarNet(DepthModel):
             k[len(prefix) :]: v for k, v in checkpoint["state_dict"].items() if k.startswith(prefix)
         }
         if name != "radarnet" or not state:
-            raise CheckpointError(
+            raise AssociationWeightsError(
                 f"{key}: not a radarnet association checkpoint (it is model={name})"
             )
         try:
             self.association.load_state_dict(state)
         except RuntimeError as err:
-            raise CheckpointError(
+            raise AssociationWeightsError(
                 f"{key}: its association network does not fit this one ({str(err).splitlines()[0]})"
             ) from None
         self.association_trained.fill_(True)
@@ -647,9 +657,12 @@ class RadarNet(DepthModel):
             bce = self.association_loss(logits, sampled, depth)
             return {"loss": bce, "association": bce.detach()}
         if self.stage == "fusion" and not bool(self.association_trained):
-            raise ValueError(
-                "model.net.stage=fusion trains on a trained association network: give "
-                "model.net.association_weights=<a stage=association checkpoint>"
+            raise ArgumentError(
+                "{stage}=fusion trains on a trained association network: give "
+                "{association_weights}=<a stage=association checkpoint>",
+                "stage",
+                "association_weights",
+                owner=RadarNet,
             )
         end_to_end = self.stage == "end_to_end"
         logits, quasi, best = self.quasi_dense(image, points, grad=end_to_end)

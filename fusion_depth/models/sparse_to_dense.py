@@ -108,11 +108,7 @@ class RGBdInput(nn.Module):
 
     def __init__(self, mode: str) -> None:
         super().__init__()
-        if mode not in FUSIONS:
-            raise ValueError(
-                f"fusion.mode={mode!r}: model=sparse_to_dense takes one of {list(FUSIONS)}"
-            )
-        self.mode = mode
+        self.mode = mode  # one of FUSIONS: create_model checks it against the registration
 
     @property
     def uses_sparse(self) -> bool:
@@ -185,10 +181,6 @@ class SparseToDense(DepthModel):
         depth_scale: float = 10.0,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
-        if backbone not in BACKBONES:
-            raise ValueError(
-                f"backbone.name={backbone!r}: model=sparse_to_dense takes one of {list(BACKBONES)}"
-            )
         self.fusion = RGBdInput(fusion)
         resnet = create_timm_model(backbone, pretrained, weights)
         if self.fusion.channels != 3:

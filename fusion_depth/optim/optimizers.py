@@ -6,16 +6,16 @@ from __future__ import annotations
 
 from fusion_depth.utils.schema import NON_NEGATIVE, POSITIVE, Rule, Schema, is_number
 
-# The keys any optimizer choice shares (fusion_depth.utils.schema).
-CONFIG_SCHEMA: Schema = {
-    "optimizer.lr": Rule(POSITIVE.ok, "a learning rate > 0"),
-    "optimizer.betas": Rule(
+# What the arguments the torch optimizers share accept (fusion_depth.utils.schema).
+ARGUMENT_RULES: Schema = {
+    "lr": Rule(POSITIVE.ok, "a learning rate > 0"),
+    "betas": Rule(
         lambda v: (
             isinstance(v, list) and len(v) == 2 and all(is_number(b) and 0 <= b < 1 for b in v)
         ),
         "[beta1, beta2], each in [0, 1)",
     ),
-    "optimizer.eps": POSITIVE,
-    "optimizer.weight_decay": NON_NEGATIVE,
-    "optimizer.momentum": NON_NEGATIVE,
+    "eps": POSITIVE,
+    "weight_decay": NON_NEGATIVE,
+    "momentum": NON_NEGATIVE,
 }

@@ -19,6 +19,8 @@ from typing import Any
 import torch
 from torch.optim.lr_scheduler import LambdaLR, LRScheduler, StepLR
 
+from fusion_depth.errors import ArgumentError
+
 
 class WarmupCosine(LambdaLR):
     """Linear warm-up from ~0 to the optimizer's learning rate over the first
@@ -32,7 +34,7 @@ class WarmupCosine(LambdaLR):
         final_lr_ratio: learning rate at the last step over the peak, in [0, 1].
 
     Raises:
-        ValueError: an argument out of range, naming it.
+        ArgumentError: an argument out of range, naming it.
     """
 
     interval = "step"  # stepped after every optimizer step, not every epoch
@@ -45,14 +47,18 @@ class WarmupCosine(LambdaLR):
         final_lr_ratio: float = 0.01,
     ) -> None:
         if not (isinstance(total_steps, int) and total_steps >= 1):
-            raise ValueError(f"scheduler total_steps={total_steps!r}: expected an integer ≥ 1")
+            raise ValueError(f"total_steps={total_steps!r}: expected an integer ≥ 1")
         if not 0 <= warmup_fraction < 1:
-            raise ValueError(
-                f"scheduler.warmup_fraction={warmup_fraction!r}: expected a share in [0, 1)"
+            raise ArgumentError(
+                f"{{warmup_fraction}}={warmup_fraction!r}: expected a share in [0, 1)",
+                "warmup_fraction",
+                owner=WarmupCosine,
             )
         if not 0 <= final_lr_ratio <= 1:
-            raise ValueError(
-                f"scheduler.final_lr_ratio={final_lr_ratio!r}: expected a ratio in [0, 1]"
+            raise ArgumentError(
+                f"{{final_lr_ratio}}={final_lr_ratio!r}: expected a ratio in [0, 1]",
+                "final_lr_ratio",
+                owner=WarmupCosine,
             )
         self.total_steps = total_steps
         self.warmup_steps = int(round(warmup_fraction * total_steps))
@@ -103,11 +109,13 @@ def schedule_class(name: str) -> type[LRScheduler]:
     """The schedule called ``name`` in :data:`SCHEDULES`.
 
     Raises:
-        ValueError: an unknown name, listing the known ones.
+        ArgumentError: an unknown name, listing the known ones.
     """
     if name not in SCHEDULES:
-        raise ValueError(
-            f"scheduler.name={name!r}: unknown schedule; expected one of {', '.join(SCHEDULES)}"
+        raise ArgumentError(
+            f"{{name}}={name!r}: unknown schedule; expected one of {', '.join(SCHEDULES)}",
+            "name",
+            owner=schedule_class,
         )
     return SCHEDULES[name]
 
@@ -123,20 +131,26 @@ def check_schedule_arguments(name: str, arguments: Mapping[str, Any]) -> None:
     requires must be set.
 
     Raises:
-        ValueError: an unknown name, a set argument the schedule does not take, or a required
-            one unset, naming it.
+        ArgumentError: an unknown name, a set argument the schedule does not take, or a
+            required one unset, naming it.
     """
     allowed = schedule_arguments(name)
     for key, value in arguments.items():
         if value is not None and key not in allowed:
-            raise ValueError(
-                f"scheduler.{key}={value!r}: the {name} schedule takes no {key} "
-                f"(its arguments: {', '.join(allowed)}); set it to null"
+            raise ArgumentError(
+                f"{{{key}}}={value!r}: the {name} schedule takes no {key} "
+                f"(its arguments: {', '.join(allowed)}); set it to null",
+                key,
+                owner=check_schedule_arguments,
             )
     params = inspect.signature(schedule_class(name)).parameters
     for key in allowed:
         if params[key].default is inspect.Parameter.empty and arguments.get(key) is None:
-            raise ValueError(f"scheduler.{key}: the {name} schedule needs it; it is null")
+            raise ArgumentError(
+                f"{{{key}}}: the {name} schedule needs it; it is null",
+                key,
+                owner=check_schedule_arguments,
+            )
 
 
 def create_schedule(
@@ -151,7 +165,7 @@ def create_schedule(
     """Schedule ``name`` (:data:`SCHEDULES`) over ``optimizer``, built with the arguments that
     are set; the others must be None.
 
-    A model's or dataset recipe's schedule (``scheduler=for_<dataset>_<model>``, made by
+    A model's or dataset recipe's schedule (``scheduler=<recipe_from>_<dataset>_<model>``, made by
     :mod:`fusion_depth.config.recipes`) is built through this: the schedule is named, looked up
     here, never imported.
 
@@ -166,7 +180,7 @@ def create_schedule(
         final_lr_ratio: :class:`WarmupCosine`'s (None: its default).
 
     Raises:
-        ValueError: an unknown name, or a set argument the named schedule does not take.
+        ArgumentError: an unknown name, or a set argument the named schedule does not take.
     """
     arguments = {
         "step_size": step_size,

@@ -133,7 +133,7 @@ class DepthModule(L.LightningModule):
         self.scheduler_factory = scheduler
         self.augmentation = augmentation
         self.conditions = list(conditions) or None
-        if protocol is None:
+        if protocol is None:  # built in Python without a config: the network's own range
             protocol = EvalProtocol.from_config(evaluation, net.min_depth, net.max_depth)
         self.protocol = protocol
         self.val_metrics = self.protocol.scorer(self.conditions)
@@ -398,6 +398,24 @@ class DepthModule(L.LightningModule):
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": interval},
         }
+
+
+def module_from_config(cfg: Any) -> DepthModule:
+    """The run's :class:`DepthModule`, built from ``cfg.model``, scoring by ``cfg.model.evaluation``
+    (the ``eval`` group) with null depth limits taking the dataset's (``dataset.min_depth``,
+    ``dataset.max_depth``): the evaluation range comes from the config, not from the network.
+
+    Args:
+        cfg: a composed run config (``conf/train.yaml``).
+    """
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    evaluation = OmegaConf.to_container(cfg.model.evaluation, resolve=True)
+    for key in ("min_depth", "max_depth"):
+        if evaluation.get(key) is None:
+            evaluation[key] = cfg.dataset[key]
+    return instantiate(cfg.model, _convert_="all", evaluation=evaluation)
 
 
 # The values of the :class:`DepthModule` settings (fusion_depth.utils.schema).

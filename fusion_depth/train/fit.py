@@ -27,7 +27,7 @@ from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
 from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
 from fusion_depth.runner.loggers import closing
-from fusion_depth.runner.module import DepthModule
+from fusion_depth.runner.module import DepthModule, module_from_config
 from fusion_depth.runner.protocol import EvaluationResult
 from fusion_depth.runner.record import (
     METRICS_FILE,
@@ -255,7 +255,7 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
     output_dir = Path(cfg.paths.output_dir)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
-    model = instantiate(cfg.model, _convert_="all")
+    model = module_from_config(cfg)
     check_output_dir(output_dir, checkpoint_room(cfg.callbacks, model))
     model.run_config = plain_config(run_config)  # checkpoints hold data, never code to call
     model.run_identity = job.identity

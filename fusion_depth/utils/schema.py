@@ -1,12 +1,12 @@
-"""Config schemas: what each key of a composed config may hold, declared once beside the code that
-reads it (a module's ``CONFIG_SCHEMA``), and checked before anything is built.
+"""Rules: what a value may hold, declared once beside the code that takes it (a module's or
+model class's ``ARGUMENT_RULES``, by argument name), and checked before anything is built.
 
-A schema maps a dotted key (``loss.w_ssim``) to a :class:`Rule`: a test of the resolved value and
-the words for what it accepts. A key that is absent is not checked (a config group that does not
-set it uses the reader's default). A value that fails gives one line,
-``<key>=<value as typed>: expected <what it accepts>``, raised as
-:class:`~fusion_depth.errors.ConfigError`. :func:`fusion_depth.config.validate_config` checks
-every schema of the package in turn.
+A schema maps a name (an argument, or a dotted config key where the config layer places it:
+``loss.w_ssim``) to a :class:`Rule`: a test of the resolved value and the words for what it
+accepts. A key that is absent is not checked (a config group that does not set it uses the
+reader's default). A value that fails gives one line, ``<key>=<value as typed>: expected <what
+it accepts>``, raised as :class:`~fusion_depth.errors.ConfigError`.
+:func:`fusion_depth.config.validate_config` checks every table of the package in turn.
 """
 
 from __future__ import annotations

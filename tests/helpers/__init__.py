@@ -46,6 +46,23 @@ def compose_config(
     return cfg
 
 
+def command_message(err: BaseException, *overrides: str) -> str:
+    """What a command run with ``overrides`` prints for ``err``: an
+    :class:`~fusion_depth.errors.ArgumentError` of the science code (naming its argument) names
+    the config key where it is set (:func:`fusion_depth.config.arguments.config_message`)."""
+    from fusion_depth.config.arguments import config_message
+    from fusion_depth.errors import ArgumentError
+
+    if not isinstance(err, ArgumentError):
+        return str(err)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as run:
+        cfg = compose_config(list(overrides), Path(run))
+    GlobalHydra.instance().clear()
+    return config_message(err, cfg=cfg)
+
+
 def save_untrained_checkpoint(
     path: Path,
     fusion: str,
