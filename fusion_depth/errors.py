@@ -7,7 +7,7 @@ arguments (:class:`ArgumentError`), which the commands report as config keys."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 
 class UserError(Exception):
@@ -61,3 +61,16 @@ class ArgumentError(ValueError, UserError):
 
 class ArgumentFileError(ArgumentError, FileNotFoundError):
     """An :class:`ArgumentError` about a file that is not there (still a FileNotFoundError)."""
+
+
+def check_choice(value: object, allowed: Sequence[object], argument: str, *, owner: object) -> None:
+    """Refuse ``value`` unless it is one of ``allowed``.
+
+    Raises:
+        ArgumentError: ``{argument}={value!r}: expected one of [...]``, about ``owner``'s
+            ``argument``.
+    """
+    if value not in allowed:
+        raise ArgumentError(
+            f"{{{argument}}}={value!r}: expected one of {list(allowed)}", argument, owner=owner
+        )

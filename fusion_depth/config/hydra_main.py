@@ -197,13 +197,14 @@ def _argument_error(err: BaseException | None) -> ArgumentError | None:
     return err
 
 
-def user_message(err: BaseException) -> str | None:
+def user_message(err: BaseException, cfg: DictConfig | None = None) -> str | None:
     """The message to show instead of a traceback for an error about the user's input (data,
-    config values, files), or None for anything else (a bug keeps its traceback)."""
+    config values, files), or None for anything else (a bug keeps its traceback). An argument of
+    the science code is named by its config key, where ``cfg`` (the run's config) sets it."""
     text = str(err).strip()
     argument = _argument_error(err)
-    if argument is not None:  # a science function's argument: named as the config key
-        return config_message(argument)
+    if argument is not None:
+        return config_message(argument, cfg=cfg)
     full = _disk_full_message(err)
     if full is not None:
         return full
@@ -233,14 +234,12 @@ def _short_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], A
         try:
             return task(cfg)
         except SHORT_ERRORS as err:
-            argument = _argument_error(err)  # named as the key where cfg sets it
-            message = user_message(err) if argument is None else config_message(argument, cfg=cfg)
+            message = user_message(err, cfg)
             if message != str(err).strip():
                 raise CommandError(message) from err
             raise
         except (OSError, ValueError) as err:
-            argument = _argument_error(err)
-            message = user_message(err) if argument is None else config_message(argument, cfg=cfg)
+            message = user_message(err, cfg)
             if message is None:
                 raise
             raise CommandError(message) from err

@@ -112,7 +112,7 @@ from fusion_depth.data.cache import (
 from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import ArgumentError, check_choice
 
 FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
 INSTALL = 'pip install -e ".[nuscenes]"'
@@ -671,8 +671,7 @@ class NuScenesDepth(PreparedDataset):
             ("fill", fill, FILL_METHODS),
             ("test_split", test_split, TEST_SPLITS),
         ):
-            if value not in allowed:
-                raise _reader_error(f"{{{name}}}={value!r}: expected one of {list(allowed)}", name)
+            check_choice(value, allowed, name, owner=NuScenesDepth)
         self.conditions_kept = check_conditions(conditions, NUSCENES_CONDITIONS)
         self.radar_channels = check_conditions(radar_channels, RADAR_CHANNELS, "radar_channels")
         for name, value in (

@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import check_choice
 
 __all__ = [
     "AVERAGING",
@@ -191,10 +191,7 @@ def crop_mask(
     map's pixel coordinates (negative when a reader cut rows or columns off); without it the map
     is the frame. Rows ``top + int(f · height)`` follow the KITTI scripts' rounding.
     """
-    if crop not in EVAL_CROPS:
-        raise ArgumentError(
-            f"{{crop}}={crop!r}: expected one of {list(EVAL_CROPS)}", "crop", owner=crop_mask
-        )
+    check_choice(crop, list(EVAL_CROPS), "crop", owner=crop_mask)
     height, width = shape
     fractions = EVAL_CROPS[crop]
     if fractions is None:
@@ -318,22 +315,12 @@ def _aggregate(sums: Tensor, counts: Tensor, averaging: str) -> dict[str, float]
 
 
 def _check_averaging(averaging: str) -> str:
-    if averaging not in AVERAGING:
-        raise ArgumentError(
-            f"{{averaging}}={averaging!r}: expected one of {list(AVERAGING)}",
-            "averaging",
-            owner=_check_averaging,
-        )
+    check_choice(averaging, AVERAGING, "averaging", owner=_check_averaging)
     return averaging
 
 
 def _check_relative_to(relative_to: str) -> str:
-    if relative_to not in RELATIVE_TO:
-        raise ArgumentError(
-            f"{{relative_to}}={relative_to!r}: expected one of {list(RELATIVE_TO)}",
-            "relative_to",
-            owner=_check_relative_to,
-        )
+    check_choice(relative_to, RELATIVE_TO, "relative_to", owner=_check_relative_to)
     return relative_to
 
 

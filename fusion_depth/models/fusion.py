@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import check_choice
 from fusion_depth.utils.schema import Schema, one_of
 
 FUSION_MODES = ("rgb", "concat", "add")
@@ -46,12 +46,7 @@ class InputFusion(nn.Module):
         std: Sequence[float] = (0.229, 0.224, 0.225),
     ) -> None:
         super().__init__()
-        if mode not in FUSION_MODES:
-            raise ArgumentError(
-                f"{{mode}}={mode!r}: expected one of {list(FUSION_MODES)}",
-                "mode",
-                owner=InputFusion,
-            )
+        check_choice(mode, FUSION_MODES, "mode", owner=InputFusion)
         if not 0 < min_depth < max_depth:
             raise ValueError(
                 f"min_depth={min_depth}, max_depth={max_depth}: expected 0 < min_depth < max_depth"

@@ -9,19 +9,14 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import check_choice
 from fusion_depth.models import DepthModel
 
 UPSAMPLING = ("bilinear", "nearest")
 
 
 def _check_upsample(mode: str) -> None:
-    if mode not in UPSAMPLING:
-        raise ArgumentError(
-            f"{{upsample}}={mode!r}: expected one of {list(UPSAMPLING)}",
-            "upsample",
-            owner=predict_depth,
-        )
+    check_choice(mode, UPSAMPLING, "upsample", owner=predict_depth)
 
 
 def resize_depth(

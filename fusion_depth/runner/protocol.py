@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from fusion_depth.errors import ArgumentError, ConfigError
 from fusion_depth.metrics.depth import (
     AVERAGING,
     EVAL_CROPS,
@@ -125,7 +126,10 @@ class EvalProtocol:
             units=cfg.get("units", "m"),
             metrics=metrics,
         )
-        protocol.scorer()  # validates the depth range, crop and averaging names
+        try:
+            protocol.scorer()  # validates the depth range, crop and averaging names
+        except ArgumentError as err:  # the metrics name their argument: here, the eval block's
+            raise ConfigError(err.naming(lambda argument: f"eval.{argument}")) from None
         return protocol
 
     @property
