@@ -44,6 +44,8 @@ class ArgumentError(ValueError, UserError):
         arguments: the arguments it names.
         owner: the function or class that takes them, or its dotted name: the config layer
             looks up where its arguments come from by it.
+
+    A subclass keeps this signature (pickling rebuilds it through it).
     """
 
     def __init__(self, message: str, *arguments: str, owner: object) -> None:
@@ -57,6 +59,16 @@ class ArgumentError(ValueError, UserError):
         for name in self.arguments:
             message = message.replace("{" + name + "}", key(name))
         return message
+
+    def __reduce__(self) -> tuple:
+        # Pickled whole (a worker process hands it back): __init__ does not take args alone.
+        return (_restore, (type(self), self.template, self.arguments, self.owner))
+
+
+def _restore(
+    cls: type[ArgumentError], template: str, arguments: tuple[str, ...], owner: str
+) -> ArgumentError:
+    return cls(template, *arguments, owner=owner)
 
 
 class ArgumentFileError(ArgumentError, FileNotFoundError):

@@ -20,7 +20,7 @@ SCIENCE = ("models", "losses", "metrics", "data", "optim")
 # A dotted key of a config node, as a message would name it (``dataset.root``, ``loss.w_ssim``).
 CONFIG_KEY = re.compile(
     r"\b(model\.net|model|dataset|loss|optimizer|scheduler|backbone|fusion|augment|data|trainer"
-    r"|eval|callbacks|prepare)\.(?!safetensors\b)[a-z_]+"
+    r"|eval|callbacks|prepare|paths)\.((?!safetensors\b)[a-z_]+|$)"
 )
 
 
@@ -117,6 +117,29 @@ def test_an_error_wrapped_by_hydras_instantiate_is_named_too(tmp_path) -> None:
 
     with pytest.raises(CommandError, match=r"^scheduler\.name='nope': unknown schedule"):
         _short_errors(task)(cfg)
+
+
+def test_it_survives_a_trip_to_another_process() -> None:
+    import pickle
+
+    from fusion_depth.models.radarnet import AssociationWeightsError
+
+    for err in (
+        ArgumentFileError("{root}=/x: no such folder", "root", owner="fusion_depth.data.kitti"),
+        AssociationWeightsError(
+            "{association_weights}=/x.ckpt: no such file",
+            "association_weights",
+            owner="fusion_depth.models.radarnet.RadarNet",
+        ),
+    ):
+        back = pickle.loads(pickle.dumps(err))
+        assert (type(back), str(back), back.arguments, back.owner) == (
+            type(err),
+            str(err),
+            err.arguments,
+            err.owner,
+        )
+        assert arguments.config_message(back) == arguments.config_message(err)
 
 
 def test_the_message_names_each_argument_it_lists() -> None:

@@ -103,16 +103,11 @@ def check_scheduler(cfg: DictConfig) -> None:
             raise ConfigError(config_message(err)) from None
 
 
-# Where the arguments of check_model_takes are set, and how its messages name them (the groups).
+# Where the arguments of check_model_takes are set (its messages name the groups:
+# fusion_depth.config.arguments).
 _MODEL_TAKES = {
     "fusion": "model.net.fusion",
     "backbone": "model.net.backbone",
-    "sensor": "dataset.sensor",
-}
-_MODEL_TAKES_NAMED = {
-    "name": "model.net.name",
-    "fusion": "fusion",
-    "backbone": "backbone",
     "sensor": "dataset.sensor",
 }
 
@@ -132,7 +127,7 @@ def check_model(cfg: DictConfig) -> None:
     try:
         check_model_takes(name, **{a: None if v is ABSENT else v for a, v in given.items()})
     except ArgumentError as err:
-        message = config_message(err, _MODEL_TAKES_NAMED)
+        message = config_message(err)
         if err.arguments == ("sensor",):  # say which dataset lacks it
             message = message.replace(": it takes", f" (dataset={cfg.dataset.name}): it takes", 1)
         raise ConfigError(message) from None

@@ -19,7 +19,7 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from fusion_depth.config.arguments import config_message
 from fusion_depth.config.keys import check_known_keys
-from fusion_depth.data.base import check_size
+from fusion_depth.data.base import check_depth_range, check_size
 from fusion_depth.errors import ArgumentError, ConfigError, MissingDependencyError
 from fusion_depth.utils.overrides import show
 from fusion_depth.utils.schema import is_number
@@ -66,11 +66,11 @@ def check_dataset(ds: Any, fusion: str) -> None:
     for key in ("min_depth", "max_depth", "depth_scale"):
         if not is_number(ds[key]) or not ds[key] > 0:
             raise ConfigError(f"dataset.{key}={show(ds[key])}: expected a positive number")
-    if not 0 < ds.min_depth < ds.max_depth:
-        raise ConfigError(
-            f"dataset.min_depth={ds.min_depth}, dataset.max_depth={ds.max_depth}: "
-            "expected 0 < min_depth < max_depth"
-        )
+    try:
+        check_depth_range(ds.min_depth, ds.max_depth)
+    except ArgumentError as err:
+        keys = {"min_depth": "dataset.min_depth", "max_depth": "dataset.max_depth"}
+        raise ConfigError(config_message(err, keys)) from None
     needs = ds.get("requires")
     if needs is not None and importlib.util.find_spec(needs.module) is None:
         raise MissingDependencyError(

@@ -71,6 +71,23 @@ def check_size(height: int, width: int) -> tuple[int, int]:
     return int(height), int(width)
 
 
+def check_depth_range(min_depth: float, max_depth: float) -> None:
+    """The depth range a dataset, a network and its input fusion share: ``0 < min_depth <
+    max_depth`` (metres). The one place it is checked.
+
+    Raises:
+        ArgumentError: naming ``min_depth`` and ``max_depth``.
+    """
+    if not 0 < min_depth < max_depth:
+        raise ArgumentError(
+            f"{{min_depth}}={min_depth}, {{max_depth}}={max_depth}: "
+            "expected 0 < min_depth < max_depth",
+            "min_depth",
+            "max_depth",
+            owner=check_depth_range,
+        )
+
+
 def check_conditions(
     conditions: Sequence[str], allowed: Sequence[str] = CONDITIONS, argument: str = "conditions"
 ) -> list[str]:

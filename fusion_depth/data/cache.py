@@ -365,9 +365,12 @@ def cache_dir(
         cache = cache.resolve()
         for name, folder in read_only.items():
             if cache.is_relative_to(folder):
-                raise ValueError(
-                    f"cache {cache} is inside dataset.{name}={folder}; the dataset folder is only "
-                    "ever read: point FUSION_DEPTH_CACHE (paths.cache_dir) elsewhere"
+                raise ArgumentError(
+                    f"cache {cache} is inside {{{name}}}={folder}; the dataset folder is only "
+                    "ever read: point FUSION_DEPTH_CACHE ({cache_root}) elsewhere",
+                    name,
+                    "cache_root",
+                    owner=cache_dir,
                 )
     return cache
 
@@ -1194,8 +1197,8 @@ def _disk_full_names(cache: Path) -> Iterator[None]:
             raise
         raise CacheFullError(
             errno.ENOSPC,
-            f"{cache}: the disk is full; free space there or point FUSION_DEPTH_CACHE "
-            "(paths.cache_dir) at another disk, then prepare again (finished frames are kept)",
+            f"{cache}: the disk is full; free space there or point FUSION_DEPTH_CACHE (the "
+            "cache folder) at another disk, then prepare again (finished frames are kept)",
         ) from err
 
 

@@ -14,6 +14,8 @@ from typing import ClassVar, Literal
 import torch
 from torch import nn
 
+from fusion_depth.data.base import check_depth_range
+
 OutputSpace = Literal["reciprocal", "depth"]
 
 
@@ -38,7 +40,9 @@ class DepthModel(nn.Module):
           (DenseDepth: half the input; sparse-to-dense: the input's).
 
     Raises:
-        ValueError: ``0 < min_depth < max_depth`` or ``depth_scale > 0`` does not hold.
+        ArgumentError: ``0 < min_depth < max_depth`` does not hold
+            (:func:`~fusion_depth.data.base.check_depth_range`).
+        ValueError: ``depth_scale > 0`` does not hold.
     """
 
     output_space: ClassVar[OutputSpace] = "reciprocal"
@@ -57,11 +61,7 @@ class DepthModel(nn.Module):
 
     def __init__(self, min_depth: float, max_depth: float, depth_scale: float) -> None:
         super().__init__()
-        if not 0 < min_depth < max_depth:
-            raise ValueError(
-                f"depth range min_depth={min_depth}, max_depth={max_depth}: "
-                "expected 0 < min_depth < max_depth"
-            )
+        check_depth_range(min_depth, max_depth)
         if depth_scale <= 0:
             raise ValueError(f"depth_scale={depth_scale}: expected a positive number")
         self.min_depth, self.max_depth, self.depth_scale = min_depth, max_depth, depth_scale

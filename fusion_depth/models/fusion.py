@@ -47,10 +47,7 @@ class InputFusion(nn.Module):
     ) -> None:
         super().__init__()
         check_choice(mode, FUSION_MODES, "mode", owner=InputFusion)
-        if not 0 < min_depth < max_depth:
-            raise ValueError(
-                f"min_depth={min_depth}, max_depth={max_depth}: expected 0 < min_depth < max_depth"
-            )
+        # min_depth < max_depth: the network that holds this checks its range (DepthModel)
         if sparse_encoding not in SPARSE_ENCODINGS:
             raise ValueError(
                 f"sparse_encoding={sparse_encoding!r}: expected one of {list(SPARSE_ENCODINGS)}"

@@ -307,8 +307,9 @@ class FusionNet(nn.Module):
 class AssociationWeightsError(ArgumentError, CheckpointError):
     """``association_weights`` is no usable association checkpoint (a CheckpointError)."""
 
-    def __init__(self, message: str) -> None:
-        super().__init__(message, "association_weights", owner=RadarNet)
+
+def _weights_error(message: str) -> AssociationWeightsError:
+    return AssociationWeightsError(message, "association_weights", owner=RadarNet)
 
 
 def _is_count(value: object) -> bool:
@@ -469,7 +470,7 @@ class RadarNet(DepthModel):
         except (CheckpointError, FileNotFoundError) as err:
             # read_checkpoint names the file as ckpt_path=...; here it is this setting's.
             reason = str(err).split(": ", 1)[-1]
-            raise AssociationWeightsError(f"{key}: {reason}") from None
+            raise _weights_error(f"{key}: {reason}") from None
         model = checkpoint["fusion_depth_config"].get("model")
         net = model.get("net") if isinstance(model, Mapping) else None
         name = net.get("name") if isinstance(net, Mapping) else None
@@ -478,13 +479,13 @@ class RadarNet(DepthModel):
             k[len(prefix) :]: v for k, v in checkpoint["state_dict"].items() if k.startswith(prefix)
         }
         if name != "radarnet" or not state:
-            raise AssociationWeightsError(
+            raise _weights_error(
                 f"{key}: not a radarnet association checkpoint (it is model={name})"
             )
         try:
             self.association.load_state_dict(state)
         except RuntimeError as err:
-            raise AssociationWeightsError(
+            raise _weights_error(
                 f"{key}: its association network does not fit this one ({str(err).splitlines()[0]})"
             ) from None
         self.association_trained.fill_(True)
