@@ -154,3 +154,34 @@ def test_the_message_names_each_argument_it_lists() -> None:
     assert arguments.config_message(err) == (
         "backbone.weights=/x.pth: no such file; or backbone.pretrained=false"
     )
+
+
+def test_the_line_the_command_prints_is_the_mapped_one(tmp_path) -> None:
+    """What _short_errors raises is printed as it is (``_report``): the error it came from is
+    not named again without the run's config."""
+    from fusion_depth.config.hydra_main import user_message
+
+    cfg = compose_config(["dataset=kitti"], tmp_path / "run")
+    GlobalHydra.instance().clear()
+
+    def task(cfg) -> None:
+        require_root("/nowhere", "a folder")
+
+    with pytest.raises(CommandError) as err:
+        _short_errors(task)(cfg)
+    assert user_message(err.value) == str(err.value)
+    assert str(err.value).startswith("dataset.root=/nowhere")
+
+
+def test_a_networks_range_and_registration_are_named_as_the_model_keys(tmp_path) -> None:
+    from fusion_depth.models import DepthNet
+    from fusion_depth.models.radarnet import RadarNet
+
+    cfg = compose_config(["experiment=smoke", "model.net.min_depth=90"], tmp_path / "run")
+    GlobalHydra.instance().clear()
+    with pytest.raises(ArgumentError) as err:
+        DepthNet("resnet18", "rgb", min_depth=90.0, max_depth=80.0)
+    shown = arguments.config_message(err.value, cfg=cfg)
+    assert shown.startswith("model.net.min_depth=90.0, dataset.max_depth=80.0: expected 0 <")
+    with pytest.raises(ArgumentError, match="model=radarnet cannot take fusion=rgb"):
+        RadarNet(fusion="rgb")  # built directly, not through create_model

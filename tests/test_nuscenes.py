@@ -681,6 +681,7 @@ def test_bad_input_fails_naming_the_path_before_training(fresh_root, tmp_path, b
 
 def test_missing_and_wrong_options_fail_clearly(nusc_root, tmp_path) -> None:
     root, _ = nusc_root
+
     def refused(**options) -> str:  # what a command prints: the reader names its arguments
         with pytest.raises(ValueError) as err:
             make_reader(options.pop("root", root), tmp_path, **options)

@@ -52,6 +52,7 @@ from omegaconf import DictConfig
 
 from fusion_depth.bench.stages import BENCH_ENGINES, DEFAULT_STAGES, STAGES, run_bench
 from fusion_depth.config import CONF_DIR
+from fusion_depth.config.arguments import argument_error, config_message
 from fusion_depth.config.hydra_main import unknown_key_message
 from fusion_depth.errors import ConfigError
 from fusion_depth.runner.bench_record import (
@@ -212,7 +213,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             prepare_frames=args.frames or 3,
         )
     except (ValueError, FileNotFoundError, ImportError) as err:
-        parser.error(str(err))
+        argument = argument_error(err)  # a science argument: named by the key that sets it
+        parser.error(str(err) if argument is None else config_message(argument, cfg=cfg))
     print(format_result(result))
     if args.json:
         write_json_atomic(args.json, result)

@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import ArgumentError, UserError
 
 _ENCODER = {
     "name": "backbone.name",
@@ -86,6 +86,17 @@ def argument_key(owner: str, cfg: DictConfig | None = None) -> Callable[[str], s
     if cfg is None:
         return key
     return lambda argument: where_set(cfg, key(argument))
+
+
+def argument_error(err: BaseException | None) -> ArgumentError | None:
+    """The :class:`ArgumentError` ``err`` is, or was raised from (Hydra's instantiate wraps what
+    a target raises); None when there is none, or when a user error of its own (one that already
+    says what to change, such as a message the commands made) stands between."""
+    while err is not None and not isinstance(err, ArgumentError):
+        if isinstance(err, UserError):
+            return None
+        err = err.__cause__
+    return err
 
 
 def config_message(

@@ -42,8 +42,8 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
 from fusion_depth.config import CONF_DIR, SWEEPS_DIR, target_accepts, unknown_key_error
-from fusion_depth.config.arguments import config_message
-from fusion_depth.errors import ArgumentError, CommandError, UserError
+from fusion_depth.config.arguments import argument_error, config_message
+from fusion_depth.errors import CommandError, UserError
 
 # What prints as its message alone: Hydra's compact errors and the package's own.
 SHORT_ERRORS = (CompactHydraException, UserError)
@@ -189,20 +189,12 @@ def _disk_full_message(err: BaseException) -> str | None:
     )
 
 
-def _argument_error(err: BaseException | None) -> ArgumentError | None:
-    """The :class:`ArgumentError` ``err`` is, or was raised from (Hydra's instantiate wraps what
-    a target raises)."""
-    while err is not None and not isinstance(err, ArgumentError):
-        err = err.__cause__
-    return err
-
-
 def user_message(err: BaseException, cfg: DictConfig | None = None) -> str | None:
     """The message to show instead of a traceback for an error about the user's input (data,
     config values, files), or None for anything else (a bug keeps its traceback). An argument of
     the science code is named by its config key, where ``cfg`` (the run's config) sets it."""
     text = str(err).strip()
-    argument = _argument_error(err)
+    argument = argument_error(err)
     if argument is not None:
         return config_message(argument, cfg=cfg)
     full = _disk_full_message(err)

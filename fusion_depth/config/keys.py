@@ -4,6 +4,7 @@ interpolation, or the code itself); one-line errors naming the key and the close
 from __future__ import annotations
 
 import difflib
+import functools
 import inspect
 import re
 from collections.abc import Collection, Iterator, Mapping
@@ -12,7 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from fusion_depth.errors import ConfigError
+from fusion_depth.errors import ArgumentError, ConfigError
 from fusion_depth.utils.overrides import show
 
 # Nodes without a ``_target_`` whose keys are one callable's arguments: data → the datamodule
@@ -250,8 +251,8 @@ def check_known_keys(cfg: DictConfig, only: Collection[str] | None = None) -> No
 
                 try:
                     built = model_class(OmegaConf.select(cfg, _join(path, "name")))
-                except ValueError as err:
-                    raise ConfigError(str(err)) from None
+                except ArgumentError as err:
+                    raise ConfigError(err.naming(functools.partial(_join, path))) from None
                 node = {k: v for k, v in node.items() if k != "name"}
             _check_node(node, path, built)
             checked.append(path)

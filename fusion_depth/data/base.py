@@ -71,12 +71,13 @@ def check_size(height: int, width: int) -> tuple[int, int]:
     return int(height), int(width)
 
 
-def check_depth_range(min_depth: float, max_depth: float) -> None:
+def check_depth_range(min_depth: float, max_depth: float, owner: object = None) -> None:
     """The depth range a dataset, a network and its input fusion share: ``0 < min_depth <
     max_depth`` (metres). The one place it is checked.
 
     Raises:
-        ArgumentError: naming ``min_depth`` and ``max_depth``.
+        ArgumentError: naming ``min_depth`` and ``max_depth``, as arguments of ``owner`` (the
+            caller that takes them; this function's when None).
     """
     if not 0 < min_depth < max_depth:
         raise ArgumentError(
@@ -84,7 +85,7 @@ def check_depth_range(min_depth: float, max_depth: float) -> None:
             "expected 0 < min_depth < max_depth",
             "min_depth",
             "max_depth",
-            owner=check_depth_range,
+            owner=owner or check_depth_range,
         )
 
 

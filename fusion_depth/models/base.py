@@ -61,7 +61,7 @@ class DepthModel(nn.Module):
 
     def __init__(self, min_depth: float, max_depth: float, depth_scale: float) -> None:
         super().__init__()
-        check_depth_range(min_depth, max_depth)
+        check_depth_range(min_depth, max_depth, owner=type(self))
         if depth_scale <= 0:
             raise ValueError(f"depth_scale={depth_scale}: expected a positive number")
         self.min_depth, self.max_depth, self.depth_scale = min_depth, max_depth, depth_scale

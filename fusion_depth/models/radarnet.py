@@ -67,7 +67,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from fusion_depth.errors import ArgumentError
-from fusion_depth.models._registry import Recipe, register_model
+from fusion_depth.models._registry import Recipe, check_model_takes, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
@@ -411,8 +411,7 @@ class RadarNet(DepthModel):
         depth_scale: float = 10.0,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
-        # The backbone and fusion mode are the registration's (BACKBONES, FUSIONS), checked by
-        # create_model; these arguments are RadarNet's own.
+        check_model_takes("radarnet", fusion, backbone)  # also when built directly
         checks = (
             ("stage", stage, stage in STAGES, f"one of {list(STAGES)}"),
             (

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fusion_depth.models._registry import Recipe, register_model
+from fusion_depth.models._registry import Recipe, check_model_takes, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 
@@ -181,6 +181,7 @@ class SparseToDense(DepthModel):
         depth_scale: float = 10.0,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
+        check_model_takes("sparse_to_dense", fusion, backbone)  # also when built directly
         self.fusion = RGBdInput(fusion)
         resnet = create_timm_model(backbone, pretrained, weights)
         if self.fusion.channels != 3:

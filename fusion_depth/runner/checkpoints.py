@@ -19,6 +19,7 @@ from typing import Any
 from hydra.utils import instantiate
 
 from fusion_depth.data import READERS, cache_dir, reader_class
+from fusion_depth.errors import ArgumentError
 from fusion_depth.models import DEFAULT_MODEL, DepthModel, create_model, model_arguments
 from fusion_depth.utils.checkpoint_file import (
     CONFIG_KEY,
@@ -100,8 +101,9 @@ def load_model(
         kwargs = {k: net_config[k] for k in arguments if k in net_config}
         net = create_model(name, **kwargs, pretrained=False)
     except (ValueError, TypeError, KeyError, AttributeError) as err:
+        why = err.naming(lambda a: f"model.net.{a}") if isinstance(err, ArgumentError) else err
         raise CheckpointError(
-            f"ckpt_path={path}: its model.net config cannot be built ({err})"
+            f"ckpt_path={path}: its model.net config cannot be built ({why})"
         ) from err
     state = {
         key[len("net.") :]: value

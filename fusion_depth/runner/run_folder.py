@@ -59,9 +59,13 @@ def provenance() -> dict[str, Any]:
 
 
 def record_failure(
-    output_dir: str | os.PathLike, overrides: list[str], error: BaseException
+    output_dir: str | os.PathLike,
+    overrides: list[str],
+    error: BaseException,
+    message: str | None = None,
 ) -> Path:
-    """Save what failed (overrides, error, traceback) next to the run's other outputs."""
+    """Save what failed (overrides, error, traceback) next to the run's other outputs;
+    ``message``: the line the command shows for it, where it has one."""
     output_dir = Path(output_dir)
     trace = output_dir / TRACEBACK_FILE
     output_dir.mkdir(parents=True, exist_ok=True)
@@ -72,7 +76,7 @@ def record_failure(
         {
             "status": "failed",
             "overrides": overrides,
-            "error": f"{type(error).__name__}: {error}",
+            "error": f"{type(error).__name__}: {message or error}",
             "traceback": str(trace),
         },
     )

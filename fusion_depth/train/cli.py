@@ -44,8 +44,8 @@ def main(cfg: DictConfig) -> float | None:
         return None
     except Exception as err:  # noqa: BLE001 - one job's failure must not end the sweep
         overrides = redact_overrides(list(HydraConfig.get().overrides.task))
-        path = record_failure(cfg.paths.output_dir, overrides, err)
         message = user_message(err, cfg)  # bad config, data or files: its line says it all
+        path = record_failure(cfg.paths.output_dir, overrides, err, message)
         if message is not None:
             log.error("job failed: %s; recorded in %s", message, path)
         else:

@@ -21,8 +21,9 @@ from lightning.pytorch.plugins.environments import LightningEnvironment
 from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
+from fusion_depth.config.arguments import argument_error, config_message
 from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
-from fusion_depth.errors import UserError
+from fusion_depth.errors import CommandError, UserError
 from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
 from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
@@ -132,7 +133,7 @@ def _train_locked(cfg: DictConfig, run_config: dict, output_dir: Path) -> RunRec
     job = RankJob(cfg, run_config, identity, start)
     world_size = local_world_size(cfg.trainer)
     if world_size > 1:
-        launch_local_ranks(fit_and_test, job, world_size)
+        launch_local_ranks(_fit_and_test_rank, job, world_size)
         return read_run_record(output_dir / METRICS_FILE)
     return fit_and_test(job)
 
@@ -246,6 +247,18 @@ def _publish(
     publish_results(output_dir, record, result, trainer.loggers, title)
     if panel is not None:
         print(f"Test frames ({PANEL_CAPTION}): {panel}", flush=True)
+
+
+def _fit_and_test_rank(job: RankJob) -> RunRecord | None:
+    """:func:`fit_and_test` in a rank process of its own, where no command names an argument
+    error's key: it is named here (the parent shows the rank's error)."""
+    try:
+        return fit_and_test(job)
+    except Exception as err:
+        argument = argument_error(err)
+        if argument is None:
+            raise
+        raise CommandError(config_message(argument, cfg=job.cfg)) from err
 
 
 def fit_and_test(job: RankJob) -> RunRecord | None:
