@@ -2,8 +2,8 @@
 network with ``@register_model``), and each dataset's own recipe for a model
 (``conf/experiment/<dataset>_<model>.yaml``), as the config options ``conf/train.yaml`` selects.
 
-For each model ``<m>``, dataset ``<d>`` and source ``<s>`` of :data:`SOURCES` (the
-``recipe_from`` group), in Hydra's config store, an option ``<s>_<d>_<m>`` of ``backbone``,
+For each model ``<m>``, dataset ``<d>`` and source ``<s>`` (an option of the ``recipe_from``
+group), in Hydra's config store, an option ``<s>_<d>_<m>`` of ``backbone``,
 ``loss``, ``optimizer``, ``scheduler`` and ``model_recipe`` (batch, epochs and the dataset
 recipe's other values):
 
@@ -40,7 +40,6 @@ from fusion_depth.models import MODELS, ModelEntry
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS
 
 GROUPS = ("backbone", "loss", "optimizer", "scheduler")
-SOURCES = ("dataset", "model", "smoke")
 # experiment=smoke's encoder for a model that takes any: 4× faster a step than DenseNet-169.
 SMALLEST_BACKBONE = "resnet10t"
 _PROVIDER = "fusion_depth.models"
@@ -55,7 +54,7 @@ def _option_values(group: str, option: str, where: str) -> dict:
     """
     path = Path(CONF_DIR) / group / f"{option}.yaml"
     if not path.is_file():
-        options = sorted(p.stem for p in path.parent.glob("*.yaml") if "for_" not in p.stem)
+        options = sorted(p.stem for p in path.parent.glob("*.yaml"))
         raise ConfigError(f"{where} {group}={option!r}; expected one of {options}")
     return OmegaConf.to_container(OmegaConf.load(path), resolve=False)
 
@@ -114,42 +113,32 @@ def _switched(path: Path, values: dict) -> dict[str, str]:
 
 
 def dataset_options(
-    dataset: str, name: str, entry: ModelEntry, config_dir: str | None = None
+    own: dict[str, dict], dataset: str, name: str, config_dir: str | None = None
 ) -> dict[str, dict]:
     """The option of each group (:data:`GROUPS` and ``model_recipe``) for ``recipe_from=dataset``:
-    the model's own, and ``experiment/<dataset>_<name>.yaml`` on top if there is one (in
-    ``config_dir``, the command line's ``--config-dir``, or else ``conf/``)."""
-    options = model_options(name, entry)
-    length = _length(entry)
-    paths = [Path(f) / "experiment" / f"{dataset}_{name}.yaml" for f in (config_dir, CONF_DIR) if f]
-    path = next((p for p in paths if p.is_file()), paths[-1])
-    if path.is_file():
-        values = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-        for group, option in _switched(path, values).items():
-            given = values.pop(group, None) or {}
-            if group == "scheduler":
-                where = f"{path.name}: its"
-                options[group] = _schedule(option, _option_values(group, option, where) | given)
-            else:
-                options[group] = {"defaults": [option, "_self_"], **given}
-        values.pop("defaults", None)
-        length = OmegaConf.to_container(OmegaConf.merge(length, values))
-    return options | {"model_recipe": length}
-
-
-def source_options(
-    source: str, dataset: str, name: str, entry: ModelEntry, config_dir: str | None = None
-) -> dict[str, dict]:
-    """The option of each group (:data:`GROUPS` and ``model_recipe``) for ``recipe_from=source``.
+    the model's ``own`` (its :func:`model_options` and ``model_recipe``), with
+    ``experiment/<dataset>_<name>.yaml`` on top if there is one (in ``config_dir``, the command
+    line's ``--config-dir``, or else ``conf/``).
 
     Raises:
-        ConfigError: as :func:`dataset_options`.
+        ConfigError: the file switches something other than a group of :data:`GROUPS`, or to a
+            schedule ``conf/scheduler/`` does not have.
     """
-    if source == "dataset":
-        return dataset_options(dataset, name, entry, config_dir)
-    options = model_options(name, entry) | {"model_recipe": _length(entry)}
-    if source == "smoke" and entry.backbones is None:
-        options["backbone"] = {"defaults": [SMALLEST_BACKBONE, "_self_"]}
+    paths = [Path(f) / "experiment" / f"{dataset}_{name}.yaml" for f in (config_dir, CONF_DIR) if f]
+    path = next((p for p in paths if p.is_file()), None)
+    if path is None:
+        return own
+    options = dict(own)
+    values = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    for group, option in _switched(path, values).items():
+        given = values.pop(group, None) or {}
+        if group == "scheduler":
+            where = f"{path.name}: its"
+            options[group] = _schedule(option, _option_values(group, option, where) | given)
+        else:
+            options[group] = {"defaults": [option, "_self_"], **given}
+    values.pop("defaults", None)
+    options["model_recipe"] = OmegaConf.to_container(OmegaConf.merge(own["model_recipe"], values))
     return options
 
 
@@ -171,10 +160,21 @@ def register_model_recipes(config_dir: str | None = None, overrides: Sequence[st
     def put(group: str, option: str, node: dict) -> None:
         store.store(group=group, name=option, node=node, provider=_PROVIDER)
 
+    datasets = sorted(_dataset_names(config_dir, overrides))
     for name, entry in MODELS.items():
-        for group, node in model_options(name, entry).items():
+        own = model_options(name, entry)
+        for group, node in own.items():
             put(group, f"for_{name}", node)
-        for dataset in sorted(_dataset_names(config_dir, overrides)):
-            for source in SOURCES:
-                for group, node in source_options(source, dataset, name, entry, config_dir).items():
+        own["model_recipe"] = _length(entry)
+        smoke = own.copy()
+        if entry.backbones is None:  # a model that takes any encoder gets the smallest
+            smoke["backbone"] = {"defaults": [SMALLEST_BACKBONE, "_self_"]}
+        for dataset in datasets:  # the recipe_from options (a source each)
+            by_source = {
+                "dataset": dataset_options(own, dataset, name, config_dir),
+                "model": own,
+                "smoke": smoke,
+            }
+            for source, options in by_source.items():
+                for group, node in options.items():
                     put(group, f"{source}_{dataset}_{name}", node)

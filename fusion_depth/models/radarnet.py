@@ -71,6 +71,7 @@ from fusion_depth.models._registry import Recipe, check_model_takes, register_mo
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
+from fusion_depth.utils.schema import POSITIVE_INT
 
 BACKBONES = ("resnet18",)  # the reference's encoders are ResNet-18 style (fusionnet18, radarnetv1)
 FUSIONS = ("concat",)  # image + quasi-dense radar depth
@@ -312,12 +313,8 @@ def _weights_error(message: str) -> AssociationWeightsError:
     return AssociationWeightsError(message, "association_weights", owner=RadarNet)
 
 
-def _is_count(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
-
-
 def _is_window(width: object) -> bool:
-    return width is None or (_is_count(width) and width % 32 == 0)
+    return width is None or (POSITIVE_INT.ok(width) and width % 32 == 0)
 
 
 class RadarInput(nn.Module):
@@ -423,8 +420,8 @@ class RadarNet(DepthModel):
             ("max_distance", max_distance, max_distance > 0, "a positive number"),
             ("positive_weight", positive_weight, positive_weight > 0, "a positive number"),
             ("threshold", threshold, 0 < threshold < 1, "a number in (0, 1)"),
-            ("train_points", train_points, _is_count(train_points), "an integer >= 1"),
-            ("max_points", max_points, _is_count(max_points), "an integer >= 1"),
+            ("train_points", train_points, POSITIVE_INT.ok(train_points), "an integer >= 1"),
+            ("max_points", max_points, POSITIVE_INT.ok(max_points), "an integer >= 1"),
         )
         for argument, value, ok, expected in checks:
             if not ok:
