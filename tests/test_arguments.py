@@ -18,9 +18,12 @@ from fusion_depth.errors import ArgumentError, ArgumentFileError, CommandError
 
 SCIENCE = ("models", "losses", "metrics", "data", "optim")
 # A dotted key of a config node, as a message would name it (``dataset.root``, ``loss.w_ssim``).
+# Not a file name (``model.safetensors``) nor a parameter name of transformers' Depth Anything
+# (``backbone.embeddings.cls_token``, ``backbone.encoder.layer.0``, ``backbone.layernorm``).
 CONFIG_KEY = re.compile(
     r"\b(model\.net|model|dataset|loss|optimizer|scheduler|backbone|fusion|augment|data|trainer"
-    r"|eval|callbacks|prepare|paths)\.((?!safetensors\b)[a-z_]+|$)"
+    r"|eval|callbacks|prepare|paths)\.((?!safetensors\b|embeddings\b|encoder\b|layernorm\b)"
+    r"[a-z_]+|$)"
 )
 
 

@@ -1,0 +1,186 @@
+"""Global alignment of a relative depth prior to sparse metric depth: the least-squares scale and
+shift that make a monocular foundation model's affine-invariant inverse depth metric, frame by
+frame, from the radar or lidar returns of the same frame.
+
+Follows the global scale-and-shift alignment stage of RadarCam-Depth (Li et al., ICRA 2024),
+which fits the relative inverse depth to the radar depth, and SA-RCD; POLAR (CVPR 2026) reports
+the same affine fit as its ablation baseline. The fit has a closed form
+(ordinary least squares of one regressor); the RANSAC option (Fischler & Bolles 1981) fits
+minimal two-point samples and refits on the best sample's inliers, for returns that miss the
+object the pixel shows (radar multipath, lidar through glass).
+
+Two spaces are offered:
+
+* ``inverse`` (the default): ``s · prior + t ≈ 1 / depth``. The prior is an inverse depth up to
+  an affine map (Depth Anything V2's relative output), so this is the model's own space.
+* ``depth``: ``s / prior + t ≈ depth``: the prior inverted first, the fit in metres, weighting
+  far returns as the metric errors (MAE, RMSE) do.
+
+A frame with too few returns for a fit (fewer than two, or all at one prior value) takes its
+batch's median fit; a batch without any takes ``fallback`` (each such frame counted in
+:attr:`Alignment.fallback`): never NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from fusion_depth.errors import ArgumentError, check_choice
+
+ALIGNMENT_SPACES = ("inverse", "depth")
+_TINY = 1e-12  # a variance below this is no spread of prior values to fit a shift on
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Per-frame fits of :func:`fit_scale_shift`.
+
+    Attributes:
+        scale: (B,) the fitted scale ``s`` (float64).
+        shift: (B,) the fitted shift ``t`` (float64; in 1/m for ``inverse``, m for ``depth``).
+        points: (B,) the returns each fit used (RANSAC: its inliers).
+        fallback: (B,) True where the frame had too few returns and took the batch's median fit
+            or ``fallback``.
+    """
+
+    scale: torch.Tensor
+    shift: torch.Tensor
+    points: torch.Tensor
+    fallback: torch.Tensor
+
+
+def _regressor(prior: torch.Tensor, space: str) -> torch.Tensor:
+    """What the fit scales: the prior itself (``inverse``) or its reciprocal (``depth``)."""
+    return prior if space == "inverse" else 1.0 / prior.clamp_min(_TINY)
+
+
+def _least_squares(x: torch.Tensor, y: torch.Tensor) -> tuple[float, float] | None:
+    """``(s, t)`` minimising ``Σ (s x + t − y)²``; None for fewer than two points or no spread."""
+    if x.numel() < 2:
+        return None
+    x_mean, y_mean = x.mean(), y.mean()
+    variance = ((x - x_mean) ** 2).mean()
+    if variance < _TINY * max(float(x_mean.abs()) ** 2, 1.0):
+        return None
+    scale = ((x - x_mean) * (y - y_mean)).mean() / variance
+    return float(scale), float(y_mean - scale * x_mean)
+
+
+def _ransac(
+    x: torch.Tensor, y: torch.Tensor, iterations: int, threshold: float, generator: torch.Generator
+) -> torch.Tensor:
+    """The inlier mask of the best of ``iterations`` two-point fits: a point is an inlier when
+    ``|s x + t − y| ≤ threshold · |y|`` (a relative error, so near and far returns count alike).
+    Ties go to the first sample drawn, so the fit is reproducible for a given generator."""
+    count = x.numel()
+    first = torch.randint(count, (iterations,), generator=generator)
+    second = (first + torch.randint(1, count, (iterations,), generator=generator)) % count
+    dx = x[second] - x[first]
+    ok = dx.abs() > _TINY
+    scale = torch.where(ok, (y[second] - y[first]) / torch.where(ok, dx, 1.0), 0.0)
+    shift = y[first] - scale * x[first]
+    residual = (scale[:, None] * x[None] + shift[:, None] - y[None]).abs()
+    inliers = (residual <= threshold * y.abs()[None]) & ok[:, None]
+    return inliers[int(inliers.sum(dim=1).argmax())]
+
+
+def fit_scale_shift(
+    prior: torch.Tensor,
+    sparse: torch.Tensor,
+    space: str = "inverse",
+    ransac_iterations: int = 0,
+    ransac_threshold: float = 0.1,
+    fallback: tuple[float, float] = (1.0, 0.0),
+    seed: int = 0,
+) -> Alignment:
+    """The scale and shift that map each frame's ``prior`` onto its sparse metric depth.
+
+    Args:
+        prior: (B, 1, H, W) relative inverse depth (≥ 0, larger is nearer), e.g. Depth Anything
+            V2's relative output resized to the frame.
+        sparse: (B, 1, H, W) metres, 0 = no return (the batch's ``sparse``).
+        space: ``inverse`` (fit ``s · prior + t`` to 1/depth) or ``depth`` (fit ``s / prior +
+            t`` to metres); see the module docstring.
+        ransac_iterations: 0 fits all returns; N > 0 draws N two-point samples and refits on
+            the best one's inliers.
+        ransac_threshold: a return is an inlier of a sample when its relative error in the
+            fitted space is at most this.
+        fallback: ``(s, t)`` for a frame with too few returns when no frame of its batch has
+            enough.
+        seed: the RANSAC samples' seed (fits are reproducible).
+
+    Returns:
+        :class:`Alignment`, one fit per frame.
+
+    Raises:
+        ArgumentError: an unknown ``space``, ``ransac_iterations < 0`` or ``ransac_threshold ≤
+            0``.
+        ValueError: ``prior`` and ``sparse`` differ in shape.
+    """
+    check_choice(space, ALIGNMENT_SPACES, "space", owner=fit_scale_shift)
+    if ransac_iterations < 0:
+        raise ArgumentError(
+            f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0",
+            "ransac_iterations",
+            owner=fit_scale_shift,
+        )
+    if not ransac_threshold > 0:
+        raise ArgumentError(
+            f"{{ransac_threshold}}={ransac_threshold}: expected a number > 0",
+            "ransac_threshold",
+            owner=fit_scale_shift,
+        )
+    if prior.shape != sparse.shape:
+        raise ValueError(f"prior {tuple(prior.shape)} and sparse {tuple(sparse.shape)} differ")
+    generator = torch.Generator().manual_seed(seed)
+    fits: list[tuple[float, float] | None] = []
+    used: list[int] = []
+    for frame_prior, frame_sparse in zip(prior.double().cpu(), sparse.double().cpu(), strict=True):
+        valid = frame_sparse > 0
+        x = _regressor(frame_prior[valid], space)
+        y = 1.0 / frame_sparse[valid] if space == "inverse" else frame_sparse[valid]
+        if ransac_iterations and x.numel() >= 2:
+            inliers = _ransac(x, y, ransac_iterations, ransac_threshold, generator)
+            x, y = x[inliers], y[inliers]
+        fits.append(_least_squares(x, y))
+        used.append(int(x.numel()) if fits[-1] is not None else 0)
+    found = torch.tensor([fit for fit in fits if fit is not None], dtype=torch.float64)
+    default = found.median(dim=0).values.tolist() if len(found) else list(fallback)
+    scale, shift = zip(*(fit or default for fit in fits), strict=True)
+    return Alignment(
+        scale=torch.tensor(scale, dtype=torch.float64),
+        shift=torch.tensor(shift, dtype=torch.float64),
+        points=torch.tensor(used),
+        fallback=torch.tensor([fit is None for fit in fits]),
+    )
+
+
+def apply_alignment(
+    prior: torch.Tensor,
+    alignment: Alignment,
+    space: str,
+    min_depth: float,
+    max_depth: float,
+) -> torch.Tensor:
+    """Metric depth from ``prior`` and its per-frame fits, clipped to the depth range.
+
+    Args:
+        prior: (B, 1, H, W) relative inverse depth, as given to :func:`fit_scale_shift`.
+        alignment: its fits.
+        space: the space they were fitted in.
+        min_depth: the range's lower end in metres (> 0).
+        max_depth: its upper end in metres.
+
+    Returns:
+        (B, 1, H, W) metres in ``[min_depth, max_depth]``, in ``prior``'s dtype. An inverse
+        depth at or below 0 (a fit that puts a pixel beyond infinity) maps to ``max_depth``.
+    """
+    check_choice(space, ALIGNMENT_SPACES, "space", owner=apply_alignment)
+    scale = alignment.scale.to(prior.device, torch.float64)[:, None, None, None]
+    shift = alignment.shift.to(prior.device, torch.float64)[:, None, None, None]
+    fitted = scale * _regressor(prior.double(), space) + shift
+    if space == "inverse":
+        fitted = 1.0 / fitted.clamp_min(1.0 / max_depth)
+    return fitted.clamp(min_depth, max_depth).to(prior.dtype)

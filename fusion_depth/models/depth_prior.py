@@ -1,0 +1,318 @@
+"""Frozen monocular depth priors: networks that give a relative (affine-invariant) inverse depth
+per frame, which :mod:`fusion_depth.models.alignment` makes metric with the frame's radar.
+
+:class:`DepthAnythingPrior` is Depth Anything V2 (Yang et al., NeurIPS 2024) as ``transformers``
+builds it (``DepthAnythingForDepthEstimation``), with weights read from local files only, never
+downloaded: a transformers folder (``config.json`` and ``model.safetensors``, as
+``depth-anything/Depth-Anything-V2-Small-hf`` ships) or the authors' ``.pth`` checkpoint
+(``depth_anything_v2_vits.pth``, ``_vitb``, ``_vitl``), whose names are mapped to transformers'
+as its conversion script ``convert_depth_anything_to_hf.py`` does. Licences: the Small weights
+are Apache-2.0; Base and Large are CC-BY-NC-4.0 (the authors' README).
+
+``transformers`` is an optional extra (``pip install "fusion-depth[prior]"``), imported on first
+use.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from fusion_depth.errors import ArgumentError, ArgumentFileError, MissingDependencyError
+
+PATCH = 14  # DINOv2's patch: the prior's input is resized to a multiple of it
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+# Which blocks feed the head, by the encoder's depth: ViT-S and ViT-B have 12, ViT-L 24
+# (the authors' run.py ``intermediate_layer_idx``, 1-based as transformers counts them).
+OUT_INDICES = {12: (3, 6, 9, 12), 24: (5, 12, 18, 24)}
+HEAD_WIDTH = 64  # DINOv2's attention heads are 64 wide: heads = embedding width / 64
+
+# The authors' names → transformers' (the conversion script's rename_key list), as regexes.
+_RENAMES: tuple[tuple[str, str], ...] = (
+    (r"^pretrained\.cls_token$", "backbone.embeddings.cls_token"),
+    (r"^pretrained\.mask_token$", "backbone.embeddings.mask_token"),
+    (r"^pretrained\.pos_embed$", "backbone.embeddings.position_embeddings"),
+    (r"^pretrained\.patch_embed\.proj\.", "backbone.embeddings.patch_embeddings.projection."),
+    (
+        r"^pretrained\.blocks\.(\d+)\.ls(\d)\.gamma$",
+        r"backbone.encoder.layer.\1.layer_scale\2.lambda1",
+    ),
+    (
+        r"^pretrained\.blocks\.(\d+)\.attn\.proj\.",
+        r"backbone.encoder.layer.\1.attention.output.dense.",
+    ),
+    (r"^pretrained\.blocks\.(\d+)\.", r"backbone.encoder.layer.\1."),
+    (r"^pretrained\.norm\.", "backbone.layernorm."),
+    (r"^depth_head\.projects\.(\d)\.", r"neck.reassemble_stage.layers.\1.projection."),
+    (r"^depth_head\.resize_layers\.(\d)\.", r"neck.reassemble_stage.layers.\1.resize."),
+    (r"^depth_head\.scratch\.output_conv1\.", "head.conv1."),
+    (r"^depth_head\.scratch\.output_conv2\.0\.", "head.conv2."),
+    (r"^depth_head\.scratch\.output_conv2\.2\.", "head.conv3."),
+)
+_QKV = re.compile(r"^pretrained\.blocks\.(\d+)\.attn\.qkv\.(weight|bias)$")
+_CONVS = re.compile(r"^depth_head\.scratch\.layer(\d)_rn\.weight$")
+_REFINE = re.compile(r"^depth_head\.scratch\.refinenet(\d)\.(.*)$")
+# transformers 5 keeps the legacy names on disk and these in memory
+_IN_MEMORY = {
+    ".attention.attention.query.": ".attention.q_proj.",
+    ".attention.attention.key.": ".attention.k_proj.",
+    ".attention.attention.value.": ".attention.v_proj.",
+    ".attention.output.dense.": ".attention.o_proj.",
+}
+
+
+def _transformers() -> Any:
+    try:
+        import transformers
+    except ImportError as err:
+        raise MissingDependencyError(
+            "prior=depth_anything_v2 needs transformers, which is not installed: "
+            'pip install "fusion-depth[prior]"'
+        ) from err
+    return transformers
+
+
+def _weights_error(weights: Any, problem: str) -> ArgumentError:
+    return ArgumentError(f"{{weights}}={weights}: {problem}", "weights", owner=DepthAnythingPrior)
+
+
+def _renamed(name: str) -> str | None:
+    refine = _REFINE.match(name)
+    if refine:  # refinenet1 is the last fusion layer: transformers numbers them the other way
+        index, rest = 4 - int(refine.group(1)), refine.group(2)
+        rest = re.sub(r"^out_conv\.", "projection.", rest)
+        rest = re.sub(r"resConfUnit(\d)\.conv(\d)\.", r"residual_layer\1.convolution\2.", rest)
+        return f"neck.fusion_stage.layers.{index}.{rest}"
+    convs = _CONVS.match(name)
+    if convs:
+        return f"neck.convs.{int(convs.group(1)) - 1}.weight"
+    for pattern, replacement in _RENAMES:
+        if re.match(pattern, name):
+            return re.sub(pattern, replacement, name)
+    return None
+
+
+def convert_official_state_dict(
+    state: Mapping[str, torch.Tensor], weights: Any = "weights"
+) -> dict[str, torch.Tensor]:
+    """The authors' Depth Anything V2 state dict in transformers' on-disk names (the fused
+    ``qkv`` projection split into query, key and value, in that order).
+
+    Args:
+        state: the ``.pth`` file's flat ``name → tensor`` mapping.
+        weights: the file, for the error message.
+
+    Raises:
+        ArgumentError: a name the authors' model does not have (naming the first few).
+    """
+    converted, unknown = {}, []
+    for name, tensor in state.items():
+        qkv = _QKV.match(name)
+        if qkv:
+            prefix = f"backbone.encoder.layer.{qkv.group(1)}.attention.attention"
+            for part, chunk in zip(("query", "key", "value"), tensor.chunk(3), strict=True):
+                converted[f"{prefix}.{part}.{qkv.group(2)}"] = chunk
+            continue
+        new = _renamed(name)
+        if new is None:
+            unknown.append(name)
+        else:
+            converted[new] = tensor
+    if unknown:
+        raise _weights_error(
+            weights,
+            f"not a Depth Anything V2 checkpoint: unexpected keys {', '.join(unknown[:3])}"
+            + (f" (and {len(unknown) - 3} more)" if len(unknown) > 3 else ""),
+        )
+    return converted
+
+
+def depth_anything_config(state: Mapping[str, torch.Tensor], weights: Any = "weights") -> Any:
+    """transformers' ``DepthAnythingConfig`` of a converted state dict, read from its shapes:
+    embedding width, depth and training size from the backbone, neck, fusion and head widths
+    from their convolutions; the blocks that feed the head from :data:`OUT_INDICES`.
+
+    Raises:
+        ArgumentError: a state dict that is not Depth Anything V2's (a missing tensor, a width
+            that is not a multiple of 64, or a depth other than 12 or 24).
+    """
+    transformers = _transformers()
+    try:
+        width = state["backbone.embeddings.cls_token"].shape[-1]
+        grid = round((state["backbone.embeddings.position_embeddings"].shape[1] - 1) ** 0.5)
+        depth = 1 + max(
+            int(name.split(".")[3]) for name in state if name.startswith("backbone.encoder.layer.")
+        )
+        necks = [
+            state[f"neck.reassemble_stage.layers.{i}.projection.weight"].shape[0] for i in range(4)
+        ]
+        fusion = state["neck.convs.0.weight"].shape[0]
+        head = state["head.conv2.weight"].shape[0]
+    except (KeyError, ValueError) as err:
+        raise _weights_error(weights, f"not a Depth Anything V2 checkpoint (no {err})") from None
+    if width % HEAD_WIDTH or depth not in OUT_INDICES:
+        raise _weights_error(
+            weights,
+            f"an encoder {width} wide and {depth} blocks deep; Depth Anything V2's are a multiple "
+            f"of {HEAD_WIDTH} wide and {' or '.join(map(str, OUT_INDICES))} deep",
+        )
+    backbone = transformers.Dinov2Config(
+        image_size=grid * PATCH,  # the authors' 518: 37 × 37 patches
+        patch_size=PATCH,
+        hidden_size=width,
+        num_hidden_layers=depth,
+        num_attention_heads=width // HEAD_WIDTH,
+        out_indices=list(OUT_INDICES[depth]),
+        apply_layernorm=True,
+        reshape_hidden_states=False,
+    )
+    return transformers.DepthAnythingConfig(
+        backbone_config=backbone,
+        patch_size=PATCH,
+        reassemble_hidden_size=width,
+        neck_hidden_sizes=necks,
+        fusion_hidden_size=fusion,
+        head_hidden_size=head,
+        depth_estimation_type="relative",
+    )
+
+
+def _load_checkpoint_file(path: Path) -> nn.Module:
+    """The authors' ``.pth``: tensors only (``weights_only``), mapped and loaded strictly."""
+    transformers = _transformers()
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any failure means "not a readable checkpoint"
+        problem = f"not a readable PyTorch checkpoint ({type(err).__name__})"
+        raise _weights_error(path, problem) from None
+    if not isinstance(state, Mapping) or not all(
+        isinstance(v, torch.Tensor) for v in state.values()
+    ):
+        raise _weights_error(path, "expected a flat name → tensor state dict (the authors' .pth)")
+    converted = convert_official_state_dict(state, path)
+    model = transformers.DepthAnythingForDepthEstimation(depth_anything_config(converted, path))
+    expected = model.state_dict()
+    if not any(name in expected for name in converted if ".attention.attention." in name):
+        for old, new in _IN_MEMORY.items():
+            converted = {name.replace(old, new): value for name, value in converted.items()}
+    try:
+        model.load_state_dict(converted, strict=True)
+    except RuntimeError as err:
+        first = str(err).splitlines()[1].strip() if "\n" in str(err) else str(err)
+        raise _weights_error(path, f"does not fit Depth Anything V2 ({first})") from None
+    return model
+
+
+def load_depth_anything_v2(weights: str | Path) -> nn.Module:
+    """Depth Anything V2 (relative) from local files: a transformers folder or the authors'
+    ``.pth``. Nothing is downloaded (``local_files_only``).
+
+    Args:
+        weights: the folder (with ``config.json``) or the ``.pth`` file.
+
+    Returns:
+        transformers' ``DepthAnythingForDepthEstimation``, in eval mode.
+
+    Raises:
+        ArgumentFileError: ``weights`` does not exist.
+        ArgumentError: a folder without ``config.json`` or of another architecture, or a file
+            that is not a Depth Anything V2 checkpoint, naming ``weights``.
+        MissingDependencyError: transformers is not installed.
+    """
+    path = Path(weights).expanduser()
+    if not path.exists():
+        raise ArgumentFileError(
+            f"{{weights}}={weights}: no such file or folder (a transformers folder, or the "
+            "authors' depth_anything_v2_vit*.pth; see the foundation-prior guide)",
+            "weights",
+            owner=DepthAnythingPrior,
+        )
+    if path.is_file():
+        return _load_checkpoint_file(path).eval()
+    transformers = _transformers()
+    if not (path / "config.json").is_file():
+        problem = "a folder without config.json (expected a transformers folder)"
+        raise _weights_error(weights, problem)
+    try:
+        config = transformers.AutoConfig.from_pretrained(path, local_files_only=True)
+    except Exception as err:  # noqa: BLE001 - any failure means "not a readable config"
+        problem = f"config.json is not readable ({type(err).__name__})"
+        raise _weights_error(weights, problem) from None
+    if config.model_type != "depth_anything":
+        raise _weights_error(weights, f"a {config.model_type} model (expected depth_anything)")
+    try:
+        model, info = transformers.DepthAnythingForDepthEstimation.from_pretrained(
+            path, local_files_only=True, output_loading_info=True
+        )
+    except Exception as err:  # noqa: BLE001 - missing or corrupt weights file
+        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise _weights_error(weights, f"cannot be loaded ({message})") from None
+    missing = [*info.get("missing_keys", ()), *info.get("mismatched_keys", ())]
+    if missing:
+        raise _weights_error(weights, f"weights do not fit its config.json ({missing[0]})")
+    return model.eval()
+
+
+class DepthAnythingPrior(nn.Module):
+    """A frozen Depth Anything V2: RGB in, relative inverse depth out, at the input's size.
+
+    The image is normalised with ImageNet's mean and standard deviation, resized (bilinear) so
+    that its short side is ``input_size`` and both sides are multiples of 14, and the output is
+    resized back. The network stays in eval mode and takes no gradient.
+
+    Args:
+        weights: a transformers folder or the authors' ``.pth`` (:func:`load_depth_anything_v2`).
+        input_size: the short side the network sees; None keeps the image's. Both sides are
+            then rounded to the nearest multiple of 14, as the authors' processor does
+            (``ensure_multiple_of=14``); they infer at 518.
+
+    Shape:
+        - image: (B, 3, H, W) RGB in [0, 1].
+        - output: (B, 1, H, W) relative inverse depth, ≥ 0 (larger is nearer; affine-invariant).
+
+    Raises:
+        ArgumentError: ``weights`` cannot be loaded (see :func:`load_depth_anything_v2`), or
+            ``input_size`` is below 14.
+    """
+
+    def __init__(self, weights: str | Path, input_size: int | None = 518) -> None:
+        super().__init__()
+        if input_size is not None and input_size < PATCH:
+            raise ArgumentError(
+                f"{{input_size}}={input_size}: expected an integer ≥ {PATCH}, or null",
+                "input_size",
+                owner=DepthAnythingPrior,
+            )
+        self.network = load_depth_anything_v2(weights)
+        self.network.requires_grad_(False)
+        self.input_size = input_size
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def train(self, mode: bool = True) -> DepthAnythingPrior:
+        super().train(mode)
+        self.network.eval()  # frozen: its dropout and norms stay in inference mode
+        return self
+
+    def network_size(self, height: int, width: int) -> tuple[int, int]:
+        """The size the network sees for an image of ``height`` × ``width``."""
+        scale = 1.0 if self.input_size is None else self.input_size / min(height, width)
+        return (
+            max(PATCH, round(height * scale / PATCH) * PATCH),
+            max(PATCH, round(width * scale / PATCH) * PATCH),
+        )
+
+    @torch.no_grad()
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        height, width = image.shape[-2:]
+        size = self.network_size(height, width)
+        pixels = F.interpolate((image - self.mean) / self.std, size, mode="bilinear")
+        relative = self.network(pixel_values=pixels).predicted_depth[:, None]
+        return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)

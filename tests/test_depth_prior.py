@@ -1,0 +1,294 @@
+"""The foundation prior (Depth Anything V2 through transformers, weights from local files) and its
+global alignment to sparse metric depth: tiny random networks built and saved by the tests, never
+downloaded."""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+
+import pytest
+import torch
+import transformers
+from safetensors.torch import load_file
+
+from fusion_depth.errors import ArgumentError, ArgumentFileError
+from fusion_depth.models.alignment import apply_alignment, fit_scale_shift
+from fusion_depth.models.depth_prior import (
+    OUT_INDICES,
+    DepthAnythingPrior,
+    load_depth_anything_v2,
+)
+
+
+@pytest.fixture(autouse=True)
+def no_network(monkeypatch):
+    """Any connection attempt fails the test: the prior reads local files only."""
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.setenv("HTTPS_PROXY", "http://127.0.0.1:9")
+    monkeypatch.setenv("HTTP_PROXY", "http://127.0.0.1:9")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the prior reached for the network")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+
+
+def tiny_depth_anything(width: int = 4, depth: int = 2, necks=(2, 2), out_indices=(1, 2)):
+    """A random Depth Anything of transformers' own test sizes (hidden size 4, 2 layers)."""
+    torch.manual_seed(0)
+    backbone = transformers.Dinov2Config(
+        image_size=28,
+        patch_size=14,
+        hidden_size=width,
+        num_hidden_layers=depth,
+        num_attention_heads=max(1, width // 64) if width >= 64 else 2,
+        out_indices=list(out_indices),
+        apply_layernorm=True,
+        reshape_hidden_states=False,
+    )
+    config = transformers.DepthAnythingConfig(
+        backbone_config=backbone,
+        patch_size=14,
+        reassemble_hidden_size=width,
+        reassemble_factors=[4, 2, 1, 0.5][: len(necks)],
+        neck_hidden_sizes=list(necks),
+        fusion_hidden_size=6,
+        head_hidden_size=4,
+        depth_estimation_type="relative",
+    )
+    model = transformers.DepthAnythingForDepthEstimation(config).eval()
+    with torch.no_grad():  # transformers' init leaves a tiny head flat; spread the weights
+        for parameter in model.parameters():
+            parameter.normal_(0.0, 0.3)
+        model.head.conv3.bias.fill_(0.5)  # the head ends in ReLU: keep most pixels above 0
+    return model
+
+
+@pytest.fixture(scope="module")
+def tiny_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiny_depth_anything")
+    tiny_depth_anything().save_pretrained(folder)
+    return folder
+
+
+def test_folder_loads_offline_and_predicts_at_the_input_size(tiny_folder):
+    prior = DepthAnythingPrior(tiny_folder, input_size=None)
+    image = torch.rand(2, 3, 64, 96)
+    relative = prior(image)
+    assert relative.shape == (2, 1, 64, 96)
+    assert (relative >= 0).all() and relative.std() > 0
+    # the same network straight from transformers, at the size the prior feeds it (70 × 98)
+    network = transformers.DepthAnythingForDepthEstimation.from_pretrained(tiny_folder)
+    assert prior.network_size(64, 96) == (70, 98)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    pixels = torch.nn.functional.interpolate((image - mean) / std, (70, 98), mode="bilinear")
+    with torch.no_grad():
+        expected = network(pixel_values=pixels).predicted_depth[:, None]
+    expected = torch.nn.functional.interpolate(expected, (64, 96), mode="bilinear")
+    torch.testing.assert_close(relative, expected.clamp_min(0))
+
+
+def test_prior_is_frozen(tiny_folder):
+    prior = DepthAnythingPrior(tiny_folder, input_size=28).train()
+    assert not prior.network.training
+    assert not any(p.requires_grad for p in prior.parameters())
+    image = torch.rand(1, 3, 32, 48, requires_grad=True)
+    assert not prior(image).requires_grad
+    assert prior.network_size(32, 48) == (28, 42)  # short side 28, long side to the nearest 14
+
+
+# The authors' names, written from transformers' on-disk ones: the inverse of the loader's map,
+# spelt out separately (the map itself was checked against the authors' DepthAnythingV2 at
+# 518 × 518 when it was written: outputs within 1.5e-5).
+def official_names(hf: dict) -> dict:
+    out = {}
+    for name, tensor in hf.items():
+        m = re.match(r"backbone\.encoder\.layer\.(\d+)\.attention\.attention\.query\.(\w+)", name)
+        if m:
+            block, kind = m.groups()
+            parts = [
+                hf[f"backbone.encoder.layer.{block}.attention.attention.{p}.{kind}"]
+                for p in ("query", "key", "value")
+            ]
+            out[f"pretrained.blocks.{block}.attn.qkv.{kind}"] = torch.cat(parts)
+            continue
+        if re.search(r"attention\.attention\.(key|value)\.", name):
+            continue
+        rules = [
+            (r"backbone\.embeddings\.cls_token", "pretrained.cls_token"),
+            (r"backbone\.embeddings\.mask_token", "pretrained.mask_token"),
+            (r"backbone\.embeddings\.position_embeddings", "pretrained.pos_embed"),
+            (
+                r"backbone\.embeddings\.patch_embeddings\.projection\.",
+                "pretrained.patch_embed.proj.",
+            ),
+            (
+                r"backbone\.encoder\.layer\.(\d+)\.layer_scale(\d)\.lambda1",
+                r"pretrained.blocks.\1.ls\2.gamma",
+            ),
+            (
+                r"backbone\.encoder\.layer\.(\d+)\.attention\.output\.dense\.",
+                r"pretrained.blocks.\1.attn.proj.",
+            ),
+            (r"backbone\.encoder\.layer\.(\d+)\.", r"pretrained.blocks.\1."),
+            (r"backbone\.layernorm\.", "pretrained.norm."),
+            (r"neck\.reassemble_stage\.layers\.(\d)\.projection\.", r"depth_head.projects.\1."),
+            (r"neck\.reassemble_stage\.layers\.(\d)\.resize\.", r"depth_head.resize_layers.\1."),
+            (r"neck\.convs\.(\d)\.weight", None),
+            (r"neck\.fusion_stage\.layers\.(\d)\.(.*)", None),
+            (r"head\.conv1\.", "depth_head.scratch.output_conv1."),
+            (r"head\.conv2\.", "depth_head.scratch.output_conv2.0."),
+            (r"head\.conv3\.", "depth_head.scratch.output_conv2.2."),
+        ]
+        for pattern, replacement in rules:
+            m = re.match(pattern, name)
+            if not m:
+                continue
+            if pattern.startswith(r"neck\.convs"):
+                new = f"depth_head.scratch.layer{int(m.group(1)) + 1}_rn.weight"
+            elif pattern.startswith(r"neck\.fusion"):
+                rest = m.group(2).replace("projection.", "out_conv.")
+                rest = re.sub(r"residual_layer(\d)\.convolution(\d)", r"resConfUnit\1.conv\2", rest)
+                new = f"depth_head.scratch.refinenet{4 - int(m.group(1))}.{rest}"
+            else:
+                new = re.sub(pattern, replacement, name)
+            out[new] = tensor
+            break
+        else:
+            raise AssertionError(f"no rule for {name}")
+    return out
+
+
+@pytest.fixture(scope="module")
+def official_checkpoint(tmp_path_factory):
+    """A small network in the authors' .pth layout: 64 wide, 12 blocks (ViT-S's depth)."""
+    folder = tmp_path_factory.mktemp("official")
+    model = tiny_depth_anything(64, 12, (8, 8, 8, 8), OUT_INDICES[12])
+    model.save_pretrained(folder / "hf")
+    state = official_names(load_file(folder / "hf" / "model.safetensors"))
+    torch.save(state, folder / "depth_anything_v2_tiny.pth")
+    return folder / "depth_anything_v2_tiny.pth", folder / "hf", state
+
+
+def test_authors_pth_loads_to_the_same_network(official_checkpoint):
+    path, hf_folder, _ = official_checkpoint
+    from_pth = load_depth_anything_v2(path)
+    from_folder = load_depth_anything_v2(hf_folder)
+    pixels = torch.rand(1, 3, 56, 84)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            from_pth(pixel_values=pixels).predicted_depth,
+            from_folder(pixel_values=pixels).predicted_depth,
+            rtol=0,
+            atol=0,
+        )
+
+
+def test_bad_weights_are_one_line_naming_weights(tmp_path, official_checkpoint, tiny_folder):
+    _, _, state = official_checkpoint
+    with pytest.raises(ArgumentFileError, match=r"^weights=.*missing.*: no such file"):
+        DepthAnythingPrior(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ArgumentError, match=r"^weights=.*empty: a folder without config.json"):
+        load_depth_anything_v2(tmp_path / "empty")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text(json.dumps({"model_type": "bert"}))
+    with pytest.raises(ArgumentError, match=r"a bert model \(expected depth_anything\)"):
+        load_depth_anything_v2(other)
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.json").write_text((tiny_folder / "config.json").read_text())
+    (broken / "model.safetensors").write_bytes(b"not safetensors")
+    with pytest.raises(ArgumentError, match=r"^weights=.*broken: cannot be loaded"):
+        load_depth_anything_v2(broken)
+    text = tmp_path / "notes.pth"
+    text.write_text("hello")
+    with pytest.raises(ArgumentError, match=r"not a readable PyTorch checkpoint"):
+        load_depth_anything_v2(text)
+    extra = tmp_path / "extra.pth"
+    torch.save({**state, "decoder.bias": torch.zeros(1)}, extra)
+    with pytest.raises(ArgumentError, match=r"unexpected keys decoder.bias"):
+        load_depth_anything_v2(extra)
+    narrow = tmp_path / "narrow.pth"  # another size: a width no Depth Anything V2 has
+    torch.save({**state, "pretrained.cls_token": state["pretrained.cls_token"][..., :48]}, narrow)
+    with pytest.raises(ArgumentError, match=r"48 wide and 12 blocks deep"):
+        load_depth_anything_v2(narrow)
+    cut = tmp_path / "cut.pth"  # a tensor of the wrong shape for its config
+    torch.save({**state, "depth_head.scratch.output_conv1.bias": torch.zeros(5)}, cut)
+    with pytest.raises(ArgumentError, match=r"^weights=.*cut.pth: does not fit Depth Anything V2"):
+        load_depth_anything_v2(cut)
+    with pytest.raises(ArgumentError, match=r"^input_size=7: expected an integer ≥ 14"):
+        DepthAnythingPrior(tiny_folder, input_size=7)
+
+
+# --- alignment --------------------------------------------------------------------------------
+
+
+def synthetic(scale=2.5, shift=0.03, points=200, outliers=0.0, seed=0):
+    """A relative prior and sparse depth that it maps to exactly: 1/depth = s·prior + t."""
+    generator = torch.Generator().manual_seed(seed)
+    prior = torch.rand(1, 1, 40, 60, generator=generator, dtype=torch.float64) + 0.05
+    depth = 1.0 / (scale * prior + shift)
+    sparse = torch.zeros_like(prior)
+    flat = torch.randperm(prior.numel(), generator=generator)[:points]
+    sparse.view(-1)[flat] = depth.view(-1)[flat]
+    bad = flat[: int(outliers * points)]  # returns that miss: 3× to 10× off
+    factor = 3 + 7 * torch.rand(len(bad), generator=generator, dtype=torch.float64)
+    nearer = torch.rand(len(bad), generator=generator) < 0.5
+    sparse.view(-1)[bad] *= torch.where(nearer, factor, 1 / factor)
+    return prior, sparse, depth
+
+
+@pytest.mark.parametrize("space", ["inverse", "depth"])
+def test_alignment_recovers_scale_and_shift(space):
+    prior, sparse, depth = synthetic()
+    if space == "depth":  # depth = s / prior + t exactly
+        depth = 7.0 / prior + 1.5
+        sparse = torch.where(sparse > 0, depth, 0.0)
+    fit = fit_scale_shift(prior, sparse, space=space)
+    expected = (2.5, 0.03) if space == "inverse" else (7.0, 1.5)
+    assert abs(fit.scale.item() - expected[0]) < 1e-6
+    assert abs(fit.shift.item() - expected[1]) < 1e-6
+    assert fit.points.item() == 200 and not fit.fallback.any()
+    aligned = apply_alignment(prior, fit, space, 1e-3, 1e3)
+    torch.testing.assert_close(aligned, depth, rtol=1e-6, atol=0)
+
+
+def test_ransac_holds_with_30_percent_outliers():
+    prior, sparse, _ = synthetic(outliers=0.3)
+    plain = fit_scale_shift(prior, sparse)
+    robust = fit_scale_shift(prior, sparse, ransac_iterations=200, ransac_threshold=0.05)
+    assert abs(plain.scale.item() / 2.5 - 1) > 0.05  # least squares alone is pulled off
+    assert abs(robust.scale.item() / 2.5 - 1) < 0.01
+    assert abs(robust.shift.item() - 0.03) < 0.01 * 0.03 + 0.01 * 2.5 * prior.mean().item()
+    assert robust.points.item() == 140  # exactly the returns that were not moved
+    again = fit_scale_shift(prior, sparse, ransac_iterations=200, ransac_threshold=0.05)
+    assert again.scale.item() == robust.scale.item()  # reproducible for a seed
+
+
+def test_too_few_returns_fall_back_never_nan():
+    prior, sparse, _ = synthetic()
+    frames = torch.cat([prior, prior, prior]), torch.cat([sparse, torch.zeros_like(sparse), sparse])
+    single = frames[1].clone()
+    single[1].view(-1)[0] = 5.0  # one return: no shift can be fitted
+    fit = fit_scale_shift(frames[0], single)
+    assert fit.fallback.tolist() == [False, True, False]
+    assert fit.scale[1] == fit.scale[0] and fit.points[1] == 0  # the batch's median fit
+    alone = fit_scale_shift(prior, torch.zeros_like(sparse), fallback=(3.0, 0.1))
+    assert alone.fallback.item() and (alone.scale.item(), alone.shift.item()) == (3.0, 0.1)
+    aligned = apply_alignment(frames[0], fit, "inverse", 0.5, 80.0)
+    assert torch.isfinite(aligned).all() and aligned.min() >= 0.5 and aligned.max() <= 80.0
+
+
+def test_alignment_arguments_are_named():
+    prior, sparse, _ = synthetic()
+    with pytest.raises(ArgumentError, match=r"^space='metres': expected one of"):
+        fit_scale_shift(prior, sparse, space="metres")
+    with pytest.raises(ArgumentError, match=r"^ransac_iterations=-1: expected an integer ≥ 0"):
+        fit_scale_shift(prior, sparse, ransac_iterations=-1)
+    with pytest.raises(ArgumentError, match=r"^ransac_threshold=0: expected a number > 0"):
+        fit_scale_shift(prior, sparse, ransac_threshold=0)
