@@ -292,3 +292,105 @@ def test_alignment_arguments_are_named():
         fit_scale_shift(prior, sparse, ransac_iterations=-1)
     with pytest.raises(ArgumentError, match=r"^ransac_threshold=0: expected a number > 0"):
         fit_scale_shift(prior, sparse, ransac_threshold=0)
+
+
+# --- the prior as a further input of DenseDepth ------------------------------------------------
+
+
+def prior_net(folder, dropout=0.0, seed=0):
+    from fusion_depth.models import DepthNet
+
+    torch.manual_seed(seed)
+    spec = {"name": "depth_anything_v2", "weights": str(folder), "input_size": 28}
+    return DepthNet(backbone="resnet10t", fusion="concat", prior={**spec, "dropout": dropout})
+
+
+def test_densedepth_takes_the_prior_and_checkpoints_leave_it_out(tiny_folder):
+    from fusion_depth.models import DepthNet
+
+    net = prior_net(tiny_folder).eval()
+    image, sparse = torch.rand(2, 3, 64, 96), torch.rand(2, 1, 64, 96) * 40
+    out = net(image, sparse)
+    assert out.shape == (2, 1, 32, 48)
+    state = net.state_dict()
+    assert not any(k.startswith("prior.") for k in state)  # the prior's weights stay in its files
+    assert "fusion.prior_mix.weight" in state
+    again = prior_net(tiny_folder, seed=1).eval()  # other random weights, the same prior
+    again.load_state_dict(state)  # strict: the prior fills its own weights in
+    torch.testing.assert_close(again(image, sparse), out)
+    # The prior changes the input: the same network without its channel predicts otherwise.
+    fused = net.fusion(image, sparse, net.prior_input(image))
+    assert not torch.allclose(fused, net.fusion(image, sparse, None))
+    # No prior: a network built without the argument has the keys checkpoints before it had.
+    plain = DepthNet(backbone="resnet10t", fusion="concat")
+    assert plain.prior is None and not plain.fusion.uses_prior
+    with_none = DepthNet(backbone="resnet10t", fusion="concat", prior={"name": "none"})
+    assert set(with_none.state_dict()) == set(plain.state_dict())
+
+
+def test_prior_dropout_gives_some_frames_none_in_training_only(tiny_folder):
+    image = torch.rand(64, 3, 32, 32)
+    net = prior_net(tiny_folder, dropout=0.5)
+    with torch.no_grad():
+        full = net.eval().prior_input(image)
+        assert (full.amax(dim=(1, 2, 3)) == 1).all()  # normalised per frame: max 1, min 0
+        dropped = net.train().prior_input(image)
+    zero = dropped.amax(dim=(1, 2, 3)) == 0
+    assert 10 < int(zero.sum()) < 54  # about half of 64 frames
+    torch.testing.assert_close(dropped[~zero], full[~zero])
+
+
+def _train(tmp_path, *overrides, env=None):
+    import os
+
+    from helpers import run_module
+
+    environment = {**os.environ, "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY": ""}
+    environment.pop("HF_HUB_OFFLINE", None)
+    return run_module(
+        ["fusion_depth.train", "experiment=smoke", "logger=none", *overrides],
+        cwd=tmp_path,
+        env=environment if env is None else env,
+    )
+
+
+def test_smoke_run_trains_with_the_prior_and_exports(tmp_path, tiny_folder):
+    from helpers import run_module
+
+    run = tmp_path / "run"
+    done = _train(
+        tmp_path, "prior=depth_anything_v2", f"prior.weights={tiny_folder}", f"hydra.run.dir={run}"
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["test"]["rmse"] > 0
+    resolved = (run / "config_resolved.yaml").read_text()
+    assert "depth_anything_v2" in resolved
+    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
+    exported = run_module(
+        ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx", f"hydra.run.dir={run}/x"],
+        cwd=tmp_path,
+    )
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    assert "verified with onnxruntime" in exported.stderr + exported.stdout
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["prior.weights=/no/such/prior"], "prior.weights=/no/such/prior: no such file or folder"),
+        (["prior.weights={tiny}", "prior.input_size=7"], "prior.input_size=7: expected an integer"),
+        (["prior.weights={tiny}", "prior.dropout=2"], "prior.dropout=2: expected a probability"),
+        (
+            ["prior.weights={tiny}", "model=radarnet", "fusion=concat"],
+            "model=radarnet cannot take prior=depth_anything_v2: it takes no prior",
+        ),
+    ],
+)
+def test_bad_prior_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, message):
+    overrides = [o.replace("{tiny}", str(tiny_folder)) for o in overrides]
+    failed = _train(tmp_path, "prior=depth_anything_v2", *overrides, f"hydra.run.dir={tmp_path}/r")
+    assert failed.returncode == 1
+    assert message in failed.stderr
+    assert "Traceback" not in failed.stderr
+    assert not (tmp_path / "r" / "checkpoints").exists()

@@ -16,6 +16,7 @@ from fusion_depth.losses.depth_loss import (
     log_l1_loss,
     masked_ssim_loss,
     pixel_loss,
+    ssi_loss,
 )
 
 # Residuals pred - target of a 2x2 map: 0.1, 0.5, 1.0, -2.0.
@@ -76,6 +77,24 @@ def test_log_l1_by_hand_weighs_relative_error_alike_at_every_depth() -> None:
     # On the 2x2 case with the last pixel masked out: log 1.1, log 1.5, log 2 averaged.
     expected = (math.log(1.1) + math.log(1.5) + math.log(2.0)) / 3
     assert log_l1_loss(PRED, TARGET, MASK_LAST_OUT).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_ssi_is_blind_to_each_image_scale_and_shift_and_by_hand() -> None:
+    # Per image, any positive affine map of the target costs nothing; image 2's own map differs.
+    g = torch.Generator().manual_seed(7)
+    target = torch.rand(2, 1, 6, 8, generator=g) + 0.1
+    mask = torch.rand(2, 1, 6, 8, generator=g) < 0.8
+    pred = target * torch.tensor([3.0, 0.2]).view(2, 1, 1, 1) + torch.tensor([-1.0, 5.0]).view(
+        2, 1, 1, 1
+    )
+    # 0 up to SSI_EPS's pull on the scale (1e-6 against image 2's prediction variance of 3e-3)
+    assert ssi_loss(pred, target, mask).item() == pytest.approx(0.0, abs=1e-4)
+    # By hand: pred (0, 1, 2, 3) onto target (0, 1, 1, 3): least squares s = 1.125 / 1.25 = 0.9,
+    # t = 1.25 - 0.9 · 1.5 = -0.1, so aligned (-0.1, 0.8, 1.7, 2.6): errors 0.1 + 0.2 + 0.7 + 0.4.
+    pred = torch.tensor([[[[0.0, 1.0], [2.0, 3.0]]]])
+    target = torch.tensor([[[[0.0, 1.0], [1.0, 3.0]]]])
+    assert ssi_loss(pred, target).item() == pytest.approx(1.4 / 4, rel=1e-4)
+    assert pixel_loss(pred * 7 - 2, target, kind="ssi").item() == pytest.approx(1.4 / 4, rel=1e-4)
 
 
 def test_log_l1_continues_by_the_tangent_below_the_floor() -> None:

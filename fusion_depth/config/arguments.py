@@ -31,6 +31,12 @@ ARGUMENT_KEYS: dict[str, str | Mapping[str, str]] = {
         "fusion": "fusion",
         "backbone": "backbone",
         "sensor": "dataset.sensor",
+        "prior": "prior",
+    },
+    "fusion_depth.models.depth_prior": {
+        "weights": "prior.weights",
+        "input_size": "prior.input_size",
+        "name": "prior.name",
     },
     "fusion_depth.models.encoder": _ENCODER,
     "fusion_depth.models.fusion.InputFusion": {"mode": "fusion.mode"},

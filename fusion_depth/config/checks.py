@@ -109,6 +109,7 @@ _MODEL_TAKES = {
     "fusion": "model.net.fusion",
     "backbone": "model.net.backbone",
     "sensor": "dataset.sensor",
+    "prior": "prior.name",
 }
 
 

@@ -22,7 +22,7 @@ from fusion_depth.config.dataset_validation import check_dataset, one_line_error
 from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data import transforms
 from fusion_depth.losses import depth_loss
-from fusion_depth.models import encoder, fusion
+from fusion_depth.models import depth_prior, encoder, fusion
 from fusion_depth.optim import optimizers
 from fusion_depth.runner import callbacks, datamodule, module, protocol, resume, speed
 from fusion_depth.utils.config_values import check_schema
@@ -47,6 +47,7 @@ VALUE_CHECKS: tuple[Callable[[DictConfig], None], ...] = (
     _arguments("loss", depth_loss.ARGUMENT_RULES),
     check_backbone,
     _arguments("backbone", encoder.ARGUMENT_RULES),
+    _arguments("prior", depth_prior.ARGUMENT_RULES),
     check_model,
     lambda cfg: check_dataset(cfg.dataset, cfg.fusion.mode),
     _schema(datamodule.CONFIG_SCHEMA),

@@ -36,11 +36,18 @@ __all__ = [
     "log_l1_loss",
     "masked_ssim_loss",
     "pixel_loss",
+    "ssi_loss",
 ]
 
-PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu", "log_l1")
+PIXEL_LOSSES: tuple[str, ...] = ("l1", "l2", "berhu", "log_l1", "ssi")
 """Allowed values of ``pixel_loss(kind=...)`` and ``DepthLoss(pixel=...)``."""
-PIXEL_LOSS_LABELS: dict[str, str] = {"l1": "L1", "l2": "L2", "berhu": "BerHu", "log_l1": "log-L1"}
+PIXEL_LOSS_LABELS: dict[str, str] = {
+    "l1": "L1",
+    "l2": "L2",
+    "berhu": "BerHu",
+    "log_l1": "log-L1",
+    "ssi": "SSI",
+}
 """How tables and plots name each pixel loss."""
 NONFINITE_ACTIONS: tuple[str, ...] = ("stop", "skip")
 """What training does with a batch whose loss is NaN or infinite (``model.on_nonfinite_loss``)."""
@@ -136,11 +143,52 @@ def log_l1_loss(
     return _masked_mean((log_pred - log_target).abs(), mask)
 
 
+SSI_EPS = 1e-6
+"""Added to each image's prediction variance in :func:`ssi_loss`: a flat prediction (a network
+at its first step) gets a finite scale and a gradient, not a division by 0."""
+
+
+def ssi_loss(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Scale-and-shift-invariant L1: each image's prediction is first mapped onto its target by
+    the least-squares scale and shift over its valid pixels, then the mean absolute error is
+    taken. The loss of MiDaS (Ranftl et al., "Towards Robust Monocular Depth Estimation", TPAMI
+    2022) that trains a network to predict inverse depth up to an affine map, as monocular
+    foundation models do: the least-squares alignment is theirs (their ``L_ssimse``), the error
+    after it is L1 rather than squared, and their gradient-matching term is left out. Not in the
+    seed paper; it trains the built-in dataset's stand-in for a foundation prior.
+
+    Each (image, channel) slice is aligned on its own, so the batch-as-channels fold of
+    :class:`DepthLoss` gives the same value. The scale and shift are functions of ``pred``, and
+    the gradient flows through them (as in MiDaS).
+
+    Args:
+        pred: (B, C, h, w) prediction, any affine map of the target's space.
+        target: (B, C, h, w) target (the platform's reciprocal depth); any value where ``mask``
+            is False.
+        mask: bool, same shape, True where ``target`` is valid (all True when None).
+
+    Returns:
+        A scalar; 0 when no pixel is valid.
+    """
+    mask = _check_inputs(pred, target, mask)
+    count = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1).to(pred.dtype)
+
+    def mean(values: Tensor) -> Tensor:
+        return torch.where(mask, values, torch.zeros_like(values)).sum((-2, -1), True) / count
+
+    target = torch.where(mask, target, torch.zeros_like(target))
+    pred_offset = pred - mean(pred)
+    target_offset = target - mean(target)
+    scale = mean(pred_offset * target_offset) / (mean(pred_offset * pred_offset) + SSI_EPS)
+    aligned = scale * pred_offset + mean(target)
+    return _masked_mean((aligned - target).abs(), mask)
+
+
 def pixel_loss(
     pred: Tensor, target: Tensor, mask: Tensor | None = None, kind: str = "l1"
 ) -> Tensor:
-    """Point-wise loss over valid pixels: ``"l1"`` (mean |x|), ``"l2"`` (mean x²), ``"berhu"`` or
-    ``"log_l1"`` (:func:`log_l1_loss`).
+    """Point-wise loss over valid pixels: ``"l1"`` (mean |x|), ``"l2"`` (mean x²), ``"berhu"``,
+    ``"log_l1"`` (:func:`log_l1_loss`) or ``"ssi"`` (:func:`ssi_loss`, per image).
 
     The paper compares the first three as its ``L_pixel`` term; the default BerHu threshold (0.2)
     is used for ``"berhu"`` (call :func:`berhu_loss` directly to change it).
@@ -150,6 +198,8 @@ def pixel_loss(
         return berhu_loss(pred, target, mask)
     if kind == "log_l1":
         return log_l1_loss(pred, target, mask)
+    if kind == "ssi":
+        return ssi_loss(pred, target, mask)
     mask = _check_inputs(pred, target, mask)
     diff = torch.where(mask, pred - target, torch.zeros_like(pred))
     per_pixel = diff.abs() if kind == "l1" else diff * diff
@@ -201,9 +251,9 @@ class DepthLoss(nn.Module):
     """``w_ssim * L_ssim + w_edge * L_edge + w_pixel * L_pixel`` on reciprocal depth.
 
     The paper uses weights 1, 1, 1 and compares ``pixel`` in {"l1", "l2", "berhu"}; "log_l1"
-    (:func:`log_l1_loss`) is this platform's addition. ``forward`` returns a dict with the
-    weighted total under ``"loss"`` (to backpropagate) and the unweighted terms under ``"ssim"``,
-    ``"edge"`` and ``"pixel"`` (to log).
+    (:func:`log_l1_loss`) and "ssi" (:func:`ssi_loss`) are this platform's additions.
+    ``forward`` returns a dict with the weighted total under ``"loss"`` (to backpropagate) and the
+    unweighted terms under ``"ssim"``, ``"edge"`` and ``"pixel"`` (to log).
     """
 
     def __init__(

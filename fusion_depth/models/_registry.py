@@ -163,11 +163,12 @@ def model_arguments(name: str) -> tuple[str, ...]:
 
 
 def check_model_takes(
-    name: str, fusion: Any = None, backbone: Any = None, sensor: Any = None
+    name: str, fusion: Any = None, backbone: Any = None, sensor: Any = None, prior: Any = None
 ) -> None:
     """Model ``name`` takes fusion mode ``fusion``, encoder ``backbone`` and a dataset whose
-    sparse sensor is ``sensor``, as its registration says (None: not checked). The one place
-    these are checked: :func:`create_model` and the config checks call it.
+    sparse sensor is ``sensor``, as its registration says, and a monocular prior ``prior`` (a
+    name other than ``none``) when its constructor takes a ``prior`` (None: not checked). The
+    one place these are checked: :func:`create_model` and the config checks call it.
 
     Raises:
         ArgumentError: an unknown name, or the first argument the model does not take, naming
@@ -187,6 +188,14 @@ def check_model_takes(
                 argument,
                 owner=check_model_takes,
             )
+    if prior not in (None, "none") and "prior" not in model_arguments(name):
+        takers = [n for n in MODELS if "prior" in model_arguments(n)]
+        raise ArgumentError(
+            f"model={name} cannot take {{prior}}={show(prior)}: it takes no prior (the models "
+            f"that do: {', '.join(takers)})",
+            "prior",
+            owner=check_model_takes,
+        )
 
 
 def create_model(name: str = DEFAULT_MODEL, **kwargs: Any) -> DepthModel:

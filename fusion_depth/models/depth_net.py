@@ -3,11 +3,16 @@ decoder (the paper, Sec. 3; Alhashim & Wonka 2018)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 
+from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder
+from fusion_depth.models.depth_prior import build_prior, normalized_prior
 from fusion_depth.models.encoder import Encoder
 from fusion_depth.models.fusion import FUSION_MODES, InputFusion
 
@@ -33,6 +38,13 @@ class DepthNet(DepthModel):
 
     ``forward`` returns the reciprocal map the loss is computed on; ``predict_depth`` returns
     metres, clipped to ``[min_depth, max_depth]``, for everything outside training.
+
+    ``prior`` (the ``prior`` config node: ``name``, ``weights``, ``input_size``, ``dropout``)
+    adds a frozen monocular prior's relative depth as a further input (:class:`InputFusion`,
+    TacoDepth's plug-in mode), computed on the fly from the image; in training a share
+    ``dropout`` of the frames gets none, so that the network also serves without it. The
+    prior's weights stay in their own files: a checkpoint holds the network's, and names the
+    prior's file, from which the prior is built again when the checkpoint is loaded.
     """
 
     def __init__(
@@ -46,8 +58,18 @@ class DepthNet(DepthModel):
         depth_scale: float = 10.0,
         sparse_encoding: str = "log",
         backbone_taps: str = "paper",
+        prior: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
+        spec = dict(prior or {})
+        self.prior_dropout = spec.pop("dropout", 0.0)
+        if not 0 <= self.prior_dropout <= 1:
+            raise ArgumentError(
+                f"{{prior}}.dropout={self.prior_dropout}: expected a share in [0, 1]",
+                "prior",
+                owner=type(self),
+            )
+        self.prior = build_prior(**spec)
         # backbone_taps: paper (the paper's DenseNet/ResNet taps) | pyramid (any timm model's
         # own feature pyramid, backbone=timm); see fusion_depth.models.encoder.Encoder.
         self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
@@ -58,11 +80,38 @@ class DepthNet(DepthModel):
             sparse_encoding=sparse_encoding,
             mean=self.encoder.mean,
             std=self.encoder.std,
+            prior=self.prior is not None,
         )
         self.decoder = DenseDepthDecoder(self.encoder.channels)
+        if self.prior is not None:  # its weights stay in their files, out of checkpoints
+            self.register_state_dict_post_hook(_without_prior)
+            self.register_load_state_dict_pre_hook(_with_own_prior)
+
+    def prior_input(self, image: torch.Tensor) -> torch.Tensor | None:
+        """The prior's channel for ``image``: its relative depth normalised per frame, zero for
+        the frames dropped in training; None without a prior."""
+        if self.prior is None:
+            return None
+        prior = normalized_prior(self.prior(image))
+        if self.training and self.prior_dropout > 0:
+            kept = torch.rand(len(image), 1, 1, 1, device=image.device) >= self.prior_dropout
+            prior = prior * kept
+        return prior
 
     def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
         self.check_input_size(image)
+        fused = self.fusion(image, sparse, self.prior_input(image))
         # fp32 out even under autocast: depth = scale / reciprocal, the loss and the metrics
         # need more than bf16's 3 significant digits.
-        return self.decoder(self.encoder(self.fusion(image, sparse))).float()
+        return self.decoder(self.encoder(fused)).float()
+
+
+def _without_prior(module: DepthNet, state: dict, prefix: str, metadata: Any) -> None:
+    for key in [k for k in state if k.startswith(f"{prefix}prior.")]:
+        del state[key]
+
+
+def _with_own_prior(module: DepthNet, state: dict, prefix: str, metadata: Any, *args: Any) -> None:
+    """A checkpoint holds no prior weights: the prior built from its file fills them in."""
+    for key, value in module.prior.state_dict().items():
+        state.setdefault(f"{prefix}prior.{key}", value)

@@ -24,7 +24,13 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from fusion_depth.errors import ArgumentError, ArgumentFileError, MissingDependencyError
+from fusion_depth.errors import (
+    ArgumentError,
+    ArgumentFileError,
+    MissingDependencyError,
+    check_choice,
+)
+from fusion_depth.utils.schema import POSITIVE_INT, PROBABILITY, Rule, Schema
 
 PATCH = 14  # DINOv2's patch: the prior's input is resized to a multiple of it
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -76,6 +82,7 @@ def _transformers() -> Any:
             "prior=depth_anything_v2 needs transformers, which is not installed: "
             'pip install "fusion-depth[prior]"'
         ) from err
+    transformers.utils.logging.disable_progress_bar()  # its per-load bars, in every run's log
     return transformers
 
 
@@ -229,8 +236,8 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
     path = Path(weights).expanduser()
     if not path.exists():
         raise ArgumentFileError(
-            f"{{weights}}={weights}: no such file or folder (a transformers folder, or the "
-            "authors' depth_anything_v2_vit*.pth; see the foundation-prior guide)",
+            f"{{weights}}={weights}: no such file or folder (expected a transformers folder, "
+            "or the authors' depth_anything_v2_vit*.pth)",
             "weights",
             owner=DepthAnythingPrior,
         )
@@ -316,3 +323,49 @@ class DepthAnythingPrior(nn.Module):
         pixels = F.interpolate((image - self.mean) / self.std, size, mode="bilinear")
         relative = self.network(pixel_values=pixels).predicted_depth[:, None]
         return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)
+
+
+# The priors a network can take by name (``prior.name``): the class and the arguments it reads.
+PRIORS: dict[str, type[nn.Module]] = {"depth_anything_v2": DepthAnythingPrior}
+NO_PRIOR = "none"
+# What a prior's arguments accept (fusion_depth.utils.schema); ``dropout`` is the network's share
+# of training frames given none (DepthNet).
+ARGUMENT_RULES: Schema = {
+    "input_size": Rule(
+        lambda v: v is None or (POSITIVE_INT.ok(v) and v >= PATCH),
+        f"an integer ≥ {PATCH}, or null (the image's own size)",
+    ),
+    "dropout": PROBABILITY,
+}
+
+
+def build_prior(
+    name: str = NO_PRIOR, weights: str | None = None, input_size: int | None = 518
+) -> nn.Module | None:
+    """The frozen prior ``name`` (a key of :data:`PRIORS`), or None for ``none``.
+
+    Args:
+        name: ``none`` or a key of :data:`PRIORS`.
+        weights: its weights (see :class:`DepthAnythingPrior`).
+        input_size: the short side the prior sees.
+
+    Raises:
+        ArgumentError: an unknown ``name``, or a prior that cannot be built from ``weights``.
+    """
+    if name == NO_PRIOR:
+        return None
+    check_choice(name, (NO_PRIOR, *PRIORS), "name", owner=build_prior)
+    return PRIORS[name](weights, input_size=input_size)
+
+
+def normalized_prior(relative: torch.Tensor) -> torch.Tensor:
+    """A relative prior mapped to [0, 1] per frame (its minimum to 0, its maximum to 1): the
+    prior is affine-invariant, so only its shape within the frame carries information.
+
+    Shape:
+        - relative: (B, 1, H, W).
+        - output: (B, 1, H, W); a flat frame gives 0.
+    """
+    low = relative.amin(dim=(-2, -1), keepdim=True)
+    span = relative.amax(dim=(-2, -1), keepdim=True) - low
+    return torch.where(span > 0, (relative - low) / span.clamp_min(1e-12), 0.0)

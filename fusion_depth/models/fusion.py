@@ -34,6 +34,14 @@ class InputFusion(nn.Module):
       there is no return, and the returns reach the encoder from the first step instead of
       waiting for a zero-initialised weight to grow (with Adam at 1e-4 it barely moves in a
       short run).
+
+    With ``prior=True`` a fourth input follows: a relative depth prior normalised to [0, 1] per
+    frame (:func:`fusion_depth.models.depth_prior.normalized_prior`), mixed into the 3 channels
+    above by a learned 1×1 conv that starts as ``add`` does (identity on the channels, ``1 /
+    std`` on the prior), the way TacoDepth's plug-in mode takes a foundation model's relative
+    depth as an extra input. No prior reads as all zeros, as a prior dropped in training does
+    (``prior_dropout`` of the network), so one network serves with or without it; at the
+    start, zeros leave the input as it would be without a prior.
     """
 
     def __init__(
@@ -44,6 +52,7 @@ class InputFusion(nn.Module):
         sparse_encoding: str = "log",
         mean: Sequence[float] = (0.485, 0.456, 0.406),
         std: Sequence[float] = (0.229, 0.224, 0.225),
+        prior: bool = False,
     ) -> None:
         super().__init__()
         check_choice(mode, FUSION_MODES, "mode", owner=InputFusion)
@@ -64,6 +73,13 @@ class InputFusion(nn.Module):
                 self.mix.weight[:, :3, 0, 0] = torch.eye(3)
                 self.mix.weight[:, 3, 0, 0] = 1.0 / self.std.view(3)
                 self.mix.bias.zero_()
+        self.prior_mix = nn.Conv2d(4, 3, kernel_size=1) if prior else None
+        if self.prior_mix is not None:
+            with torch.no_grad():
+                self.prior_mix.weight.zero_()
+                self.prior_mix.weight[:, :3, 0, 0] = torch.eye(3)
+                self.prior_mix.weight[:, 3, 0, 0] = 1.0 / self.std.view(3)
+                self.prior_mix.bias.zero_()
 
     def encode_sparse(self, sparse: torch.Tensor) -> torch.Tensor:
         """Sparse depth in metres (0 = no return) → the [0, 1] channel described above."""
@@ -77,7 +93,24 @@ class InputFusion(nn.Module):
     def uses_sparse(self) -> bool:
         return self.mode != "rgb"
 
-    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+    @property
+    def uses_prior(self) -> bool:
+        return self.prior_mix is not None
+
+    def forward(
+        self,
+        image: torch.Tensor,
+        sparse: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        fused = self._fuse(image, sparse)
+        if self.prior_mix is None:
+            return fused
+        if prior is None:  # no prior: the zeros a prior dropped in training reads as
+            prior = fused.new_zeros((fused.shape[0], 1, *fused.shape[2:]))
+        return self.prior_mix(torch.cat([fused, prior.to(fused.dtype)], dim=1))
+
+    def _fuse(self, image: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor:
         if self.mode == "rgb":
             return (image - self.mean) / self.std
         if sparse is None:

@@ -172,10 +172,19 @@ def finished_results(output_dir: Path) -> dict | None:
 
 # Config keys added since a run folder may have been written, with the value that computes as
 # the run did without them: a stored config that lacks one of these is the same run.
+# The prior group (0.3.0) at prior=none, which computes as a run without it did.
+_NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0}
 _ADDED_KEYS: dict[str, Any] = {
-    f"{block}.{key}": value
-    for block in ("eval", "model.evaluation")
-    for key, value in BEFORE_PRESETS.items()
+    **{
+        f"{block}.{key}": value
+        for block in ("eval", "model.evaluation")
+        for key, value in BEFORE_PRESETS.items()
+    },
+    **{
+        f"{block}.{key}": value
+        for block in ("prior", "model.net.prior")
+        for key, value in _NO_PRIOR.items()
+    },
 }
 # Nodes a later version no longer writes, that computed nothing themselves: 0.2.0's `recipe:` (a
 # dataset recipe's encoder and loss weights, which reached the run only through the backbone,
@@ -220,9 +229,9 @@ def config_changes(
 
     Keys that do not change what a run computes are left out: a key added since, that the
     stored config lacks, at the value that computes as before (:data:`_ADDED_KEYS`: the
-    evaluation presets' keys at ``eval=paper``'s values); a node no longer written
-    (:data:`_REMOVED_NODES`); ``excluded`` ones (the override
-    keys of ``hydra.job.config.override_dirname.exclude_keys``, with everything below them) and
+    evaluation presets' keys at ``eval=paper``'s values, the prior's at ``prior=none``); a node
+    no longer written (:data:`_REMOVED_NODES`); ``excluded`` ones (the override keys of
+    ``hydra.job.config.override_dirname.exclude_keys``, with everything below them) and
     ``paths``; the run folder and the dataset cache, wherever a value names them, count as the
     same place (each config's own ``paths.output_dir`` and ``paths.cache_dir``). Both are
     compared as checkpoints store them
