@@ -394,3 +394,65 @@ def test_bad_prior_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, m
     assert message in failed.stderr
     assert "Traceback" not in failed.stderr
     assert not (tmp_path / "r" / "checkpoints").exists()
+
+
+# --- model=prior_correction: the aligned prior times a learned scale map ------------------------
+
+
+class KnownPrior(torch.nn.Module):
+    """A prior that is an affine map of the true inverse depth (what a perfect relative prior
+    gives), standing in for the network after the model is built."""
+
+    def __init__(self, depth: torch.Tensor) -> None:
+        super().__init__()
+        self.depth = depth
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return 3.0 / self.depth + 0.25
+
+
+def test_correction_starts_as_the_global_alignment(tiny_folder):
+    from fusion_depth.models import create_model
+
+    torch.manual_seed(0)
+    depth = 2.0 + 40.0 * torch.rand(2, 1, 64, 96)
+    sparse = torch.zeros_like(depth)
+    picked = torch.rand_like(depth) < 0.05
+    sparse[picked] = depth[picked]
+    prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    net = create_model("prior_correction", prior=prior, backbone="resnet10t", fusion="concat")
+    net.prior = KnownPrior(depth)
+    out = net.eval()(torch.rand(2, 3, 64, 96), sparse)
+    expected = net.depth_scale * torch.nn.functional.interpolate(
+        1.0 / depth, size=out.shape[-2:], mode="bilinear"
+    )
+    torch.testing.assert_close(out, expected, rtol=1e-4, atol=0)
+    # A frame without returns takes the running mean fit, which training moves towards the fits.
+    assert net.fit_mean.tolist() == [1.0, 0.0]
+    net.train().global_fit(KnownPrior(depth)(None), sparse)
+    assert net.fit_mean[0].item() == pytest.approx(0.99 + 0.01 / 3.0, rel=1e-4)
+    none = net.eval().global_fit(KnownPrior(depth)(None), torch.zeros_like(sparse))
+    fallback = net.fit_mean[0] * (3.0 / depth + 0.25) + net.fit_mean[1]
+    torch.testing.assert_close(none, fallback.clamp_min(1 / 80.0))
+    assert not any(k.startswith("prior.") for k in net.state_dict())
+
+
+def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
+    from helpers import run_module
+
+    run = tmp_path / "run"
+    overrides = ["model=prior_correction", "fusion=concat", "prior=depth_anything_v2"]
+    done = _train(tmp_path, *overrides, f"prior.weights={tiny_folder}", f"hydra.run.dir={run}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads((run / "metrics.json").read_text())["test"]["rmse"] > 0
+    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
+    exported = run_module(
+        ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx", f"hydra.run.dir={run}/x"],
+        cwd=tmp_path,
+    )
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    assert "verified with onnxruntime" in exported.stderr + exported.stdout
+    refused = _train(tmp_path, "model=prior_correction", "fusion=concat", f"hydra.run.dir={run}2")
+    assert refused.returncode == 1
+    assert "prior=none: model=prior_correction corrects a prior" in refused.stderr
+    assert "Traceback" not in refused.stderr

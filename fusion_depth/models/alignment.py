@@ -56,16 +56,35 @@ def _regressor(prior: torch.Tensor, space: str) -> torch.Tensor:
     return prior if space == "inverse" else 1.0 / prior.clamp_min(_TINY)
 
 
-def _least_squares(x: torch.Tensor, y: torch.Tensor) -> tuple[float, float] | None:
-    """``(s, t)`` minimising ``Σ (s x + t − y)²``; None for fewer than two points or no spread."""
-    if x.numel() < 2:
-        return None
-    x_mean, y_mean = x.mean(), y.mean()
-    variance = ((x - x_mean) ** 2).mean()
-    if variance < _TINY * max(float(x_mean.abs()) ** 2, 1.0):
-        return None
-    scale = ((x - x_mean) * (y - y_mean)).mean() / variance
-    return float(scale), float(y_mean - scale * x_mean)
+def least_squares_fit(
+    x: torch.Tensor, y: torch.Tensor, valid: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per frame, ``(s, t)`` minimising ``Σ (s x + t − y)²`` over its ``valid`` pixels, in
+    closed form (no loop over frames, so a network that calls it exports).
+
+    Args:
+        x: (B, 1, H, W) the regressor.
+        y: (B, 1, H, W) the target; any finite value where ``valid`` is False.
+        valid: (B, 1, H, W) bool.
+
+    Returns:
+        ``scale`` (B,), ``shift`` (B,) and ``fitted`` (B,) bool: False for a frame with fewer
+        than two valid pixels or no spread of ``x`` among them (its scale is 0 and its shift the
+        mean of ``y``, or 0), in ``x``'s dtype.
+    """
+    count = valid.sum(dim=(1, 2, 3))
+    weight = count.clamp_min(1).to(x.dtype)
+
+    def mean(values: torch.Tensor) -> torch.Tensor:
+        return torch.where(valid, values, 0.0).sum(dim=(1, 2, 3)) / weight
+
+    x_mean, y_mean = mean(x), mean(y)
+    x_offset = x - x_mean.view(-1, 1, 1, 1)
+    variance = mean(x_offset * x_offset)
+    covariance = mean(x_offset * (y - y_mean.view(-1, 1, 1, 1)))
+    fitted = (count >= 2) & (variance > _TINY * x_mean.square().clamp_min(1.0))
+    scale = torch.where(fitted, covariance / variance.clamp_min(_TINY), 0.0)
+    return scale, y_mean - scale * x_mean, fitted
 
 
 def _ransac(
@@ -134,26 +153,31 @@ def fit_scale_shift(
         )
     if prior.shape != sparse.shape:
         raise ValueError(f"prior {tuple(prior.shape)} and sparse {tuple(sparse.shape)} differ")
-    generator = torch.Generator().manual_seed(seed)
-    fits: list[tuple[float, float] | None] = []
-    used: list[int] = []
-    for frame_prior, frame_sparse in zip(prior.double().cpu(), sparse.double().cpu(), strict=True):
-        valid = frame_sparse > 0
-        x = _regressor(frame_prior[valid], space)
-        y = 1.0 / frame_sparse[valid] if space == "inverse" else frame_sparse[valid]
-        if ransac_iterations and x.numel() >= 2:
-            inliers = _ransac(x, y, ransac_iterations, ransac_threshold, generator)
-            x, y = x[inliers], y[inliers]
-        fits.append(_least_squares(x, y))
-        used.append(int(x.numel()) if fits[-1] is not None else 0)
-    found = torch.tensor([fit for fit in fits if fit is not None], dtype=torch.float64)
-    default = found.median(dim=0).values.tolist() if len(found) else list(fallback)
-    scale, shift = zip(*(fit or default for fit in fits), strict=True)
+    valid = sparse.double() > 0
+    x = _regressor(prior.double(), space)
+    depth = torch.where(valid, sparse.double(), 1.0)
+    y = torch.where(valid, 1.0 / depth if space == "inverse" else depth, 0.0)
+    if ransac_iterations:  # keep each frame's inliers of its best two-point sample
+        generator = torch.Generator().manual_seed(seed)
+        inliers = torch.zeros_like(valid)
+        for frame in range(len(valid)):
+            where = valid[frame]
+            if int(where.sum()) >= 2:
+                best = _ransac(
+                    x[frame][where], y[frame][where], ransac_iterations, ransac_threshold, generator
+                )
+                inliers[frame][where] = best
+        valid = inliers
+    scale, shift, fitted = least_squares_fit(x, y, valid)
+    if fitted.any():
+        default = (scale[fitted].median(), shift[fitted].median())
+    else:
+        default = tuple(torch.tensor(v, dtype=torch.float64) for v in fallback)
     return Alignment(
-        scale=torch.tensor(scale, dtype=torch.float64),
-        shift=torch.tensor(shift, dtype=torch.float64),
-        points=torch.tensor(used),
-        fallback=torch.tensor([fit is None for fit in fits]),
+        scale=torch.where(fitted, scale, default[0]).cpu(),
+        shift=torch.where(fitted, shift, default[1]).cpu(),
+        points=torch.where(fitted, valid.sum(dim=(1, 2, 3)), 0).cpu(),
+        fallback=~fitted.cpu(),
     )
 
 

@@ -12,7 +12,11 @@ from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder
-from fusion_depth.models.depth_prior import build_prior, normalized_prior
+from fusion_depth.models.depth_prior import (
+    build_prior,
+    keep_prior_out_of_checkpoints,
+    normalized_prior,
+)
 from fusion_depth.models.encoder import Encoder
 from fusion_depth.models.fusion import FUSION_MODES, InputFusion
 
@@ -83,9 +87,8 @@ class DepthNet(DepthModel):
             prior=self.prior is not None,
         )
         self.decoder = DenseDepthDecoder(self.encoder.channels)
-        if self.prior is not None:  # its weights stay in their files, out of checkpoints
-            self.register_state_dict_post_hook(_without_prior)
-            self.register_load_state_dict_pre_hook(_with_own_prior)
+        if self.prior is not None:
+            keep_prior_out_of_checkpoints(self)
 
     def prior_input(self, image: torch.Tensor) -> torch.Tensor | None:
         """The prior's channel for ``image``: its relative depth normalised per frame, zero for
@@ -104,14 +107,3 @@ class DepthNet(DepthModel):
         # fp32 out even under autocast: depth = scale / reciprocal, the loss and the metrics
         # need more than bf16's 3 significant digits.
         return self.decoder(self.encoder(fused)).float()
-
-
-def _without_prior(module: DepthNet, state: dict, prefix: str, metadata: Any) -> None:
-    for key in [k for k in state if k.startswith(f"{prefix}prior.")]:
-        del state[key]
-
-
-def _with_own_prior(module: DepthNet, state: dict, prefix: str, metadata: Any, *args: Any) -> None:
-    """A checkpoint holds no prior weights: the prior built from its file fills them in."""
-    for key, value in module.prior.state_dict().items():
-        state.setdefault(f"{prefix}prior.{key}", value)

@@ -369,3 +369,21 @@ def normalized_prior(relative: torch.Tensor) -> torch.Tensor:
     low = relative.amin(dim=(-2, -1), keepdim=True)
     span = relative.amax(dim=(-2, -1), keepdim=True) - low
     return torch.where(span > 0, (relative - low) / span.clamp_min(1e-12), 0.0)
+
+
+def keep_prior_out_of_checkpoints(module: nn.Module) -> None:
+    """Leave the weights of ``module.prior`` (a frozen prior built from its own files) out of
+    ``module``'s state dict, and fill them in from that prior when a state dict is loaded: a
+    checkpoint holds the network's weights and names the prior's file, not a copy of it."""
+    module.register_state_dict_post_hook(_without_prior)
+    module.register_load_state_dict_pre_hook(_with_own_prior)
+
+
+def _without_prior(module: nn.Module, state: dict, prefix: str, metadata: Any) -> None:
+    for key in [k for k in state if k.startswith(f"{prefix}prior.")]:
+        del state[key]
+
+
+def _with_own_prior(module: nn.Module, state: dict, prefix: str, *args: Any) -> None:
+    for key, value in module.prior.state_dict().items():
+        state.setdefault(f"{prefix}prior.{key}", value)

@@ -1,0 +1,144 @@
+"""``model=prior_correction``: a frozen monocular prior made metric by the frame's radar, then
+corrected pixel by pixel by a learned network: the pipeline of RadarCam-Depth (Li et al., ICRA
+2024), global scale-and-shift alignment followed by a learned scale map, with the platform's
+DenseDepth encoder-decoder as the learner (the authors' nuScenes code is unreleased).
+
+1. ``prior=...`` gives relative inverse depth (frozen; :mod:`fusion_depth.models.depth_prior`).
+2. Its scale and shift are fitted to the frame's sparse returns by least squares in inverse
+   depth (:func:`~fusion_depth.models.alignment.least_squares_fit`); a frame with fewer than two
+   returns takes the running mean of the fits seen in training (a buffer, like batch norm's).
+3. The learner sees the image, the sparse returns and the aligned depth (the last two
+   log-encoded as :class:`~fusion_depth.models.fusion.InputFusion` encodes sparse depth) and
+   predicts a log-scale map ``r`` at half resolution; the output is the aligned inverse depth
+   times ``exp(r)``, in reciprocal depth. ``r`` starts at 0, so before training the model is
+   the global alignment.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fusion_depth.errors import ArgumentError
+from fusion_depth.models._registry import Recipe, check_model_takes, register_model
+from fusion_depth.models.alignment import least_squares_fit
+from fusion_depth.models.base import DepthModel
+from fusion_depth.models.decoder import DenseDepthDecoder
+from fusion_depth.models.depth_prior import build_prior, keep_prior_out_of_checkpoints
+from fusion_depth.models.encoder import Encoder
+from fusion_depth.models.fusion import InputFusion
+
+
+# No published recipe for nuScenes (its code is unreleased): the platform's DenseDepth one with
+# ResNet-18, which the built-in dataset trains in minutes.
+@register_model(
+    "prior_correction",
+    label="Prior + correction",
+    paper="RadarCam-Depth (Li et al., ICRA 2024): global alignment, then a learned scale map",
+    fusions=("concat",),
+    recipe=Recipe(
+        backbone="resnet18",
+        loss="l1",
+        optimizer="adam",
+        schedule="step",
+        schedule_args={"step_size": 7, "gamma": 0.2},
+    ),
+)
+class PriorCorrection(DepthModel):
+    """The aligned prior times a learned per-pixel scale, in reciprocal depth.
+
+    Args:
+        prior: the ``prior`` config node (``name``, ``weights``, ``input_size``; ``dropout`` is
+            for networks that take the prior as an input and is ignored here). Required.
+        backbone: the learner's encoder (:class:`~fusion_depth.models.encoder.Encoder`).
+        fusion: ``concat``: the image and the sparse returns.
+        pretrained: ImageNet weights for the encoder.
+        weights: the encoder's weights from a local file.
+        min_depth: the depth range's lower end in metres.
+        max_depth: its upper end in metres.
+        depth_scale: ``depth_scale / depth`` is the output's value.
+        backbone_taps: the encoder's feature taps (``paper`` or ``pyramid``).
+        sparse_encoding: how the returns and the aligned depth enter (``log`` or ``linear``).
+        fit_momentum: the weight of a batch's mean fit in the running mean.
+
+    Shape:
+        - image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) metres, 0 = no return.
+        - output: (B, 1, H/2, W/2) reciprocal depth.
+
+    Raises:
+        ArgumentError: no prior (``prior=none``), or a fusion mode other than ``concat``.
+    """
+
+    def __init__(
+        self,
+        prior: Mapping[str, Any] | None = None,
+        backbone: str = "resnet18",
+        fusion: str = "concat",
+        pretrained: bool = False,
+        weights: str | None = None,
+        min_depth: float = 0.5,
+        max_depth: float = 80.0,
+        depth_scale: float = 10.0,
+        backbone_taps: str = "paper",
+        sparse_encoding: str = "log",
+        fit_momentum: float = 0.01,
+    ) -> None:
+        super().__init__(min_depth, max_depth, depth_scale)
+        check_model_takes("prior_correction", fusion=fusion)
+        spec = {k: v for k, v in dict(prior or {}).items() if k != "dropout"}
+        self.prior = build_prior(**spec)
+        if self.prior is None:
+            raise ArgumentError(
+                "{prior}=none: model=prior_correction corrects a prior; choose one "
+                "(prior=depth_anything_v2)",
+                "prior",
+                owner=type(self),
+            )
+        self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
+        self.fusion = InputFusion(
+            fusion,
+            max_depth=max_depth,
+            min_depth=min_depth,
+            sparse_encoding=sparse_encoding,
+            mean=self.encoder.mean,
+            std=self.encoder.std,
+            prior=True,
+        )
+        self.decoder = DenseDepthDecoder(self.encoder.channels)
+        nn.init.zeros_(self.decoder.head.weight)  # r = 0: the global alignment at the start
+        nn.init.zeros_(self.decoder.head.bias)
+        self.fit_momentum = fit_momentum
+        self.register_buffer("fit_mean", torch.tensor([1.0, 0.0]))  # (scale, shift) of training
+        keep_prior_out_of_checkpoints(self)
+
+    @torch.no_grad()
+    def global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
+        """Inverse depth in 1/m: ``relative`` scaled and shifted to each frame's returns, the
+        running mean fit where a frame has too few; updates the running mean in training.
+
+        Shape:
+            - relative, sparse: (B, 1, H, W); output: (B, 1, H, W).
+        """
+        valid = sparse > 0
+        target = torch.where(valid, 1.0 / sparse.clamp_min(1e-6), 0.0)
+        scale, shift, fitted = least_squares_fit(relative, target, valid)
+        if self.training and bool(fitted.any()):
+            batch = torch.stack([scale[fitted].mean(), shift[fitted].mean()]).to(self.fit_mean)
+            self.fit_mean.lerp_(batch, self.fit_momentum)
+        scale = torch.where(fitted, scale, self.fit_mean[0]).view(-1, 1, 1, 1)
+        shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)
+        return (scale * relative + shift).clamp_min(1.0 / self.max_depth)
+
+    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+        self.check_input_size(image)
+        if sparse is None:
+            raise ValueError("model=prior_correction needs the sparse depth map")
+        inverse = self.global_fit(self.prior(image), sparse)
+        aligned = self.fusion.encode_sparse((1.0 / inverse).clamp(self.min_depth, self.max_depth))
+        log_scale = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()
+        base = F.interpolate(inverse, size=log_scale.shape[-2:], mode="bilinear")
+        return self.depth_scale * base * torch.exp(log_scale)
