@@ -456,3 +456,58 @@ def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
     assert refused.returncode == 1
     assert "prior=none: model=prior_correction corrects a prior" in refused.stderr
     assert "Traceback" not in refused.stderr
+
+
+# --- prior=checkpoint: a network of this platform as the prior ---------------------------------
+
+DATASET = {"name": "procedural", "min_depth": 0.5, "max_depth": 80.0, "depth_scale": 10.0}
+
+
+def test_a_platform_checkpoint_serves_as_the_prior(tmp_path):
+    from helpers import save_untrained_checkpoint
+
+    from fusion_depth.models import DepthNet
+    from fusion_depth.models.depth_prior import CheckpointPrior
+
+    path = save_untrained_checkpoint(
+        tmp_path / "rgb.ckpt", "rgb", DATASET, backbone="resnet10t", spread=True
+    )
+    prior = CheckpointPrior(path)
+    image = torch.rand(2, 3, 64, 96)
+    relative = prior.train()(image)
+    assert relative.shape == (2, 1, 64, 96) and not prior.network.training
+    # its raw output (reciprocal depth), resized to the image
+    with torch.no_grad():
+        raw = prior.network(image, None)
+    expected = torch.nn.functional.interpolate(raw, (64, 96), mode="bilinear")
+    torch.testing.assert_close(relative, expected)
+    assert CheckpointPrior(path, input_size=32)(image).shape == (2, 1, 64, 96)  # sees 32 × 64
+    net = DepthNet(backbone="resnet10t", prior={"name": "checkpoint", "weights": str(path)})
+    assert net(image).shape == (2, 1, 32, 48)
+    assert not any(k.startswith("prior.") for k in net.state_dict())
+
+    concat = save_untrained_checkpoint(
+        tmp_path / "concat.ckpt", "concat", DATASET, backbone="resnet10t"
+    )
+    with pytest.raises(
+        ArgumentError, match=r"^weights=.*concat.ckpt: a network with fusion=concat"
+    ):
+        CheckpointPrior(concat)
+    with pytest.raises(ArgumentFileError, match=r"^weights=.*nothing.ckpt: no such file"):
+        CheckpointPrior(tmp_path / "nothing.ckpt")
+    (tmp_path / "notes.ckpt").write_text("not a checkpoint")
+    with pytest.raises(ArgumentError, match=r"^weights=.*notes.ckpt: "):
+        CheckpointPrior(tmp_path / "notes.ckpt")
+
+
+def test_smoke_run_with_a_checkpoint_prior(tmp_path):
+    from helpers import save_untrained_checkpoint
+
+    path = save_untrained_checkpoint(tmp_path / "rgb.ckpt", "rgb", DATASET, backbone="resnet10t")
+    run = tmp_path / "run"
+    done = _train(tmp_path, "prior=checkpoint", f"prior.weights={path}", f"hydra.run.dir={run}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (run / "metrics.json").is_file()
+    missing = _train(tmp_path, "prior=checkpoint", f"hydra.run.dir={run}2")
+    assert missing.returncode == 1
+    assert "prior.weights: missing value (???)" in missing.stderr

@@ -74,6 +74,18 @@ _IN_MEMORY = {
 }
 
 
+def _network_size(
+    height: int, width: int, short_side: int | None, multiple: int
+) -> tuple[int, int]:
+    """``height`` × ``width`` scaled so that its short side is ``short_side`` (None: as it
+    is), each side then rounded to the nearest multiple of ``multiple`` (at least one)."""
+    scale = 1.0 if short_side is None else short_side / min(height, width)
+    return (
+        max(multiple, round(height * scale / multiple) * multiple),
+        max(multiple, round(width * scale / multiple) * multiple),
+    )
+
+
 def _transformers() -> Any:
     try:
         import transformers
@@ -86,8 +98,12 @@ def _transformers() -> Any:
     return transformers
 
 
-def _weights_error(weights: Any, problem: str) -> ArgumentError:
-    return ArgumentError(f"{{weights}}={weights}: {problem}", "weights", owner=DepthAnythingPrior)
+def _weights_error(weights: Any, problem: str, owner: Any = None) -> ArgumentError:
+    return ArgumentError(
+        f"{{weights}}={weights}: {problem}",
+        "weights",
+        owner=owner or f"{__name__}.DepthAnythingPrior",
+    )
 
 
 def _renamed(name: str) -> str | None:
@@ -310,11 +326,7 @@ class DepthAnythingPrior(nn.Module):
 
     def network_size(self, height: int, width: int) -> tuple[int, int]:
         """The size the network sees for an image of ``height`` × ``width``."""
-        scale = 1.0 if self.input_size is None else self.input_size / min(height, width)
-        return (
-            max(PATCH, round(height * scale / PATCH) * PATCH),
-            max(PATCH, round(width * scale / PATCH) * PATCH),
-        )
+        return _network_size(height, width, self.input_size, PATCH)
 
     @torch.no_grad()
     def forward(self, image: torch.Tensor) -> torch.Tensor:
@@ -325,8 +337,93 @@ class DepthAnythingPrior(nn.Module):
         return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)
 
 
+class CheckpointPrior(nn.Module):
+    """A network of this platform as a frozen prior (``prior=checkpoint``): the RGB network of a
+    checkpoint ``train`` wrote, rebuilt by its name from the package's table, whose raw output
+    (reciprocal depth) serves as the relative inverse depth. Trained with ``loss=ssi`` it is
+    relative by construction, as a foundation model's is: the built-in dataset's stand-in for
+    one, since no foundation weights can be downloaded here.
+
+    Args:
+        weights: the checkpoint (``fusion=rgb``: a prior sees the image alone).
+        input_size: the short side the network sees; None keeps the image's. Both sides are
+            then rounded to the nearest multiple of 32, as the encoders need.
+
+    Shape:
+        - image: (B, 3, H, W) RGB in [0, 1].
+        - output: (B, 1, H, W) relative inverse depth (a network trained with ``loss=ssi`` may
+          give values below 0: only its affine shape is meaningful).
+
+    Raises:
+        ArgumentFileError: ``weights`` does not exist.
+        ArgumentError: not a checkpoint written by ``train``, a network that takes sparse
+            input, or weights that do not fit the network its config names.
+    """
+
+    def __init__(self, weights: str | Path, input_size: int | None = None) -> None:
+        super().__init__()
+        from fusion_depth.models._registry import DEFAULT_MODEL, create_model, model_arguments
+        from fusion_depth.utils.checkpoint_file import CONFIG_KEY, read_checkpoint
+
+        path = Path(weights).expanduser()
+        if not path.is_file():
+            raise ArgumentFileError(
+                f"{{weights}}={weights}: no such file (expected a checkpoint written by "
+                "fusion_depth.train with fusion=rgb)",
+                "weights",
+                owner=CheckpointPrior,
+            )
+        try:
+            checkpoint = read_checkpoint(path)
+            net_config = dict(checkpoint[CONFIG_KEY]["model"]["net"])
+        except (ValueError, KeyError, TypeError) as err:
+            why = str(err).partition(": ")[2] or f"no {err}"
+            raise _weights_error(weights, why, CheckpointPrior) from None
+        if net_config.get("fusion", "rgb") != "rgb":
+            raise _weights_error(
+                weights,
+                f"a network with fusion={net_config['fusion']}; a prior sees the image alone: "
+                "expected a checkpoint trained with fusion=rgb",
+                CheckpointPrior,
+            )
+        name = net_config.get("name", DEFAULT_MODEL)
+        taken = set(model_arguments(name)) - {"pretrained", "weights", "association_weights"}
+        try:
+            self.network = create_model(
+                name, **{k: v for k, v in net_config.items() if k in taken}, pretrained=False
+            )
+            self.network.load_state_dict(
+                {
+                    key.removeprefix("net."): value
+                    for key, value in checkpoint["state_dict"].items()
+                    if key.startswith("net.")
+                }
+            )
+        except (ValueError, TypeError, RuntimeError) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise _weights_error(weights, f"cannot be rebuilt ({first})", CheckpointPrior) from None
+        self.network.eval().requires_grad_(False)
+        self.input_size = input_size
+
+    def train(self, mode: bool = True) -> CheckpointPrior:
+        super().train(mode)
+        self.network.eval()  # frozen: its batch norms keep their statistics
+        return self
+
+    @torch.no_grad()
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        height, width = image.shape[-2:]
+        size = _network_size(height, width, self.input_size, 32)
+        resized = F.interpolate(image, size, mode="bilinear") if size != (height, width) else image
+        relative = self.network(resized, None).float()
+        return F.interpolate(relative, (height, width), mode="bilinear")
+
+
 # The priors a network can take by name (``prior.name``): the class and the arguments it reads.
-PRIORS: dict[str, type[nn.Module]] = {"depth_anything_v2": DepthAnythingPrior}
+PRIORS: dict[str, type[nn.Module]] = {
+    "depth_anything_v2": DepthAnythingPrior,
+    "checkpoint": CheckpointPrior,
+}
 NO_PRIOR = "none"
 # What a prior's arguments accept (fusion_depth.utils.schema); ``dropout`` is the network's share
 # of training frames given none (DepthNet).
