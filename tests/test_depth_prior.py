@@ -101,8 +101,9 @@ def test_prior_is_frozen(tiny_folder):
 
 
 # The authors' names, written from transformers' on-disk ones: the inverse of the loader's map,
-# spelt out separately (the map itself was checked against the authors' DepthAnythingV2 at
-# 518 × 518 when it was written: outputs within 1.5e-5).
+# spelt out separately. It shows the loader applies its map consistently; whether the map is the
+# authors' can only be checked against their code, which is not in this repository (it was,
+# outside it, when the map was written: outputs within 1.5e-5 at 518 × 518).
 def official_names(hf: dict) -> dict:
     out = {}
     for name, tensor in hf.items():
@@ -454,7 +455,7 @@ def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
     assert "verified with onnxruntime" in exported.stderr + exported.stdout
     refused = _train(tmp_path, "model=prior_correction", "fusion=concat", f"hydra.run.dir={run}2")
     assert refused.returncode == 1
-    assert "prior=none: model=prior_correction corrects a prior" in refused.stderr
+    assert "prior=none: model=prior_correction works on a monocular prior" in refused.stderr
     assert "Traceback" not in refused.stderr
 
 
@@ -511,3 +512,47 @@ def test_smoke_run_with_a_checkpoint_prior(tmp_path):
     missing = _train(tmp_path, "prior=checkpoint", f"hydra.run.dir={run}2")
     assert missing.returncode == 1
     assert "prior.weights: missing value (???)" in missing.stderr
+
+
+def test_what_a_prior_must_be(tmp_path, tiny_folder):
+    """Refused in one line: a metric Depth Anything, a checkpoint that predicts metres, and a
+    fit that would reverse the order of depths."""
+    from fusion_depth.models import create_model
+    from fusion_depth.models.alignment import least_squares_fit
+    from fusion_depth.models.depth_prior import CheckpointPrior
+
+    metric = tmp_path / "metric"
+    metric.mkdir()
+    config = json.loads((tiny_folder / "config.json").read_text())
+    (metric / "config.json").write_text(json.dumps({**config, "depth_estimation_type": "metric"}))
+    with pytest.raises(ArgumentError, match=r"^weights=.*metric: a metric Depth Anything"):
+        load_depth_anything_v2(metric)
+    torch.manual_seed(0)
+    net = create_model("sparse_to_dense", backbone="resnet18", fusion="rgb")
+    state = {f"net.{k}": v for k, v in net.state_dict().items()}
+    config = {
+        "model": {"net": {"name": "sparse_to_dense", "backbone": "resnet18", "fusion": "rgb"}}
+    }
+    torch.save({"state_dict": state, "fusion_depth_config": config}, tmp_path / "metres.ckpt")
+    with pytest.raises(ArgumentError, match=r"model=sparse_to_dense predicts metres"):
+        CheckpointPrior(tmp_path / "metres.ckpt")
+    # depth falling as the prior rises would be read as a reversed prior: no fit
+    x = torch.arange(1.0, 7.0).view(1, 1, 2, 3)
+    scale, _, fitted = least_squares_fit(x, 10.0 - x, torch.ones_like(x, dtype=torch.bool))
+    assert not fitted.item() and scale.item() == 0.0
+
+
+def test_the_fit_runs_in_fp32_under_bf16_autocast(tiny_folder):
+    torch.manual_seed(0)
+    depth = 2.0 + 40.0 * torch.rand(1, 1, 64, 96)
+    sparse = torch.where(torch.rand_like(depth) < 0.03, depth, 0.0)
+    prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    from fusion_depth.models import create_model
+
+    net = create_model("prior_correction", prior=prior, backbone="resnet10t", fusion="concat")
+    relative = (3.0 / depth + 0.01).bfloat16()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        inverse = net.eval().global_fit(relative, sparse)
+    assert inverse.dtype == torch.float32
+    exact = net.global_fit(relative.float(), sparse)
+    torch.testing.assert_close(inverse, exact)

@@ -134,9 +134,17 @@ def test_a_model_refuses_what_it_cannot_take_at_config_time(make_config, overrid
 
 
 @pytest.mark.slow
-def test_every_model_config_composes_and_builds(make_config) -> None:
+def test_every_model_config_composes_and_builds(make_config, tmp_path) -> None:
+    from helpers import save_untrained_checkpoint
+
+    dataset = {"name": "procedural", "min_depth": 0.5, "max_depth": 80.0, "depth_scale": 10.0}
+    prior = save_untrained_checkpoint(tmp_path / "prior.ckpt", "rgb", dataset, backbone="resnet10t")
     for name, entry in MODELS.items():
-        cfg = make_config(f"model={name}", f"fusion={entry.fusions[-1]}", "experiment=smoke")
+        # a model that works on a prior gets one: a checkpoint of this platform
+        given = ["prior=checkpoint", f"prior.weights={prior}"] if entry.needs_prior else []
+        cfg = make_config(
+            f"model={name}", f"fusion={entry.fusions[-1]}", "experiment=smoke", *given
+        )
         validate_config(cfg)
         net = create_model(**{k: v for k, v in cfg.model.net.items() if k != "_target_"})
         assert type(net).__name__ == entry.cls

@@ -55,6 +55,7 @@ class ModelEntry:
     recipe: Recipe  # its authors' training recipe
     backbones: tuple[str, ...] | None = None  # the encoders it takes (None: any the platform has)
     sensors: tuple[str, ...] | None = None  # the sparse sensors it needs (None: any)
+    needs_prior: bool = False  # a monocular prior (prior=...) is what it works on
 
 
 # The built-in models' modules, in the order tables list them; any other module of this package
@@ -107,6 +108,7 @@ def register_model(
     recipe: Recipe,
     backbones: tuple[str, ...] | None = None,
     sensors: tuple[str, ...] | None = None,
+    needs_prior: bool = False,
 ) -> Callable[[type[DepthModel]], type[DepthModel]]:
     """Put the decorated network in the table as ``name`` (what ``model=`` and
     ``model.net.name`` say), as timm's ``@register_model`` does: the class, what it takes and
@@ -120,6 +122,7 @@ def register_model(
         recipe: its authors' training recipe (:class:`Recipe`).
         backbones: the encoders it takes; None: any the platform has.
         sensors: the sparse sensors it needs (``("radar",)``); None: any.
+        needs_prior: it works on a monocular prior, so ``prior=none`` is refused.
 
     Raises:
         ValueError: ``name`` is not an identifier, or another class has it.
@@ -130,7 +133,15 @@ def register_model(
         if not name.isidentifier() or (known is not None and known.cls != cls.__name__):
             raise ValueError(f"register_model: name={name!r} is taken or not an identifier")
         entry = ModelEntry(
-            cls.__module__, cls.__name__, label, paper, tuple(fusions), recipe, backbones, sensors
+            cls.__module__,
+            cls.__name__,
+            label,
+            paper,
+            tuple(fusions),
+            recipe,
+            backbones,
+            sensors,
+            needs_prior,
         )
         MODELS.entries[name] = entry
         return cls
@@ -188,6 +199,13 @@ def check_model_takes(
                 argument,
                 owner=check_model_takes,
             )
+    if prior == "none" and entry.needs_prior:
+        raise ArgumentError(
+            f"{{prior}}=none: model={name} works on a monocular prior; choose one "
+            "(prior=depth_anything_v2, or prior=checkpoint)",
+            "prior",
+            owner=check_model_takes,
+        )
     if prior not in (None, "none") and "prior" not in model_arguments(name):
         takers = [n for n in MODELS if "prior" in model_arguments(n)]
         raise ArgumentError(

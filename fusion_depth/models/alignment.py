@@ -3,8 +3,7 @@ shift that make a monocular foundation model's affine-invariant inverse depth me
 frame, from the radar or lidar returns of the same frame.
 
 Follows the global scale-and-shift alignment stage of RadarCam-Depth (Li et al., ICRA 2024),
-which fits the relative inverse depth to the radar depth, and SA-RCD; POLAR (CVPR 2026) reports
-the same affine fit as its ablation baseline. The fit has a closed form
+which fits the relative inverse depth to the radar depth. The fit has a closed form
 (ordinary least squares of one regressor); the RANSAC option (Fischler & Bolles 1981) fits
 minimal two-point samples and refits on the best sample's inliers, for returns that miss the
 object the pixel shows (radar multipath, lidar through glass).
@@ -69,8 +68,9 @@ def least_squares_fit(
 
     Returns:
         ``scale`` (B,), ``shift`` (B,) and ``fitted`` (B,) bool: False for a frame with fewer
-        than two valid pixels or no spread of ``x`` among them (its scale is 0 and its shift the
-        mean of ``y``, or 0), in ``x``'s dtype.
+        than two valid pixels, no spread of ``x`` among them, or a best scale ≤ 0, which would
+        reverse the order of depths (its scale is 0 and its shift the mean of ``y``, or 0), in
+        ``x``'s dtype.
     """
     count = valid.sum(dim=(1, 2, 3))
     weight = count.clamp_min(1).to(x.dtype)
@@ -84,6 +84,8 @@ def least_squares_fit(
     covariance = mean(x_offset * (y - y_mean.view(-1, 1, 1, 1)))
     fitted = (count >= 2) & (variance > _TINY * x_mean.square().clamp_min(1.0))
     scale = torch.where(fitted, covariance / variance.clamp_min(_TINY), 0.0)
+    fitted = fitted & (scale > 0)  # a prior of inverse depth, or of depth, grows with it
+    scale = torch.where(fitted, scale, 0.0)
     return scale, y_mean - scale * x_mean, fitted
 
 
@@ -154,6 +156,8 @@ def fit_scale_shift(
     if prior.shape != sparse.shape:
         raise ValueError(f"prior {tuple(prior.shape)} and sparse {tuple(sparse.shape)} differ")
     valid = sparse.double() > 0
+    if space == "depth":  # a prior of 0 (the sky, by a ReLU) has no finite reciprocal to fit
+        valid = valid & (prior.double() > _TINY)
     x = _regressor(prior.double(), space)
     depth = torch.where(valid, sparse.double(), 1.0)
     y = torch.where(valid, 1.0 / depth if space == "inverse" else depth, 0.0)

@@ -46,7 +46,7 @@ class DepthNet(DepthModel):
     ``prior`` (the ``prior`` config node: ``name``, ``weights``, ``input_size``, ``dropout``)
     adds a frozen monocular prior's relative depth as a further input (:class:`InputFusion`,
     TacoDepth's plug-in mode), computed on the fly from the image; in training a share
-    ``dropout`` of the frames gets none, so that the network also serves without it. The
+    ``dropout`` of the frames gets none, so that the network learns to work without it. The
     prior's weights stay in their own files: a checkpoint holds the network's, and names the
     prior's file, from which the prior is built again when the checkpoint is loaded.
     """

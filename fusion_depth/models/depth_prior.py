@@ -36,7 +36,7 @@ PATCH = 14  # DINOv2's patch: the prior's input is resized to a multiple of it
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 # Which blocks feed the head, by the encoder's depth: ViT-S and ViT-B have 12, ViT-L 24
-# (the authors' run.py ``intermediate_layer_idx``, 1-based as transformers counts them).
+# (the authors' ``intermediate_layer_idx``, 1-based as transformers counts them).
 OUT_INDICES = {12: (3, 6, 9, 12), 24: (5, 12, 18, 24)}
 HEAD_WIDTH = 64  # DINOv2's attention heads are 64 wide: heads = embedding width / 64
 
@@ -228,7 +228,7 @@ def _load_checkpoint_file(path: Path) -> nn.Module:
     try:
         model.load_state_dict(converted, strict=True)
     except RuntimeError as err:
-        first = str(err).splitlines()[1].strip() if "\n" in str(err) else str(err)
+        first = (str(err).splitlines()[1].strip() if "\n" in str(err) else str(err))[:200]
         raise _weights_error(path, f"does not fit Depth Anything V2 ({first})") from None
     return model
 
@@ -270,6 +270,9 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
         raise _weights_error(weights, problem) from None
     if config.model_type != "depth_anything":
         raise _weights_error(weights, f"a {config.model_type} model (expected depth_anything)")
+    if getattr(config, "depth_estimation_type", "relative") != "relative":
+        problem = "a metric Depth Anything (expected a relative one, e.g. Depth-Anything-V2-Small)"
+        raise _weights_error(weights, problem)
     try:
         model, info = transformers.DepthAnythingForDepthEstimation.from_pretrained(
             path, local_files_only=True, output_loading_info=True
@@ -333,7 +336,7 @@ class DepthAnythingPrior(nn.Module):
         height, width = image.shape[-2:]
         size = self.network_size(height, width)
         pixels = F.interpolate((image - self.mean) / self.std, size, mode="bilinear")
-        relative = self.network(pixel_values=pixels).predicted_depth[:, None]
+        relative = self.network(pixel_values=pixels).predicted_depth[:, None].float()
         return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)
 
 
@@ -379,7 +382,7 @@ class CheckpointPrior(nn.Module):
         except (ValueError, KeyError, TypeError) as err:
             why = str(err).partition(": ")[2] or f"no {err}"
             raise _weights_error(weights, why, CheckpointPrior) from None
-        if net_config.get("fusion", "rgb") != "rgb":
+        if net_config.get("fusion", "rgb") != "rgb":  # checked before anything is built
             raise _weights_error(
                 weights,
                 f"a network with fusion={net_config['fusion']}; a prior sees the image alone: "
@@ -400,8 +403,16 @@ class CheckpointPrior(nn.Module):
                 }
             )
         except (ValueError, TypeError, RuntimeError) as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
+            first = lines[min(1, len(lines) - 1)][:200] if lines else type(err).__name__
             raise _weights_error(weights, f"cannot be rebuilt ({first})", CheckpointPrior) from None
+        if self.network.output_space != "reciprocal":
+            raise _weights_error(
+                weights,
+                f"model={name} predicts metres; a prior is an inverse depth: expected a network "
+                "that predicts reciprocal depth (model=densedepth)",
+                CheckpointPrior,
+            )
         self.network.eval().requires_grad_(False)
         self.input_size = input_size
 

@@ -6,7 +6,8 @@ DenseDepth encoder-decoder as the learner (the authors' nuScenes code is unrelea
 1. ``prior=...`` gives relative inverse depth (frozen; :mod:`fusion_depth.models.depth_prior`).
 2. Its scale and shift are fitted to the frame's sparse returns by least squares in inverse
    depth (:func:`~fusion_depth.models.alignment.least_squares_fit`); a frame with fewer than two
-   returns takes the running mean of the fits seen in training (a buffer, like batch norm's).
+   returns (or a fit whose scale is not positive) takes the running median fit of training (a
+   buffer, like batch norm's).
 3. The learner sees the image, the sparse returns and the aligned depth (the last two
    log-encoded as :class:`~fusion_depth.models.fusion.InputFusion` encodes sparse depth) and
    predicts a log-scale map ``r`` at half resolution; the output is the aligned inverse depth
@@ -40,6 +41,7 @@ from fusion_depth.models.fusion import InputFusion
     label="Prior + correction",
     paper="RadarCam-Depth (Li et al., ICRA 2024): global alignment, then a learned scale map",
     fusions=("concat",),
+    needs_prior=True,
     recipe=Recipe(
         backbone="resnet18",
         loss="l1",
@@ -89,15 +91,15 @@ class PriorCorrection(DepthModel):
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale)
         check_model_takes("prior_correction", fusion=fusion)
-        spec = {k: v for k, v in dict(prior or {}).items() if k != "dropout"}
-        self.prior = build_prior(**spec)
-        if self.prior is None:
+        if not 0 <= fit_momentum <= 1:
             raise ArgumentError(
-                "{prior}=none: model=prior_correction corrects a prior; choose one "
-                "(prior=depth_anything_v2)",
-                "prior",
+                f"{{fit_momentum}}={fit_momentum}: expected a share in [0, 1]",
+                "fit_momentum",
                 owner=type(self),
             )
+        spec = {k: v for k, v in dict(prior or {}).items() if k != "dropout"}
+        self.prior = build_prior(**spec)
+        check_model_takes("prior_correction", prior=spec.get("name", "none"))
         self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
         self.fusion = InputFusion(
             fusion,
@@ -118,16 +120,23 @@ class PriorCorrection(DepthModel):
     @torch.no_grad()
     def global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
         """Inverse depth in 1/m: ``relative`` scaled and shifted to each frame's returns, the
-        running mean fit where a frame has too few; updates the running mean in training.
+        running fit where a frame has none (fewer than two returns, or a scale ≤ 0); updates
+        the running fit in training with the batch's median fit. Computed in fp32 whatever
+        the autocast: bf16's 8 bits of mantissa move the fitted shift by 10 % and more.
 
         Shape:
-            - relative, sparse: (B, 1, H, W); output: (B, 1, H, W).
+            - relative, sparse: (B, 1, H, W); output: (B, 1, H, W), fp32.
         """
+        with torch.autocast(relative.device.type, enabled=False):
+            return self._global_fit(relative.float(), sparse.float())
+
+    def _global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
         valid = sparse > 0
         target = torch.where(valid, 1.0 / sparse.clamp_min(1e-6), 0.0)
         scale, shift, fitted = least_squares_fit(relative, target, valid)
         if self.training and bool(fitted.any()):
-            batch = torch.stack([scale[fitted].mean(), shift[fitted].mean()]).to(self.fit_mean)
+            batch = torch.stack([scale[fitted].median(), shift[fitted].median()])
+            batch = batch.to(self.fit_mean)
             self.fit_mean.lerp_(batch, self.fit_momentum)
         scale = torch.where(fitted, scale, self.fit_mean[0]).view(-1, 1, 1, 1)
         shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)

@@ -101,7 +101,9 @@ def load_model(
         kwargs = {k: net_config[k] for k in arguments if k in net_config}
         net = create_model(name, **kwargs, pretrained=False)
     except (ValueError, TypeError, KeyError, AttributeError) as err:
-        why = err.naming(lambda a: f"model.net.{a}") if isinstance(err, ArgumentError) else err
+        # A prior's arguments are under model.net.prior (fusion_depth.models.depth_prior).
+        node = "model.net.prior" if "depth_prior" in getattr(err, "owner", "") else "model.net"
+        why = err.naming(lambda a: f"{node}.{a}") if isinstance(err, ArgumentError) else err
         raise CheckpointError(
             f"ckpt_path={path}: its model.net config cannot be built ({why})"
         ) from err
