@@ -98,8 +98,8 @@ class PriorCorrection(DepthModel):
                 owner=type(self),
             )
         spec = {k: v for k, v in dict(prior or {}).items() if k != "dropout"}
-        self.prior = build_prior(**spec)
         check_model_takes("prior_correction", prior=spec.get("name", "none"))
+        self.prior = build_prior(**spec)
         self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
         self.fusion = InputFusion(
             fusion,
