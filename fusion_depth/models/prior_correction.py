@@ -27,11 +27,7 @@ from torch import nn
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, check_model_takes, register_model
 from fusion_depth.models.alignment import least_squares_fit
-from fusion_depth.models.base import DepthModel
-from fusion_depth.models.decoder import DenseDepthDecoder
-from fusion_depth.models.depth_prior import build_prior, keep_prior_out_of_checkpoints
-from fusion_depth.models.encoder import Encoder
-from fusion_depth.models.fusion import InputFusion
+from fusion_depth.models.depth_net import DepthNet
 
 
 # No published recipe for nuScenes (its code is unreleased): the platform's DenseDepth one with
@@ -50,7 +46,7 @@ from fusion_depth.models.fusion import InputFusion
         schedule_args={"step_size": 7, "gamma": 0.2},
     ),
 )
-class PriorCorrection(DepthModel):
+class PriorCorrection(DepthNet):
     """The aligned prior times a learned per-pixel scale, in reciprocal depth.
 
     Args:
@@ -65,7 +61,7 @@ class PriorCorrection(DepthModel):
         depth_scale: ``depth_scale / depth`` is the output's value.
         backbone_taps: the encoder's feature taps (``paper`` or ``pyramid``).
         sparse_encoding: how the returns and the aligned depth enter (``log`` or ``linear``).
-        fit_momentum: the weight of a batch's mean fit in the running mean.
+        fit_momentum: the weight of a batch's median fit in the running fit.
 
     Shape:
         - image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) metres, 0 = no return.
@@ -89,7 +85,6 @@ class PriorCorrection(DepthModel):
         sparse_encoding: str = "log",
         fit_momentum: float = 0.01,
     ) -> None:
-        super().__init__(min_depth, max_depth, depth_scale)
         check_model_takes("prior_correction", fusion=fusion)
         if not 0 <= fit_momentum <= 1:
             raise ArgumentError(
@@ -97,25 +92,25 @@ class PriorCorrection(DepthModel):
                 "fit_momentum",
                 owner=type(self),
             )
-        spec = {k: v for k, v in dict(prior or {}).items() if k != "dropout"}
+        spec = {**dict(prior or {}), "dropout": 0.0}  # the prior is always there
         check_model_takes("prior_correction", prior=spec.get("name", "none"))
-        self.prior = build_prior(**spec)
-        self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
-        self.fusion = InputFusion(
+        # DenseDepth's encoder, input fusion with the prior's channel, and decoder
+        super().__init__(
+            backbone,
             fusion,
-            max_depth=max_depth,
-            min_depth=min_depth,
-            sparse_encoding=sparse_encoding,
-            mean=self.encoder.mean,
-            std=self.encoder.std,
-            prior=True,
+            pretrained,
+            weights,
+            min_depth,
+            max_depth,
+            depth_scale,
+            sparse_encoding,
+            backbone_taps,
+            prior=spec,
         )
-        self.decoder = DenseDepthDecoder(self.encoder.channels)
         nn.init.zeros_(self.decoder.head.weight)  # r = 0: the global alignment at the start
         nn.init.zeros_(self.decoder.head.bias)
         self.fit_momentum = fit_momentum
         self.register_buffer("fit_mean", torch.tensor([1.0, 0.0]))  # (scale, shift) of training
-        keep_prior_out_of_checkpoints(self)
 
     @torch.no_grad()
     def global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
