@@ -67,19 +67,19 @@ class InputFusion(nn.Module):
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         if mode == "concat":
-            self.mix = nn.Conv2d(4, 3, kernel_size=1)
-            with torch.no_grad():
-                self.mix.weight.zero_()
-                self.mix.weight[:, :3, 0, 0] = torch.eye(3)
-                self.mix.weight[:, 3, 0, 0] = 1.0 / self.std.view(3)
-                self.mix.bias.zero_()
-        self.prior_mix = nn.Conv2d(4, 3, kernel_size=1) if prior else None
-        if self.prior_mix is not None:
-            with torch.no_grad():
-                self.prior_mix.weight.zero_()
-                self.prior_mix.weight[:, :3, 0, 0] = torch.eye(3)
-                self.prior_mix.weight[:, 3, 0, 0] = 1.0 / self.std.view(3)
-                self.prior_mix.bias.zero_()
+            self.mix = self._additive_mix()
+        self.prior_mix = self._additive_mix() if prior else None
+
+    def _additive_mix(self) -> nn.Conv2d:
+        """A 1×1 conv from 3 channels and one more to 3 that starts as ``add``: identity on the
+        3, ``1 / std`` on the fourth (added to every channel before normalisation)."""
+        mix = nn.Conv2d(4, 3, kernel_size=1)
+        with torch.no_grad():
+            mix.weight.zero_()
+            mix.weight[:, :3, 0, 0] = torch.eye(3)
+            mix.weight[:, 3, 0, 0] = 1.0 / self.std.view(3)
+            mix.bias.zero_()
+        return mix
 
     def encode_sparse(self, sparse: torch.Tensor) -> torch.Tensor:
         """Sparse depth in metres (0 = no return) → the [0, 1] channel described above."""
