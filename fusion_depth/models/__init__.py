@@ -10,6 +10,8 @@ from fusion_depth.models._registry import (
     model_arguments,
     model_class,
     model_entry,
+    network_from_checkpoint,
+    network_state,
     register_model,
 )
 from fusion_depth.models.base import DepthModel
@@ -36,5 +38,7 @@ __all__ = [
     "model_arguments",
     "model_class",
     "model_entry",
+    "network_from_checkpoint",
+    "network_state",
     "register_model",
 ]

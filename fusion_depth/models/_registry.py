@@ -216,6 +216,33 @@ def check_model_takes(
         )
 
 
+# Network arguments a checkpoint never sets: files read at build time, whose weights the
+# checkpoint's own replace.
+NOT_FROM_CHECKPOINT = ("pretrained", "weights", "association_weights")
+
+
+def network_from_checkpoint(net_config: Mapping[str, Any]) -> DepthModel:
+    """The network a checkpoint's ``model.net`` config records, rebuilt by its name in the table
+    (checkpoints from before models had names hold the paper's) from the stored arguments its
+    constructor takes, without weights (``pretrained=False``: the checkpoint's replace
+    ImageNet's, which need not be on disk); load them with :func:`network_state`.
+
+    Raises:
+        ArgumentError: an unknown name or an argument the network rejects.
+        TypeError: an argument it does not take.
+    """
+    name = net_config.get("name", DEFAULT_MODEL)
+    taken = set(model_arguments(name)) - set(NOT_FROM_CHECKPOINT)
+    return create_model(
+        name, **{k: v for k, v in net_config.items() if k in taken}, pretrained=False
+    )
+
+
+def network_state(state_dict: Mapping[str, Any]) -> dict[str, Any]:
+    """The network's entries of a Lightning module's state dict (``net.*``), unprefixed."""
+    return {k.removeprefix("net."): v for k, v in state_dict.items() if k.startswith("net.")}
+
+
 def create_model(name: str = DEFAULT_MODEL, **kwargs: Any) -> DepthModel:
     """Model ``name`` built with ``kwargs`` (its constructor's arguments).
 

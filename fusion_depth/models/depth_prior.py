@@ -98,6 +98,16 @@ def _transformers() -> Any:
     return transformers
 
 
+def _problem(err: BaseException) -> str:
+    """What ``err`` says is wrong, in one line (:func:`fusion_depth.data.cache.one_line`):
+    ``load_state_dict``'s message opens with a heading ("Error(s) in loading state_dict for
+    X:") and names the problem on the next line."""
+    from fusion_depth.data.cache import one_line
+
+    heading, _, rest = str(err).strip().partition("\n")
+    return one_line(ValueError(rest) if heading.endswith(":") and rest.strip() else err, 200)
+
+
 def _weights_error(weights: Any, problem: str, owner: Any = None) -> ArgumentError:
     return ArgumentError(
         f"{{weights}}={weights}: {problem}",
@@ -228,8 +238,7 @@ def _load_checkpoint_file(path: Path) -> nn.Module:
     try:
         model.load_state_dict(converted, strict=True)
     except RuntimeError as err:
-        first = (str(err).splitlines()[1].strip() if "\n" in str(err) else str(err))[:200]
-        raise _weights_error(path, f"does not fit Depth Anything V2 ({first})") from None
+        raise _weights_error(path, f"does not fit Depth Anything V2 ({_problem(err)})") from None
     return model
 
 
@@ -278,8 +287,7 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
             path, local_files_only=True, output_loading_info=True
         )
     except Exception as err:  # noqa: BLE001 - missing or corrupt weights file
-        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise _weights_error(weights, f"cannot be loaded ({message})") from None
+        raise _weights_error(weights, f"cannot be loaded ({_problem(err)})") from None
     missing = [*info.get("missing_keys", ()), *info.get("mismatched_keys", ())]
     if missing:
         raise _weights_error(weights, f"weights do not fit its config.json ({missing[0]})")
@@ -365,7 +373,7 @@ class CheckpointPrior(nn.Module):
 
     def __init__(self, weights: str | Path, input_size: int | None = None) -> None:
         super().__init__()
-        from fusion_depth.models._registry import DEFAULT_MODEL, create_model, model_arguments
+        from fusion_depth.models._registry import network_from_checkpoint, network_state
         from fusion_depth.utils.checkpoint_file import CONFIG_KEY, read_checkpoint
 
         path = Path(weights).expanduser()
@@ -389,28 +397,17 @@ class CheckpointPrior(nn.Module):
                 "expected a checkpoint trained with fusion=rgb",
                 CheckpointPrior,
             )
-        name = net_config.get("name", DEFAULT_MODEL)
-        taken = set(model_arguments(name)) - {"pretrained", "weights", "association_weights"}
         try:
-            self.network = create_model(
-                name, **{k: v for k, v in net_config.items() if k in taken}, pretrained=False
-            )
-            self.network.load_state_dict(
-                {
-                    key.removeprefix("net."): value
-                    for key, value in checkpoint["state_dict"].items()
-                    if key.startswith("net.")
-                }
-            )
+            self.network = network_from_checkpoint(net_config)
+            self.network.load_state_dict(network_state(checkpoint["state_dict"]))
         except (ValueError, TypeError, RuntimeError) as err:
-            lines = [line.strip() for line in str(err).strip().splitlines() if line.strip()]
-            first = lines[min(1, len(lines) - 1)][:200] if lines else type(err).__name__
-            raise _weights_error(weights, f"cannot be rebuilt ({first})", CheckpointPrior) from None
+            problem = f"cannot be rebuilt ({_problem(err)})"
+            raise _weights_error(weights, problem, CheckpointPrior) from None
         if self.network.output_space != "reciprocal":
             raise _weights_error(
                 weights,
-                f"model={name} predicts metres; a prior is an inverse depth: expected a network "
-                "that predicts reciprocal depth (model=densedepth)",
+                f"model={net_config.get('name')} predicts metres; a prior is an inverse depth: "
+                "expected a network that predicts reciprocal depth (model=densedepth)",
                 CheckpointPrior,
             )
         self.network.eval().requires_grad_(False)

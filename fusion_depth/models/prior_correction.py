@@ -85,15 +85,14 @@ class PriorCorrection(DepthNet):
         sparse_encoding: str = "log",
         fit_momentum: float = 0.01,
     ) -> None:
-        check_model_takes("prior_correction", fusion=fusion)
+        spec = {**dict(prior or {}), "dropout": 0.0}  # the prior is always there
+        check_model_takes("prior_correction", fusion=fusion, prior=spec.get("name", "none"))
         if not 0 <= fit_momentum <= 1:
             raise ArgumentError(
                 f"{{fit_momentum}}={fit_momentum}: expected a share in [0, 1]",
                 "fit_momentum",
                 owner=type(self),
             )
-        spec = {**dict(prior or {}), "dropout": 0.0}  # the prior is always there
-        check_model_takes("prior_correction", prior=spec.get("name", "none"))
         # DenseDepth's encoder, input fusion with the prior's channel, and decoder
         super().__init__(
             backbone,

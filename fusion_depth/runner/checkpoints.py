@@ -20,7 +20,7 @@ from hydra.utils import instantiate
 
 from fusion_depth.data import READERS, cache_dir, reader_class
 from fusion_depth.errors import ArgumentError
-from fusion_depth.models import DEFAULT_MODEL, DepthModel, create_model, model_arguments
+from fusion_depth.models import DepthModel, network_from_checkpoint, network_state
 from fusion_depth.utils.checkpoint_file import (
     CONFIG_KEY,
     RUN_KEY,
@@ -31,10 +31,6 @@ from fusion_depth.utils.checkpoint_file import (
 
 # What records a model's dataset, by the option that names the file (LoadedModel.key).
 _RECORD = {"ckpt_path": "run config", "model_file": "sidecar"}
-
-
-# Network arguments a checkpoint never sets: its own weights replace ImageNet's.
-_NOT_FROM_CHECKPOINT = ("pretrained", "weights", "association_weights")  # files read at build time
 
 
 @dataclass
@@ -92,14 +88,8 @@ def load_model(
     except (KeyError, TypeError) as err:
         raise CheckpointError(f"ckpt_path={path}: its run config lacks {err}") from err
     check_expected(config, path, fusion, backbone)
-    # The network by its name in the package's table (checkpoints from before models had names
-    # hold the paper's), with the stored arguments its constructor takes; pretrained=False: the
-    # checkpoint's weights replace ImageNet's, which need not be on disk.
     try:
-        name = net_config.get("name", DEFAULT_MODEL)
-        arguments = set(model_arguments(name)) - set(_NOT_FROM_CHECKPOINT)
-        kwargs = {k: net_config[k] for k in arguments if k in net_config}
-        net = create_model(name, **kwargs, pretrained=False)
+        net = network_from_checkpoint(net_config)
     except (ValueError, TypeError, KeyError, AttributeError) as err:
         # A prior's arguments are under model.net.prior (fusion_depth.models.depth_prior).
         node = "model.net.prior" if "depth_prior" in getattr(err, "owner", "") else "model.net"
@@ -107,11 +97,7 @@ def load_model(
         raise CheckpointError(
             f"ckpt_path={path}: its model.net config cannot be built ({why})"
         ) from err
-    state = {
-        key[len("net.") :]: value
-        for key, value in checkpoint["state_dict"].items()
-        if key.startswith("net.")
-    }
+    state = network_state(checkpoint["state_dict"])
     expected = net.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
