@@ -355,9 +355,29 @@ def _train(tmp_path, *overrides, env=None):
     )
 
 
-def test_smoke_run_trains_with_the_prior_and_exports(tmp_path, tiny_folder):
+def evaluates_and_exports(run, cwd):
+    """The run's checkpoint, whose prior is built again from its file, scores with ``evaluate``
+    and exports to ONNX, verified by onnxruntime."""
     from helpers import run_module
 
+    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
+    evaluated = run_module(
+        ["fusion_depth.evaluate", f"ckpt_path={checkpoint}", f"hydra.run.dir={run}/evaluate"],
+        cwd=cwd,
+    )
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
+    rescored = json.loads((run / "evaluate" / "metrics.json").read_text())
+    tested = json.loads((run / "metrics.json").read_text())
+    assert rescored["test"]["rmse"] == pytest.approx(tested["test"]["rmse"], rel=1e-4)
+    exported = run_module(
+        ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx", f"hydra.run.dir={run}/x"],
+        cwd=cwd,
+    )
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    assert "verified with onnxruntime" in exported.stderr + exported.stdout
+
+
+def test_smoke_run_trains_with_the_prior_evaluates_and_exports(tmp_path, tiny_folder):
     run = tmp_path / "run"
     done = _train(
         tmp_path, "prior=depth_anything_v2", f"prior.weights={tiny_folder}", f"hydra.run.dir={run}"
@@ -367,13 +387,7 @@ def test_smoke_run_trains_with_the_prior_and_exports(tmp_path, tiny_folder):
     assert record["test"]["rmse"] > 0
     resolved = (run / "config_resolved.yaml").read_text()
     assert "depth_anything_v2" in resolved
-    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
-    exported = run_module(
-        ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx", f"hydra.run.dir={run}/x"],
-        cwd=tmp_path,
-    )
-    assert exported.returncode == 0, exported.stderr[-2000:]
-    assert "verified with onnxruntime" in exported.stderr + exported.stdout
+    evaluates_and_exports(run, tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -439,20 +453,12 @@ def test_correction_starts_as_the_global_alignment(tiny_folder):
 
 
 def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
-    from helpers import run_module
-
     run = tmp_path / "run"
     overrides = ["model=prior_correction", "fusion=concat", "prior=depth_anything_v2"]
     done = _train(tmp_path, *overrides, f"prior.weights={tiny_folder}", f"hydra.run.dir={run}")
     assert done.returncode == 0, done.stderr[-2000:]
     assert json.loads((run / "metrics.json").read_text())["test"]["rmse"] > 0
-    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
-    exported = run_module(
-        ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx", f"hydra.run.dir={run}/x"],
-        cwd=tmp_path,
-    )
-    assert exported.returncode == 0, exported.stderr[-2000:]
-    assert "verified with onnxruntime" in exported.stderr + exported.stdout
+    evaluates_and_exports(run, tmp_path)
     refused = _train(tmp_path, "model=prior_correction", "fusion=concat", f"hydra.run.dir={run}2")
     assert refused.returncode == 1
     assert "prior=none: model=prior_correction works on a monocular prior" in refused.stderr
