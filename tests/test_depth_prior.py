@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import json
 import re
-import socket
 
 import pytest
 import torch
 import transformers
+from helpers.prior import KnownPrior, offline_environment, refuse_network, tiny_depth_anything
 from safetensors.torch import load_file
 
 from fusion_depth.errors import ArgumentError, ArgumentFileError
@@ -24,46 +24,7 @@ from fusion_depth.models.depth_prior import (
 
 @pytest.fixture(autouse=True)
 def no_network(monkeypatch):
-    """Any connection attempt fails the test: the prior reads local files only."""
-    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
-    monkeypatch.setenv("HTTPS_PROXY", "http://127.0.0.1:9")
-    monkeypatch.setenv("HTTP_PROXY", "http://127.0.0.1:9")
-
-    def refuse(*args, **kwargs):
-        raise AssertionError("the prior reached for the network")
-
-    monkeypatch.setattr(socket.socket, "connect", refuse)
-
-
-def tiny_depth_anything(width: int = 4, depth: int = 2, necks=(2, 2), out_indices=(1, 2)):
-    """A random Depth Anything of transformers' own test sizes (hidden size 4, 2 layers)."""
-    torch.manual_seed(0)
-    backbone = transformers.Dinov2Config(
-        image_size=28,
-        patch_size=14,
-        hidden_size=width,
-        num_hidden_layers=depth,
-        num_attention_heads=max(1, width // 64) if width >= 64 else 2,
-        out_indices=list(out_indices),
-        apply_layernorm=True,
-        reshape_hidden_states=False,
-    )
-    config = transformers.DepthAnythingConfig(
-        backbone_config=backbone,
-        patch_size=14,
-        reassemble_hidden_size=width,
-        reassemble_factors=[4, 2, 1, 0.5][: len(necks)],
-        neck_hidden_sizes=list(necks),
-        fusion_hidden_size=6,
-        head_hidden_size=4,
-        depth_estimation_type="relative",
-    )
-    model = transformers.DepthAnythingForDepthEstimation(config).eval()
-    with torch.no_grad():  # transformers' init leaves a tiny head flat; spread the weights
-        for parameter in model.parameters():
-            parameter.normal_(0.0, 0.3)
-        model.head.conv3.bias.fill_(0.5)  # the head ends in ReLU: keep most pixels above 0
-    return model
+    refuse_network(monkeypatch)
 
 
 @pytest.fixture(scope="module")
@@ -342,16 +303,12 @@ def test_prior_dropout_gives_some_frames_none_in_training_only(tiny_folder):
 
 
 def _train(tmp_path, *overrides, env=None):
-    import os
-
     from helpers import run_module
 
-    environment = {**os.environ, "HTTPS_PROXY": "http://127.0.0.1:9", "HTTP_PROXY": ""}
-    environment.pop("HF_HUB_OFFLINE", None)
     return run_module(
         ["fusion_depth.train", "experiment=smoke", "logger=none", *overrides],
         cwd=tmp_path,
-        env=environment if env is None else env,
+        env=offline_environment() if env is None else env,
     )
 
 
@@ -412,18 +369,6 @@ def test_bad_prior_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, m
 
 
 # --- model=prior_correction: the aligned prior times a learned scale map ------------------------
-
-
-class KnownPrior(torch.nn.Module):
-    """A prior that is an affine map of the true inverse depth (what a perfect relative prior
-    gives), standing in for the network after the model is built."""
-
-    def __init__(self, depth: torch.Tensor) -> None:
-        super().__init__()
-        self.depth = depth
-
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return 3.0 / self.depth + 0.25
 
 
 def test_correction_starts_as_the_global_alignment(tiny_folder):

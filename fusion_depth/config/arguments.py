@@ -38,6 +38,7 @@ ARGUMENT_KEYS: dict[str, str | Mapping[str, str]] = {
         "input_size": "prior.input_size",
         "name": "prior.name",
     },
+    "fusion_depth.models.alignment": "alignment",  # evaluate's prior alignment settings
     "fusion_depth.models.encoder": _ENCODER,
     "fusion_depth.models.fusion.InputFusion": {"mode": "fusion.mode"},
     "fusion_depth.models.inference": {"upsample": "eval.upsample"},

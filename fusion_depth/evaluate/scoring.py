@@ -22,7 +22,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data import SPLITS
+from fusion_depth.errors import ConfigError
 from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
+from fusion_depth.models.alignment import FallbackCount
+from fusion_depth.models.depth_prior import NO_PRIOR
+from fusion_depth.models.prior_alignment import GlobalAlignment, prior_alignment_config
 from fusion_depth.runner.callbacks import ProgressLog
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
@@ -64,6 +68,50 @@ def _guards(cfg: DictConfig) -> dict[str, str | None]:
     }
 
 
+def _chosen_prior(cfg: DictConfig) -> dict | None:
+    """The ``prior=`` node given (None: none, or ``prior=none``)."""
+    prior = cfg.get("prior")
+    if prior is None or prior.get("name") in (None, NO_PRIOR):
+        return None
+    return OmegaConf.to_container(prior, resolve=True)
+
+
+def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
+    """Score the global alignment of the prior ``cfg.prior`` (no checkpoint: nothing is
+    learned) on ``cfg.dataset``, fitted by ``cfg.alignment``; writes ``metrics.json`` (with
+    ``alignment``: its settings, fits and fallbacks) and ``per_image.csv`` into
+    ``output_dir`` and returns the record written.
+
+    Raises:
+        ConfigError: no ``dataset=`` was chosen.
+        ArgumentError: the prior cannot be built from ``prior.weights``, or an ``alignment``
+            setting is out of range.
+    """
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    prior = _chosen_prior(cfg)
+    if cfg.get("dataset") is None or "reader" not in cfg.dataset:
+        raise ConfigError(
+            f"prior={prior['name']} with no ckpt_path scores the prior's global alignment: "
+            "choose the dataset to fit and score it on with dataset=<name>"
+        )
+    settings = OmegaConf.to_container(cfg.alignment, resolve=True)
+    net = GlobalAlignment(
+        prior, **settings, min_depth=cfg.dataset.min_depth, max_depth=cfg.dataset.max_depth
+    )
+    config = {
+        "model": {"net": prior_alignment_config(prior, settings)},
+        "fusion": {"mode": net.fusion.mode},
+        "backbone": {"name": prior["name"]},  # what computes the depth: the prior's network
+        "dataset": OmegaConf.to_container(cfg.dataset, resolve=True),
+        "seed": cfg.seed,
+    }
+    loaded = LoadedModel(
+        net=net.eval(), config=config, path=Path(prior["weights"]), key="prior.weights"
+    )
+    return evaluate_loaded(cfg, loaded, output_dir)
+
+
 def evaluate_checkpoint(
     cfg: DictConfig, ckpt_path: str | Path, output_dir: str | Path
 ) -> RunRecord:
@@ -71,7 +119,9 @@ def evaluate_checkpoint(
     and returns the record written."""
     if cfg.split not in SPLITS:
         raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
-    return evaluate_loaded(cfg, load_model(ckpt_path, **_guards(cfg)), output_dir)
+    prior = _chosen_prior(cfg)
+    loaded = load_model(ckpt_path, **_guards(cfg), prior=prior)
+    return evaluate_loaded(cfg, loaded, output_dir)
 
 
 def evaluate_model_file(
@@ -86,6 +136,11 @@ def evaluate_model_file(
     """
     if cfg.split not in SPLITS:
         raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    if _chosen_prior(cfg):
+        raise ConfigError(
+            f"prior={cfg.prior.name} with model_file={model_file}: an exported file holds its "
+            "prior; prior= goes with ckpt_path=, or alone to score the prior's alignment"
+        )
     return evaluate_loaded(cfg, load_exported(model_file, **_guards(cfg)), output_dir)
 
 
@@ -153,13 +208,23 @@ def evaluate_loaded(cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path
     # Before the work: a malformed record fails first.
     identity = rescored_identity(loaded.run, loaded.config, dataset, engine_identity(loaded.net))
     check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
+    counts = isinstance(loaded.net, FallbackCount)
     with closing(logger):
         if logger:
             logger.log_hyperparams(resolved)
+        if counts:
+            loaded.net.reset_fits()
         result = module.run_test(trainer, datamodule, verbose=False)
         source = {"checkpoint": str(loaded.path.resolve())}
         if exported:  # the checkpoint it was exported from, as its sidecar records it
             source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
+        if counts:
+            source["alignment"] = loaded.net.fit_summary()
+            log.info(
+                "alignment: %(fallbacks)d of %(fits)d frame fits fell back (fewer than 2 "
+                "returns to fit)",
+                source["alignment"],
+            )
         record = RunRecord.from_result(identity, result, cfg.split, **source, seed=cfg.seed)
         title = (
             f"{cfg.split} metrics of {loaded.path} ({result.overall['num_images']} images, "
@@ -203,8 +268,10 @@ def evaluate(cfg: DictConfig) -> list[dict]:
 
 def evaluate_records(cfg: DictConfig) -> list[RunRecord]:
     """:func:`evaluate`, returning the records written."""
-    check_source(cfg.get("ckpt_path"), cfg.get("model_file"))
     output_dir = Path(cfg.paths.output_dir)
+    if cfg.get("ckpt_path") is None and cfg.get("model_file") is None and _chosen_prior(cfg):
+        return [evaluate_alignment(cfg, output_dir)]
+    check_source(cfg.get("ckpt_path"), cfg.get("model_file"), prior=True)
     if cfg.get("model_file") is not None:
         return [evaluate_model_file(cfg, Path(cfg.model_file).expanduser(), output_dir)]
     path = Path(cfg.ckpt_path).expanduser()

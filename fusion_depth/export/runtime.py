@@ -46,7 +46,7 @@ from fusion_depth.export.contract import QUANTIZATIONS, require_cuda, require_mo
 from fusion_depth.export.sidecar import sidecar_path
 from fusion_depth.export.torchscript import quiet_jit
 from fusion_depth.models import DepthModel
-from fusion_depth.models.fusion import FUSION_MODES
+from fusion_depth.models.fusion import FUSION_MODES, InputMode
 from fusion_depth.runner.checkpoints import LoadedModel, check_expected
 from fusion_depth.utils.checkpoint_file import check_no_code
 from fusion_depth.utils.json_file import read_json
@@ -505,14 +505,6 @@ FORMAT_ENGINES: dict[str, str] = {fmt: e.name for e in ENGINES.values() for fmt 
 # --------------------------------------------------------------------------- the network
 
 
-class _Inputs(nn.Module):
-    """What :func:`fusion_depth.models.inference.predict_depth` asks of a network's ``fusion``."""
-
-    def __init__(self, mode: str, uses_sparse: bool) -> None:
-        super().__init__()
-        self.mode, self.uses_sparse = mode, uses_sparse
-
-
 class ExportedModel(DepthModel):
     """An exported model file, run by its engine, in place of a checkpoint's network.
 
@@ -532,7 +524,7 @@ class ExportedModel(DepthModel):
     def __init__(self, info: ModelInfo, runner: Runner) -> None:
         super().__init__(info.min_depth, info.max_depth, depth_scale=1.0)
         self.info, self.runner = info, runner
-        self.fusion = _Inputs(info.fusion, info.uses_sparse)
+        self.fusion = InputMode(info.fusion, info.uses_sparse)
         self._device_probe = nn.Parameter(torch.zeros(0), requires_grad=False)
 
     @property
@@ -644,8 +636,14 @@ def load_exported(
     return LoadedModel(net=net, config=config, path=info.path, run=info.run, key="model_file")
 
 
-def check_source(ckpt_path: object, model_file: object) -> None:
+def check_source(ckpt_path: object, model_file: object, prior: bool = False) -> None:
     """Exactly one of ``ckpt_path`` and ``model_file`` must be given.
+
+    Args:
+        ckpt_path: the ``ckpt_path`` value.
+        model_file: the ``model_file`` value.
+        prior: the command also scores a prior's global alignment with neither (``evaluate``):
+            the message names that third way.
 
     Raises:
         ConfigError: both or neither (one line naming both keys).
@@ -656,9 +654,11 @@ def check_source(ckpt_path: object, model_file: object) -> None:
             "checkpoint or an exported model file, not both"
         )
     if ckpt_path is None and model_file is None:
+        third = ", or prior=<name> prior.weights=<file> dataset=<name> (a prior's alignment)"
         raise ConfigError(
             "ckpt_path=null and model_file=null: give ckpt_path=<checkpoint, or a folder of "
-            "runs> or model_file=<a file written by python -m fusion_depth.export>"
+            f"runs> or model_file=<a file written by python -m fusion_depth.export>"
+            f"{third if prior else ''}"
         )
 
 

@@ -107,6 +107,51 @@ def _ransac(
     return inliers[int(inliers.sum(dim=1).argmax())]
 
 
+def check_alignment_arguments(space: str, ransac_iterations: int, ransac_threshold: float) -> None:
+    """Fail on settings :func:`fit_scale_shift` cannot take, before any frame is read.
+
+    Raises:
+        ArgumentError: an unknown ``space``, ``ransac_iterations`` not an integer ≥ 0, or
+            ``ransac_threshold ≤ 0``.
+    """
+    check_choice(space, ALIGNMENT_SPACES, "space", owner=fit_scale_shift)
+    whole = isinstance(ransac_iterations, int) and not isinstance(ransac_iterations, bool)
+    if not whole or ransac_iterations < 0:
+        raise ArgumentError(
+            f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0",
+            "ransac_iterations",
+            owner=fit_scale_shift,
+        )
+    if isinstance(ransac_threshold, bool) or not (
+        isinstance(ransac_threshold, int | float) and ransac_threshold > 0
+    ):
+        raise ArgumentError(
+            f"{{ransac_threshold}}={ransac_threshold}: expected a number > 0",
+            "ransac_threshold",
+            owner=fit_scale_shift,
+        )
+
+
+class FallbackCount:
+    """Counts a network's per-frame fits and those that fell back (too few returns), for the
+    run's log and record (``alignment`` in ``metrics.json``): :meth:`reset_fits` before a
+    stage, :meth:`count_fits` per batch, :meth:`fit_summary` after it."""
+
+    def reset_fits(self) -> None:
+        """Start counting again (at the test stage's start)."""
+        self._fits, self._fallbacks = 0, 0
+
+    def count_fits(self, fallback: torch.Tensor) -> None:
+        """Count a batch's fits; ``fallback`` (B,) is True where a frame fell back."""
+        self._fits = getattr(self, "_fits", 0) + int(fallback.numel())
+        self._fallbacks = getattr(self, "_fallbacks", 0) + int(fallback.sum())
+
+    def fit_summary(self) -> dict[str, int]:
+        """``{"fits": n, "fallbacks": k}`` since :meth:`reset_fits`: one fit per frame and
+        forward pass (two per frame with ``eval.flip_tta``)."""
+        return {"fits": getattr(self, "_fits", 0), "fallbacks": getattr(self, "_fallbacks", 0)}
+
+
 def fit_scale_shift(
     prior: torch.Tensor,
     sparse: torch.Tensor,
@@ -140,19 +185,7 @@ def fit_scale_shift(
             0``.
         ValueError: ``prior`` and ``sparse`` differ in shape.
     """
-    check_choice(space, ALIGNMENT_SPACES, "space", owner=fit_scale_shift)
-    if ransac_iterations < 0:
-        raise ArgumentError(
-            f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0",
-            "ransac_iterations",
-            owner=fit_scale_shift,
-        )
-    if not ransac_threshold > 0:
-        raise ArgumentError(
-            f"{{ransac_threshold}}={ransac_threshold}: expected a number > 0",
-            "ransac_threshold",
-            owner=fit_scale_shift,
-        )
+    check_alignment_arguments(space, ransac_iterations, ransac_threshold)
     if prior.shape != sparse.shape:
         raise ValueError(f"prior {tuple(prior.shape)} and sparse {tuple(sparse.shape)} differ")
     valid = sparse.double() > 0

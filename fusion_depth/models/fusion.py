@@ -16,6 +16,16 @@ FUSION_LABELS: dict[str, str] = {"rgb": "RGB", "concat": "RGB-Fusion", "add": "R
 SPARSE_ENCODINGS = ("log", "linear")
 
 
+class InputMode(nn.Module):
+    """A network's ``fusion`` where it has no fusion layer of its own (an exported model file, a
+    prior's global alignment): what :func:`fusion_depth.models.inference.predict_depth` and the
+    test stage ask of it, the mode recorded and whether the sparse map is fed."""
+
+    def __init__(self, mode: str, uses_sparse: bool) -> None:
+        super().__init__()
+        self.mode, self.uses_sparse = mode, uses_sparse
+
+
 class InputFusion(nn.Module):
     """Turns (image in [0, 1], sparse depth in metres) into the 3-channel encoder input.
 

@@ -21,6 +21,7 @@ from hydra.utils import instantiate
 from fusion_depth.data import READERS, cache_dir, reader_class
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models import DepthModel, network_from_checkpoint, network_state
+from fusion_depth.models.depth_prior import NO_PRIOR
 from fusion_depth.utils.checkpoint_file import (
     CONFIG_KEY,
     RUN_KEY,
@@ -72,12 +73,39 @@ def check_expected(
             )
 
 
+def _with_prior_file(net_config: Any, path: Path, prior: dict[str, Any]) -> dict[str, Any]:
+    """``net_config`` with its prior read from ``prior["weights"]``: the same prior as trained
+    with (``prior["name"]``), from another file (weights moved, another machine's copy)."""
+    recorded = net_config.get("prior") if isinstance(net_config, dict) else None
+    trained = (recorded or {}).get("name", NO_PRIOR)
+    if trained != prior["name"]:
+        raise CheckpointError(
+            f"prior={prior['name']}: ckpt_path={path} was trained with prior={trained}; give "
+            f"that prior's file{'' if trained == NO_PRIOR else f' as prior={trained}'} or leave "
+            "prior= out"
+        )
+    return {**net_config, "prior": {**recorded, "weights": prior["weights"]}}
+
+
 def load_model(
-    path: str | os.PathLike, fusion: str | None = None, backbone: str | None = None
+    path: str | os.PathLike,
+    fusion: str | None = None,
+    backbone: str | None = None,
+    prior: dict[str, Any] | None = None,
 ) -> LoadedModel:
     """Rebuild the network of a training checkpoint and load its weights (eval mode, CPU).
 
-    ``fusion``/``backbone``, when given, must match what the checkpoint was trained with.
+    Args:
+        path: the checkpoint.
+        fusion: when given, the fusion mode it must have been trained with.
+        backbone: when given, the backbone it must have been trained with.
+        prior: when given, the ``prior`` node (``name``, ``weights``) whose file replaces the
+            one the checkpoint names; ``name`` must be the prior it was trained with.
+
+    Raises:
+        CheckpointError: not a training checkpoint, another fusion, backbone or prior than
+            asked for, or weights that do not fit the network its config names (naming the
+            file and key).
     """
     path = Path(path).expanduser()
     checkpoint = read_checkpoint(path)
@@ -88,11 +116,16 @@ def load_model(
     except (KeyError, TypeError) as err:
         raise CheckpointError(f"ckpt_path={path}: its run config lacks {err}") from err
     check_expected(config, path, fusion, backbone)
+    if prior is not None:
+        net_config = config["model"]["net"] = _with_prior_file(net_config, path, prior)
     try:
         net = network_from_checkpoint(net_config)
     except (ValueError, TypeError, KeyError, AttributeError) as err:
-        # A prior's arguments are under model.net.prior (fusion_depth.models.depth_prior).
+        # A prior's arguments are under model.net.prior (fusion_depth.models.depth_prior), or
+        # prior.* where the command gave its file.
         node = "model.net.prior" if "depth_prior" in getattr(err, "owner", "") else "model.net"
+        if node == "model.net.prior" and prior is not None:
+            node = "prior"
         why = err.naming(lambda a: f"{node}.{a}") if isinstance(err, ArgumentError) else err
         raise CheckpointError(
             f"ckpt_path={path}: its model.net config cannot be built ({why})"

@@ -213,6 +213,9 @@ class RunRecord(_Stored):
     # the one it was exported from, as its sidecar records it (None for a bare network).
     model_file: str | None = _written_by(_IF_SET)
     seed: int | None = _written_by(_RESCORED)  # evaluate's seed
+    # A prior's alignment (global alignment, prior_correction): its settings, frame fits and
+    # fallbacks (fits of frames with fewer than 2 returns), fusion_depth.models.alignment.
+    alignment: dict[str, Any] | None = _written_by(_IF_SET)
     versions: dict[str, Any] | None = _written_by(_EVERY)  # runs.provenance()
     path: Path | None = field(default=None, compare=False)  # where it was read from; not written
 
@@ -246,11 +249,12 @@ class RunRecord(_Stored):
 
     @property
     def finished(self) -> bool:
-        """A finished training run's record: status ok, test metrics, at least one optimizer
-        step trained (a run that trained nothing is never done)."""
+        """A finished run's record: status ok, test metrics, and for a training run at least
+        one optimizer step trained (a run that trained nothing is never done); ``evaluate``'s
+        records (:attr:`rescored`) are finished once written."""
         steps = self.global_step
         trained = isinstance(steps, int) and not isinstance(steps, bool) and steps > 0
-        return self.status == "ok" and trained and isinstance(self.test, dict)
+        return self.status == "ok" and (trained or self.rescored) and isinstance(self.test, dict)
 
     def breakdown(self, by: str) -> dict[str, dict[str, float]] | None:
         """The ``test_by_<by>`` section (``by``: a key of :data:`BREAKDOWNS`); None if absent."""

@@ -1,0 +1,199 @@
+"""Cached priors: a frozen prior's relative depth computed once per frame and read back by the
+loaders, so the networks on top of it train at their own cost (``prior.cache: true``, the
+default; ``prior.cache=false`` runs the prior on every batch instead).
+
+Each frame's prior is stored under
+``<cache root>/priors/<prior key>/<digest[:2]>/<digest>.npy`` as float16 (H, W) relative inverse
+depth at the frame's size (what the prior module returns for the frame's image, before
+augmentation):
+
+* the **prior key** is a digest of the prior's name, its weights' content (SHA-256 of the file,
+  or of every file of a folder, :func:`weights_digest`), its ``input_size`` and
+  :data:`PRIOR_CACHE_VERSION`: other weights, even at the same path, are another folder;
+* the **frame digest** is a digest of the frame's image as the loaders serve it (its dtype,
+  shape and bytes, :func:`frame_digest`): a frame whose image changed (a dataset prepared again
+  with other settings, another dataset) finds no stale prior; identical images share one.
+
+So the cache is keyed by the weights, the input size and the data itself, and needs no index to
+go stale. Files are written under a temporary name and renamed (two processes filling one folder
+write the same bytes); ``meta.json`` records what made the folder. float16 keeps three
+significant digits, well within what an affine-invariant prior carries; a network trained on the
+cache sees the prior of the un-jittered image (the colour jitter reaches the image only), where
+``prior.cache=false`` runs it on the jittered one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from fusion_depth.data import cache_dir
+from fusion_depth.data.cache import check_settings_file
+from fusion_depth.data.depth_io import DataFileError, read_npy, write_npy
+from fusion_depth.data.encoding import decode_sample
+from fusion_depth.errors import ArgumentError
+
+log = logging.getLogger(__name__)
+
+PRIOR_CACHE_VERSION = 1  # bump when what a cached prior holds changes
+PRIOR_DTYPE = np.float16
+_CHUNK = 1 << 24  # bytes read at a time while hashing weights
+
+
+def _file_digest(path: Path, digest: Any) -> None:
+    with path.open("rb") as f:
+        while chunk := f.read(_CHUNK):
+            digest.update(chunk)
+
+
+def weights_digest(weights: str | Path) -> str:
+    """SHA-256 of a prior's weights: a file's bytes, or a folder's files (names and bytes, in
+    name order; hidden files and folders left out).
+
+    Raises:
+        ArgumentError: ``weights`` does not exist (naming ``weights``).
+    """
+    path = Path(weights).expanduser()
+    digest = hashlib.sha256()
+    if path.is_file():
+        _file_digest(path, digest)
+    elif path.is_dir():
+        files = sorted(
+            p
+            for p in path.rglob("*")
+            if p.is_file() and not any(part.startswith(".") for part in p.relative_to(path).parts)
+        )
+        for file in files:
+            digest.update(file.relative_to(path).as_posix().encode() + b"\0")
+            _file_digest(file, digest)
+    else:
+        raise ArgumentError(f"{{weights}}={weights}: no such file or folder", "weights")
+    return digest.hexdigest()
+
+
+def frame_digest(image: torch.Tensor) -> str:
+    """A digest of one frame's image as the loaders serve it ((3, H, W), encoded uint8 or
+    float): its dtype, shape and bytes."""
+    array = image.detach().cpu().contiguous().numpy()
+    digest = hashlib.blake2b(f"{array.dtype}{array.shape}".encode(), digest_size=16)
+    digest.update(memoryview(array).cast("B"))
+    return digest.hexdigest()
+
+
+class PriorCache:
+    """One prior's cached frames (see the module docstring).
+
+    Args:
+        spec: the ``prior`` node (``name``, ``weights``, ``input_size``).
+        root: the cache root (default: :func:`~fusion_depth.data.cache_dir`).
+
+    Raises:
+        ArgumentError: the weights do not exist.
+        DataFileError: the folder's ``meta.json`` records other settings.
+    """
+
+    def __init__(self, spec: Mapping[str, Any], root: str | Path | None = None) -> None:
+        settings = {
+            "version": PRIOR_CACHE_VERSION,
+            "name": spec["name"],
+            "weights_sha256": weights_digest(spec["weights"]),
+            "input_size": spec.get("input_size"),
+        }
+        key = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+        self.folder = Path(root if root is not None else cache_dir()) / "priors" / key
+        self.folder.mkdir(parents=True, exist_ok=True)
+        check_settings_file(self.folder / "meta.json", settings, self.folder)
+
+    def path(self, digest: str) -> Path:
+        """Where the prior of the frame with ``digest`` is stored."""
+        return self.folder / digest[:2] / f"{digest}.npy"
+
+    def read(self, image: torch.Tensor) -> torch.Tensor:
+        """The cached prior of the frame whose image is ``image`` (3, H, W): (1, H, W) float16.
+
+        Raises:
+            DataFileError: none is cached (the cache was filled for other frames, or deleted
+                since), or the file is damaged.
+        """
+        path = self.path(frame_digest(image))
+        if not path.is_file():
+            raise DataFileError(
+                path,
+                "no cached prior for this frame; run python -m fusion_depth.prepare with the "
+                "same prior= and dataset settings, or set prior.cache=false",
+            )
+        shape = tuple(image.shape[-2:])
+        array = read_npy(path, PRIOR_DTYPE, shape, "cached prior", f"delete {path}")
+        return torch.from_numpy(np.array(array))[None]
+
+    @torch.no_grad()
+    def fill(
+        self,
+        prior: nn.Module,
+        frames: Dataset,
+        what: str,
+        batch_size: int = 4,
+        device: torch.device | str = "cpu",
+    ) -> int:
+        """Compute and store the prior of every frame of ``frames`` not cached yet, in fp32.
+
+        Args:
+            prior: the frozen prior (relative inverse depth (B, 1, H, W) from (B, 3, H, W)).
+            frames: samples with ``image`` (encoded or float, as the loaders serve them).
+            what: the frames' name for the log (``train split``).
+            batch_size: frames run through the prior at once.
+            device: where the prior runs.
+
+        Returns:
+            The number of frames computed (0 when all were cached).
+        """
+        started = time.perf_counter()
+        missing: dict[str, torch.Tensor] = {}
+        for index in range(len(frames)):
+            image = frames[index]["image"]
+            digest = frame_digest(image)
+            if digest not in missing and not self.path(digest).is_file():
+                missing[digest] = image
+        prior = prior.to(device).eval()
+        digests = list(missing)
+        for start in range(0, len(digests), batch_size):
+            chunk = digests[start : start + batch_size]
+            images = decode_sample({"image": torch.stack([missing[d] for d in chunk])})["image"]
+            relative = prior(images.to(device).float()).float().cpu().numpy()
+            for digest, frame in zip(chunk, relative, strict=True):
+                self.path(digest).parent.mkdir(exist_ok=True)
+                write_npy(self.path(digest), frame[0].astype(PRIOR_DTYPE))
+        if digests:
+            took = time.perf_counter() - started
+            log.info(
+                "prior: %d of %d frames of the %s computed in %.1f s (%.1f frames/s) into %s",
+                len(digests),
+                len(frames),
+                what,
+                took,
+                len(digests) / max(took, 1e-9),
+                self.folder,
+            )
+        return len(digests)
+
+
+def fill_prior_caches(
+    cache: PriorCache,
+    prior: nn.Module,
+    datasets: Iterable[tuple[str, Dataset]],
+    device: torch.device | str = "cpu",
+) -> int:
+    """:meth:`PriorCache.fill` for each (split, frames) of ``datasets``; the frames computed."""
+    return sum(
+        cache.fill(prior, frames, f"{split} split", device=device) for split, frames in datasets
+    )

@@ -1,0 +1,156 @@
+"""A prior's global alignment scored with no training (``evaluate prior=...``), and a
+checkpoint's prior read from another file (``evaluate ckpt_path=... prior.weights=...``)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from helpers import run_module
+from helpers.prior import KnownPrior, offline_environment, refuse_network, tiny_depth_anything
+
+from fusion_depth.errors import ArgumentError
+from fusion_depth.models.prior_alignment import GlobalAlignment
+
+
+@pytest.fixture(autouse=True)
+def no_network(monkeypatch):
+    refuse_network(monkeypatch)
+
+
+@pytest.fixture(scope="module")
+def tiny_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiny_depth_anything")
+    tiny_depth_anything().save_pretrained(folder)
+    return folder
+
+
+def test_a_perfect_prior_aligns_to_the_true_depth_and_frames_without_returns_fall_back(
+    tiny_folder,
+):
+    torch.manual_seed(0)
+    depth = 2.0 + 40.0 * torch.rand(3, 1, 32, 48)
+    sparse = torch.where(torch.rand_like(depth) < 0.05, depth, 0.0)
+    sparse[1] = 0  # no return: the batch's median fit
+    prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    net = GlobalAlignment(prior, min_depth=0.5, max_depth=80.0).eval()
+    net.prior = KnownPrior(depth)
+    out = net(torch.rand(3, 3, 32, 48), sparse)
+    torch.testing.assert_close(out, depth, rtol=1e-5, atol=0)  # frame 1 too: same affine map
+    assert net.fit_summary() == {
+        "space": "inverse",
+        "ransac_iterations": 0,
+        "fits": 3,
+        "fallbacks": 1,
+    }
+    # A batch with no return at all takes the mean of the batches' fits so far: 3 and 0.25.
+    torch.testing.assert_close(net.fit_mean, torch.tensor([1 / 3, -0.25 / 3], dtype=torch.float64))
+    alone = net(torch.rand(3, 3, 32, 48), torch.zeros_like(sparse))
+    torch.testing.assert_close(alone, depth, rtol=1e-5, atol=0)
+    assert net.fit_summary()["fallbacks"] == 4
+
+
+def test_alignment_settings_are_checked_when_built(tiny_folder):
+    prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    with pytest.raises(ArgumentError, match=r"^space='metres': expected one of"):
+        GlobalAlignment(prior, space="metres")
+    with pytest.raises(ArgumentError, match=r"^ransac_iterations=1.5: expected an integer ≥ 0"):
+        GlobalAlignment(prior, ransac_iterations=1.5)
+    with pytest.raises(ArgumentError, match=r"^name=none: the global alignment needs a prior"):
+        GlobalAlignment({"name": "none"})
+
+
+def _evaluate(cwd, *overrides):
+    return run_module(["fusion_depth.evaluate", *overrides], cwd=cwd, env=offline_environment())
+
+
+def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_folder):
+    prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]
+    sweep = _evaluate(
+        tmp_path,
+        "-m",
+        "experiment=smoke",
+        "dataset=procedural",
+        *prior,
+        "alignment.space=inverse,depth",
+        f"hydra.sweep.dir={tmp_path}/sweep",
+    )
+    assert sweep.returncode == 0, sweep.stderr[-2000:]
+    assert "2 ok" in sweep.stdout + sweep.stderr  # the sweep's summary counts both
+    written = sorted((tmp_path / "sweep").glob("*/metrics.json"))
+    records = [json.loads(path.read_text()) for path in written]
+    records.sort(key=lambda record: record["alignment"]["space"] != "inverse")
+    assert [r["alignment"]["space"] for r in records] == ["inverse", "depth"]
+    for record in records:
+        assert record["run"]["model"] == "prior_alignment"
+        assert record["run"]["backbone"] == "depth_anything_v2"
+        assert record["alignment"]["fits"] == record["test"]["num_images"] > 0
+        assert 0 <= record["alignment"]["fallbacks"] < record["alignment"]["fits"]
+        assert 0 < record["test"]["rmse"] < 80
+    assert records[0]["alignment"]["fallbacks"] == 0  # every smoke frame has returns
+    assert records[0]["test"]["rmse"] != records[1]["test"]["rmse"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["dataset=procedural", "prior.weights=/no/such"], "prior.weights=/no/such: no such file"),
+        (
+            ["dataset=procedural", "prior.weights={tiny}", "alignment.space=metres"],
+            "alignment.space='metres': expected one of",
+        ),
+        (["prior.weights={tiny}"], "choose the dataset to fit and score it on with dataset="),
+    ],
+)
+def test_bad_alignment_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, message):
+    overrides = [o.replace("{tiny}", str(tiny_folder)) for o in overrides]
+    failed = _evaluate(
+        tmp_path, "prior=depth_anything_v2", *overrides, f"hydra.run.dir={tmp_path}/e"
+    )
+    assert failed.returncode == 1
+    assert message in failed.stderr
+    assert "Traceback" not in failed.stderr
+    assert not (tmp_path / "e" / "metrics.json").exists()
+
+
+def test_a_checkpoint_reads_its_prior_from_another_file(tmp_path, tiny_folder):
+    moved = tmp_path / "moved"
+    shutil.copytree(tiny_folder, moved)
+    run = tmp_path / "run"
+    trained = run_module(
+        [
+            "fusion_depth.train",
+            "experiment=smoke",
+            "logger=none",
+            "prior=depth_anything_v2",
+            f"prior.weights={moved}",
+            "prior.input_size=28",
+            f"hydra.run.dir={run}",
+        ],
+        cwd=tmp_path,
+        env=offline_environment(),
+    )
+    assert trained.returncode == 0, trained.stderr[-2000:]
+    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
+    shutil.move(moved, tmp_path / "elsewhere")  # the file the checkpoint names is gone
+    gone = _evaluate(tmp_path, f"ckpt_path={checkpoint}", f"hydra.run.dir={tmp_path}/gone")
+    assert gone.returncode == 1 and "no such file" in gone.stderr
+    assert "Traceback" not in gone.stderr
+    prior = ["prior=depth_anything_v2", f"prior.weights={tmp_path / 'elsewhere'}"]
+    found = _evaluate(tmp_path, f"ckpt_path={checkpoint}", *prior, f"hydra.run.dir={tmp_path}/e")
+    assert found.returncode == 0, found.stderr[-2000:]
+    rescored = json.loads((tmp_path / "e" / "metrics.json").read_text())
+    tested = json.loads((run / "metrics.json").read_text())
+    assert rescored["test"]["rmse"] == pytest.approx(tested["test"]["rmse"], rel=1e-4)
+    other = _evaluate(
+        tmp_path,
+        f"ckpt_path={checkpoint}",
+        "prior=checkpoint",
+        f"prior.weights={checkpoint}",
+        f"hydra.run.dir={tmp_path}/o",
+    )
+    assert other.returncode == 1
+    assert "prior=checkpoint: ckpt_path=" in other.stderr
+    assert "was trained with prior=depth_anything_v2" in other.stderr
