@@ -30,7 +30,7 @@ def _differences(expected: object, got: object, at: str = "") -> list[str]:
 
 # Keys that features after the fixtures added, with the value each must hold when the command
 # does not ask for the feature: dropped from the comparison once checked.
-NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0}
+NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0, "cache": False}
 ADDED_SINCE = {"prior": NO_PRIOR}  # the prior group (prior=none); DenseDepth reads it too
 ADDED_IF_PRESENT = {("model", "net", "prior"): NO_PRIOR}
 

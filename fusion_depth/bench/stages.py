@@ -224,22 +224,37 @@ def bench_inference(
     runs: int,
     memory: PeakMemory,
 ) -> dict[str, float]:
-    """Batch-1 latency of :func:`predict_depth` (depth in metres at the input size)."""
+    """Batch-1 latency of :func:`predict_depth` (depth in metres at the input size). For a
+    network with a frozen prior (``prior=``) also the prior's latency alone and the network's on
+    top of a given prior (``prior_latency_s_median``, ``head_latency_s_median``): a foundation
+    prior comes trained and may run elsewhere, so the two are read apart."""
     batch = synthetic_batch(cfg, 1, device)
     net.eval()
 
-    def infer() -> torch.Tensor:
+    def infer(**given: torch.Tensor) -> torch.Tensor:
         with torch.inference_mode(), autocast(precision, device):
-            return predict_depth(net, batch["image"], batch["sparse"])
+            return predict_depth(net, batch["image"], batch["sparse"], **given)
 
     memory.reset()
     times = time_calls(infer, device, warmup, runs)
-    return {
+    out = {
         "latency_s_median": _percentile(times, 50),
         "latency_s_p95": _percentile(times, 95),
         "runs": runs,
         "peak_memory_mb": memory.read_mb(),
     }
+    prior = getattr(net, "prior", None)
+    if prior is not None:
+
+        def run_prior() -> torch.Tensor:
+            with torch.inference_mode(), autocast(precision, device):
+                return prior(batch["image"])
+
+        out["prior_latency_s_median"] = _percentile(time_calls(run_prior, device, warmup, runs), 50)
+        given = run_prior().float()
+        head = time_calls(lambda: infer(prior=given), device, warmup, runs)
+        out["head_latency_s_median"] = _percentile(head, 50)
+    return out
 
 
 def bench_training(

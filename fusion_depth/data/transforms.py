@@ -14,10 +14,10 @@ from fusion_depth.utils.schema import PROBABILITY, Rule, Schema, is_number
 class TrainAugmentation(nn.Module):
     """The paper's online augmentation: horizontal flip, brightness and contrast jitter.
 
-    The flip moves image, sparse map, depth and radar points (``radar_points``: u → W - 1 - u)
-    together; the colour jitter touches the image only. Kornia's ``ColorJitter`` uses the
-    torchvision formulas (multiplicative brightness, contrast blended with the mean), which is
-    what the paper's ranges refer to.
+    The flip moves image, sparse map, depth, a cached prior (``prior``) and radar points
+    (``radar_points``: u → W - 1 - u) together; the colour jitter touches the image only.
+    Kornia's ``ColorJitter`` uses the torchvision formulas (multiplicative brightness, contrast
+    blended with the mean), which is what the paper's ranges refer to.
     """
 
     def __init__(
@@ -36,9 +36,15 @@ class TrainAugmentation(nn.Module):
     @torch.no_grad()
     def forward(self, batch: dict) -> dict:
         image, sparse, depth = batch["image"], batch["sparse"], batch["depth"]
-        stacked = self.flip(torch.cat([image, sparse, depth], dim=1))
-        image, sparse, depth = stacked.split([image.shape[1], 1, 1], dim=1)
+        maps = [image, sparse, depth]
+        prior = batch.get("prior")
+        if prior is not None:
+            maps.append(prior.to(image.dtype))
+        stacked = self.flip(torch.cat(maps, dim=1))
+        image, sparse, depth, *flipped_prior = stacked.split([m.shape[1] for m in maps], dim=1)
         out = dict(batch)
+        if prior is not None:
+            out["prior"] = flipped_prior[0].contiguous()
         points = batch.get("radar_points")
         if points is not None:  # the flipped images' returns mirror too: u → W - 1 - u
             flipped = self.flip._params["batch_prob"].to(points.device) > 0.5

@@ -103,9 +103,14 @@ class DepthModel(nn.Module):
         image: torch.Tensor,
         sparse: torch.Tensor | None = None,
         points: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Depth in metres at the network's output resolution, (B, 1, h, w). ``points`` (the
-        batch's ``radar_points``) reach only a network that :attr:`takes_points`."""
+        batch's ``radar_points``) reach only a network that :attr:`takes_points`; ``prior``
+        (the batch's cached prior, :mod:`fusion_depth.runner.prior_cache`) only a network
+        built with one, which then does not run its own."""
         if self.takes_points:
             return self.to_depth(self.forward(image, sparse, points))
+        if prior is not None:
+            return self.to_depth(self.forward(image, sparse, prior=prior))
         return self.to_depth(self.forward(image, sparse))

@@ -73,6 +73,7 @@ class DepthNet(DepthModel):
                 "prior",
                 owner=type(self),
             )
+        spec.pop("cache", None)  # where the runner reads it from, not the network's concern
         self.prior = build_prior(**spec)
         # backbone_taps: paper (the paper's DenseNet/ResNet taps) | pyramid (any timm model's
         # own feature pyramid, backbone=timm); see fusion_depth.models.encoder.Encoder.
@@ -90,20 +91,29 @@ class DepthNet(DepthModel):
         if self.prior is not None:
             keep_prior_out_of_checkpoints(self)
 
-    def prior_input(self, image: torch.Tensor) -> torch.Tensor | None:
-        """The prior's channel for ``image``: its relative depth normalised per frame, zero for
-        the frames dropped in training; None without a prior."""
+    def prior_input(
+        self, image: torch.Tensor, cached: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        """The prior's channel for ``image``: its relative depth (``cached``, the batch's cached
+        prior, or the prior run on ``image``) normalised per frame, zero for the frames dropped
+        in training; None without a prior."""
         if self.prior is None:
             return None
-        prior = normalized_prior(self.prior(image))
+        relative = self.prior(image) if cached is None else cached.float()
+        prior = normalized_prior(relative)
         if self.training and self.prior_dropout > 0:
             kept = torch.rand(len(image), 1, 1, 1, device=image.device) >= self.prior_dropout
             prior = prior * kept
         return prior
 
-    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        image: torch.Tensor,
+        sparse: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         self.check_input_size(image)
-        fused = self.fusion(image, sparse, self.prior_input(image))
+        fused = self.fusion(image, sparse, self.prior_input(image, prior))
         # fp32 out even under autocast: depth = scale / reciprocal, the loss and the metrics
         # need more than bf16's 3 significant digits.
         return self.decoder(self.encoder(fused)).float()

@@ -30,7 +30,7 @@ from fusion_depth.errors import (
     MissingDependencyError,
     check_choice,
 )
-from fusion_depth.utils.schema import POSITIVE_INT, PROBABILITY, Rule, Schema
+from fusion_depth.utils.schema import BOOLEAN, POSITIVE_INT, PROBABILITY, Rule, Schema
 
 PATCH = 14  # DINOv2's patch: the prior's input is resized to a multiple of it
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -441,6 +441,7 @@ ARGUMENT_RULES: Schema = {
         f"an integer ≥ {PATCH}, or null (the image's own size)",
     ),
     "dropout": PROBABILITY,
+    "cache": BOOLEAN,  # the runner's: computed once per frame (fusion_depth.runner.prior_cache)
 }
 
 

@@ -40,6 +40,7 @@ def predict_depth(
     size: tuple[int, int] | None = None,
     upsample: str = "bilinear",
     points: torch.Tensor | None = None,
+    prior: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth in metres ``(B, 1, H, W)`` for images ``(B, 3, H, W)`` in [0, 1].
 
@@ -50,6 +51,8 @@ def predict_depth(
     padding is cut off again, so any image size works. ``points`` (B, P, 6), the batch's
     ``radar_points`` (columns :data:`~fusion_depth.data.RADAR_POINT_FIELDS`), reach a network
     that takes them (``model=radarnet``), mirrored with the image under ``flip_tta``.
+    ``prior`` (B, 1, H, W), the batch's cached prior, reaches a network built with one in place
+    of running it (padded and mirrored as the image is).
     """
     _check_upsample(upsample)
     sparse = sparse if net.fusion.uses_sparse else None
@@ -59,9 +62,11 @@ def predict_depth(
         image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
         if sparse is not None:
             sparse = F.pad(sparse, (0, pad_w, 0, pad_h))
+        if prior is not None:
+            prior = F.pad(prior, (0, pad_w, 0, pad_h), mode="replicate")
     points = points if getattr(net, "takes_points", False) else None
     depth = (
-        net.predict_depth(image, sparse)
+        net.predict_depth(image, sparse, prior=prior)
         if points is None
         else net.predict_depth(image, sparse, points)
     )
@@ -74,7 +79,10 @@ def predict_depth(
             )
         mirrored_sparse = None if sparse is None else sparse.flip(-1)
         if flipped is None:
-            mirrored = net.predict_depth(image.flip(-1), mirrored_sparse).flip(-1)
+            mirrored_prior = None if prior is None else prior.flip(-1)
+            mirrored = net.predict_depth(
+                image.flip(-1), mirrored_sparse, prior=mirrored_prior
+            ).flip(-1)
         else:
             mirrored = net.predict_depth(image.flip(-1), mirrored_sparse, flipped).flip(-1)
         # The mean of the two; where one is 0 (no prediction: model=radarnet's association

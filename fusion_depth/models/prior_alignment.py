@@ -85,10 +85,15 @@ class GlobalAlignment(FallbackCount, DepthModel):
         self.fitted_batches = 0
         self.reset_fits()
 
-    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        image: torch.Tensor,
+        sparse: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         if sparse is None:
             raise ValueError("the global alignment needs the sparse depth map")
-        relative = self.prior(image).float()
+        relative = (self.prior(image) if prior is None else prior).float()
         # In float64 whatever the autocast (fit_scale_shift): bf16 moves a shift by 10 %.
         with torch.autocast(image.device.type, enabled=False):
             fit = fit_scale_shift(

@@ -136,11 +136,17 @@ class PriorCorrection(DepthNet):
         shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)
         return (scale * relative + shift).clamp_min(1.0 / self.max_depth)
 
-    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        image: torch.Tensor,
+        sparse: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         self.check_input_size(image)
         if sparse is None:
             raise ValueError("model=prior_correction needs the sparse depth map")
-        inverse = self.global_fit(self.prior(image), sparse)
+        relative = self.prior(image) if prior is None else prior.float()
+        inverse = self.global_fit(relative, sparse)
         aligned = self.fusion.encode_sparse((1.0 / inverse).clamp(self.min_depth, self.max_depth))
         log_scale = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()
         base = F.interpolate(inverse, size=log_scale.shape[-2:], mode="bilinear")

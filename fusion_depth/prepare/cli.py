@@ -30,9 +30,10 @@ from __future__ import annotations
 
 import logging
 import sys
+from typing import Any
 
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config import target_accepts, validate_dataset_config
 from fusion_depth.config.hydra_main import hydra_main
@@ -107,12 +108,51 @@ def prepare(cfg: DictConfig) -> dict[str, int]:
     return counts
 
 
+def cached_prior(cfg: DictConfig) -> Any:
+    """With ``prior=<name>`` (and ``prior.cache`` not false): the prior, built (and its settings
+    checked) before any frame is prepared; None without one.
+
+    Raises:
+        ConfigError: a ``prior.*`` value it cannot take (naming the key).
+        ArgumentError: the prior cannot be built (naming ``prior.weights``).
+    """
+    spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
+    # Imported here: the networks' modules take seconds to import, and most prepares need none.
+    from fusion_depth.runner.prior_cache import uses_prior_cache
+
+    if not uses_prior_cache(spec):
+        return None
+    from fusion_depth.models.depth_prior import ARGUMENT_RULES, build_prior
+    from fusion_depth.utils.config_values import check_schema
+
+    check_schema(cfg, {f"prior.{key}": rule for key, rule in ARGUMENT_RULES.items()})
+    return build_prior(spec["name"], spec["weights"], spec.get("input_size"))
+
+
+def prepare_prior(cfg: DictConfig, prior: Any) -> int:
+    """The prior of every training and validation frame computed into its cache
+    (:mod:`fusion_depth.runner.prior_cache`), where training reads it; the frames computed (0:
+    all were cached)."""
+    import torch
+
+    from fusion_depth.runner.datamodule import IndexedDataset
+    from fusion_depth.runner.prior_cache import CACHED_SPLITS, PriorCache, fill_prior_caches
+
+    reader = instantiate(cfg.dataset.reader)
+    frames = [(split, IndexedDataset(reader(split=split))) for split in CACHED_SPLITS]
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    spec = OmegaConf.to_container(cfg.prior, resolve=True)
+    return fill_prior_caches(PriorCache(spec), prior, frames, device)
+
+
 @hydra_main("prepare")
 def main(cfg: DictConfig) -> None:
     """Entry point: prints the frames per split; exits with status 1 when frames were skipped
     (after printing one line per split)."""
+    prior = cached_prior(cfg)  # a bad prior fails before any frame is prepared
     try:
         counts = prepare(cfg)
+        computed = None if prior is None else prepare_prior(cfg, prior)
     except KeyboardInterrupt:
         print(
             "prepare: interrupted (Ctrl-C); the frames finished so far are kept: run the same "
@@ -143,3 +183,5 @@ def main(cfg: DictConfig) -> None:
         )
         sys.exit(1)
     print(", ".join(f"{split}: {n} frames" for split, n in counts.items()))
+    if computed is not None:
+        print(f"prior={cfg.prior.name}: {computed} frames computed, the others were cached")

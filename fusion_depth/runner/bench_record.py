@@ -166,6 +166,12 @@ def speed_notes(result: Mapping[str, Any]) -> str:
         notes.append(f"matrix-product peak {result['peak_gflops']:.0f} GFLOP/s ({s['precision']})")
     if result.get("baseline_peak_gflops"):
         notes.append(f"{result['baseline_peak_gflops']:.0f} GFLOP/s (fp32)")
+    infer = result.get("infer") or {}
+    if infer.get("prior_latency_s_median") is not None:
+        notes.append(
+            f"of the batch-1 latency, the prior alone {_fmt(infer['prior_latency_s_median'])} s "
+            f"and the network on top of it {_fmt(infer['head_latency_s_median'])} s"
+        )
     if result.get("infer_gflop_per_frame"):
         notes.append(f"{result['infer_gflop_per_frame']:.1f} GFLOP per frame")
     if result.get("train_gflop_per_step"):

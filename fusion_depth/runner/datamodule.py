@@ -16,6 +16,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from fusion_depth.data import SPLITS
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.errors import ConfigError
+from fusion_depth.runner.prior_cache import CachedPriorFrames, PriorCache
 from fusion_depth.utils.schema import NON_NEGATIVE_INT, POSITIVE_INT, Rule, Schema, is_int, one_of
 
 log = logging.getLogger(__name__)
@@ -180,6 +181,9 @@ class DepthDataModule(L.LightningDataModule):
         self.test_split = test_split  # what the test stage scores (evaluate's split=)
         self.seed = seed  # the training order's (see EpochSampler)
         self.datasets: dict[str, Dataset] = {}
+        # Set by train: the frames' cached prior, added to the training and validation batches
+        # (the test stage runs the prior itself, as the deployed model does).
+        self.prior_cache: PriorCache | None = None
 
     def dataset(self, split: str) -> Dataset:
         """The dataset of one split, built on first use."""
@@ -199,12 +203,15 @@ class DepthDataModule(L.LightningDataModule):
         for split in needed:
             self.dataset(split)
 
-    def loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+    def loader(self, split: str, shuffle: bool, batch_size: int, prior: bool = False) -> DataLoader:
         """A DataLoader of ``split`` with this module's worker and memory settings (the one
         way loaders are built: the stages below and ``bench``'s data stage). Shuffled loaders
         are resumable (see :class:`ResumableLoader`); every loader draws its worker seeds from
-        its own generator, so iterating one never moves the global RNG that augmentation uses."""
+        its own generator, so iterating one never moves the global RNG that augmentation uses.
+        ``prior``: each sample carries its cached prior too, where :attr:`prior_cache` is set."""
         dataset = self.dataset(split)
+        if prior and self.prior_cache is not None:
+            dataset = CachedPriorFrames(dataset, self.prior_cache)
         common = {
             "batch_size": batch_size,
             "num_workers": self.num_workers,
@@ -218,10 +225,10 @@ class DepthDataModule(L.LightningDataModule):
         return DataLoader(dataset, shuffle=False, **common)
 
     def train_dataloader(self) -> DataLoader:
-        return self.loader("train", True, self.batch_size)
+        return self.loader("train", True, self.batch_size, prior=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self.loader("val", False, self.eval_batch_size)
+        return self.loader("val", False, self.eval_batch_size, prior=True)
 
     def test_dataloader(self) -> DataLoader:
         return self.loader(self.test_split, False, self.eval_batch_size)

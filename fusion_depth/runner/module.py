@@ -217,6 +217,8 @@ class DepthModule(L.LightningModule):
         sparse = batch["sparse"] if self.net.fusion.uses_sparse else None
         if getattr(self.net, "takes_points", False):  # radar points from the batch when it has them
             return self.net(batch["image"], sparse, batch.get("radar_points"))
+        if batch.get("prior") is not None:  # the cached prior (fusion_depth.runner.prior_cache)
+            return self.net(batch["image"], sparse, prior=batch["prior"])
         return self.net(batch["image"], sparse)
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:

@@ -77,7 +77,11 @@ def weights_digest(weights: str | Path) -> str:
             digest.update(file.relative_to(path).as_posix().encode() + b"\0")
             _file_digest(file, digest)
     else:
-        raise ArgumentError(f"{{weights}}={weights}: no such file or folder", "weights")
+        raise ArgumentError(
+            f"{{weights}}={weights}: no such file or folder",
+            "weights",
+            owner="fusion_depth.models.depth_prior",
+        )
     return digest.hexdigest()
 
 
@@ -187,6 +191,21 @@ class PriorCache:
         return len(digests)
 
 
+class CachedPriorFrames(Dataset):
+    """``frames`` (samples with ``image``) with each frame's cached prior added as ``prior``
+    ((1, H, W) float16, :meth:`PriorCache.read`)."""
+
+    def __init__(self, frames: Dataset, cache: PriorCache) -> None:
+        self.frames, self.cache = frames, cache
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> dict:
+        sample = self.frames[index]
+        return {**sample, "prior": self.cache.read(sample["image"])}
+
+
 def fill_prior_caches(
     cache: PriorCache,
     prior: nn.Module,
@@ -197,3 +216,28 @@ def fill_prior_caches(
     return sum(
         cache.fill(prior, frames, f"{split} split", device=device) for split, frames in datasets
     )
+
+
+CACHED_SPLITS = ("train", "val")  # what the cache serves; the test stage runs the prior itself
+
+
+def uses_prior_cache(spec: Mapping[str, Any] | None) -> bool:
+    """Whether a ``prior`` node asks for a cached prior (a prior, and ``cache`` not false)."""
+    return bool(spec) and spec.get("name", "none") != "none" and bool(spec.get("cache", True))
+
+
+def attach_prior_cache(
+    net: nn.Module, spec: Mapping[str, Any], datamodule: Any, device: torch.device | str
+) -> PriorCache | None:
+    """Fill the cache of ``net``'s prior for the training and validation splits of
+    ``datamodule`` (a :class:`~fusion_depth.runner.datamodule.DepthDataModule`) and have its
+    loaders read it; None (and nothing done) where ``net`` has no prior or ``spec`` (the
+    ``prior`` node) sets ``cache: false``."""
+    prior = getattr(net, "prior", None)
+    if prior is None or not uses_prior_cache(spec):
+        return None
+    cache = PriorCache(spec)
+    splits = [(split, datamodule.dataset(split)) for split in CACHED_SPLITS]
+    fill_prior_caches(cache, prior, splits, device)
+    datamodule.prior_cache = cache
+    return cache

@@ -173,7 +173,7 @@ def finished_results(output_dir: Path) -> dict | None:
 # Config keys added since a run folder may have been written, with the value that computes as
 # the run did without them: a stored config that lacks one of these is the same run.
 # The prior group (0.3.0) at prior=none, which computes as a run without it did.
-_NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0}
+_NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0, "cache": False}
 _ADDED_KEYS: dict[str, Any] = {
     **{
         f"{block}.{key}": value

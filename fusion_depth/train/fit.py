@@ -29,6 +29,7 @@ from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
 from fusion_depth.runner.loggers import closing
 from fusion_depth.runner.module import DepthModule, module_from_config
+from fusion_depth.runner.prior_cache import attach_prior_cache
 from fusion_depth.runner.protocol import EvaluationResult
 from fusion_depth.runner.record import (
     METRICS_FILE,
@@ -270,6 +271,8 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
     model = module_from_config(cfg)
     check_output_dir(output_dir, checkpoint_room(cfg.callbacks, model))
+    prior = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
+    attach_prior_cache(model.net, prior, datamodule, accelerator_device(cfg.trainer.accelerator))
     model.run_config = plain_config(run_config)  # checkpoints hold data, never code to call
     model.run_identity = job.identity
     logger = _logger(cfg, start)

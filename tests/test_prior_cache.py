@@ -1,0 +1,167 @@
+"""The prior computed once per frame (``prior.cache``): keyed by the weights' content, the input
+size and each frame's image; read back by the training and validation loaders, flipped with the
+image; filled ahead by ``prepare``; a missing or damaged file is one line naming it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from helpers import run_module
+from helpers.prior import offline_environment, refuse_network, tiny_depth_anything
+
+from fusion_depth.data.depth_io import DataFileError
+from fusion_depth.data.transforms import TrainAugmentation
+from fusion_depth.models.depth_prior import DepthAnythingPrior
+from fusion_depth.runner.prior_cache import CachedPriorFrames, PriorCache, frame_digest
+
+
+@pytest.fixture(autouse=True)
+def no_network(monkeypatch):
+    refuse_network(monkeypatch)
+
+
+@pytest.fixture(scope="module")
+def tiny_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiny_depth_anything")
+    tiny_depth_anything().save_pretrained(folder)
+    return folder
+
+
+def frames(count=5, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    images = torch.randint(0, 256, (count, 3, 32, 48), dtype=torch.uint8, generator=generator)
+    return [{"image": image, "index": i} for i, image in enumerate(images)]
+
+
+def test_filled_once_and_read_back_as_the_prior_computes_it(tmp_path, tiny_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    cache = PriorCache(spec, root=tmp_path)
+    prior = DepthAnythingPrior(tiny_folder, input_size=28)
+    data = frames()
+    assert cache.fill(prior, data, "test frames") == 5
+    assert cache.fill(prior, data, "test frames") == 0  # all cached
+    assert (cache.folder / "meta.json").is_file()
+    served = CachedPriorFrames(data, cache)[3]
+    expected = prior(data[3]["image"][None].float() / 255)[0]
+    assert served["prior"].dtype == torch.float16 and served["prior"].shape == (1, 32, 48)
+    torch.testing.assert_close(served["prior"].float(), expected, rtol=2e-3, atol=1e-3)
+    assert served["index"] == 3  # the frame's own keys pass through
+
+
+def test_other_weights_input_size_or_image_find_no_stale_prior(tmp_path, tiny_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    folder = PriorCache(spec, root=tmp_path).folder
+    assert PriorCache({**spec, "input_size": 42}, root=tmp_path).folder != folder
+    edited = tmp_path / "edited"
+    shutil.copytree(tiny_folder, edited)
+    same = PriorCache({**spec, "weights": str(edited)}, root=tmp_path).folder
+    assert same == folder  # the same bytes elsewhere: the same cache
+    with (edited / "config.json").open("a") as f:
+        f.write(" ")  # one byte more in the same file at the same path
+    assert PriorCache({**spec, "weights": str(edited)}, root=tmp_path).folder != folder
+    image = frames(1)[0]["image"]
+    changed = image.clone()
+    changed[0, 0, 0] ^= 1
+    assert frame_digest(changed) != frame_digest(image)
+    assert frame_digest(image.float()) != frame_digest(image)
+
+
+def test_a_missing_or_damaged_cached_prior_is_one_line_naming_it(tmp_path, tiny_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    cache = PriorCache(spec, root=tmp_path)
+    data = frames(2)
+    with pytest.raises(DataFileError, match=r"no cached prior for this frame; run python -m"):
+        CachedPriorFrames(data, cache)[0]
+    cache.fill(DepthAnythingPrior(tiny_folder, input_size=28), data, "test frames")
+    path = cache.path(frame_digest(data[1]["image"]))
+    path.write_bytes(path.read_bytes()[:100])  # truncated
+    with pytest.raises(DataFileError, match=rf"^{path}"):
+        CachedPriorFrames(data, cache)[1]
+    CachedPriorFrames(data, cache)[0]  # the other frame still reads
+
+
+def test_the_flip_moves_the_cached_prior_with_the_image():
+    image = torch.rand(2, 3, 8, 12)
+    batch = {
+        "image": image,
+        "sparse": torch.rand(2, 1, 8, 12),
+        "depth": torch.rand(2, 1, 8, 12),
+        "prior": image[:, :1].half(),  # the prior lines up with the image's first channel
+    }
+    out = TrainAugmentation(flip_p=1.0, color_p=0.0)(batch)
+    torch.testing.assert_close(out["prior"], image[:, :1].flip(-1).half().float())
+    torch.testing.assert_close(out["image"], image.flip(-1))
+
+
+def test_prepare_fills_it_and_training_reads_it(tmp_path, tiny_folder):
+    prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]
+    environment = {**offline_environment(), "FUSION_DEPTH_CACHE": str(tmp_path / "cache")}
+    prepared = run_module(
+        ["fusion_depth.prepare", "experiment=smoke", *prior, f"hydra.run.dir={tmp_path}/p"],
+        cwd=tmp_path,
+        env=environment,
+    )
+    assert prepared.returncode == 0, prepared.stderr[-2000:]
+    assert "prior=depth_anything_v2: 12 frames computed" in prepared.stdout  # 8 train + 4 val
+    (folder,) = (tmp_path / "cache" / "priors").iterdir()
+    assert len(list(folder.glob("*/*.npy"))) == 12
+    trained = run_module(
+        [
+            "fusion_depth.train",
+            "experiment=smoke",
+            "logger=none",
+            *prior,
+            f"hydra.run.dir={tmp_path}/t",
+        ],
+        cwd=tmp_path,
+        env=environment,
+    )
+    assert trained.returncode == 0, trained.stderr[-2000:]
+    assert "frames of the train split computed" not in trained.stderr  # read, not computed
+    # Training serves the cache: a damaged file stops the next run, naming it.
+    victim = sorted(folder.glob("*/*.npy"))[0]
+    victim.write_bytes(b"not an array")
+    broken = run_module(
+        [
+            "fusion_depth.train",
+            "experiment=smoke",
+            "logger=none",
+            *prior,
+            f"hydra.run.dir={tmp_path}/b",
+        ],
+        cwd=tmp_path,
+        env=environment,
+    )
+    assert broken.returncode == 1
+    assert str(victim) in broken.stderr and "Traceback" not in broken.stderr
+    on_the_fly = run_module(
+        [
+            "fusion_depth.train",
+            "experiment=smoke",
+            "logger=none",
+            *prior,
+            "prior.cache=false",
+            f"hydra.run.dir={tmp_path}/f",
+        ],
+        cwd=tmp_path,
+        env=environment,
+    )
+    assert on_the_fly.returncode == 0, on_the_fly.stderr[-2000:]
+
+
+def test_bench_reads_the_prior_and_the_network_on_top_apart(tmp_path, tiny_folder):
+    result = tmp_path / "bench.json"
+    prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]
+    timed = run_module(
+        ["fusion_depth.bench", "--only", "infer", "--runs", "2", "--json", str(result)]
+        + ["experiment=smoke", *prior],
+        cwd=tmp_path,
+        env=offline_environment(),
+    )
+    assert timed.returncode == 0, timed.stderr[-2000:]
+    infer = json.loads(result.read_text())["infer"]
+    assert infer["prior_latency_s_median"] > 0 and infer["head_latency_s_median"] > 0
+    assert "the prior alone" in timed.stdout and "the network on top of it" in timed.stdout
