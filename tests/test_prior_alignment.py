@@ -144,6 +144,28 @@ def test_a_checkpoint_reads_its_prior_from_another_file(tmp_path, tiny_folder):
     rescored = json.loads((tmp_path / "e" / "metrics.json").read_text())
     tested = json.loads((run / "metrics.json").read_text())
     assert rescored["test"]["rmse"] == pytest.approx(tested["test"]["rmse"], rel=1e-4)
+    # Served without its prior (as prior.dropout trained it to take): no prior file is read.
+    without = _evaluate(
+        tmp_path, f"ckpt_path={checkpoint}", "prior=none", f"hydra.run.dir={tmp_path}/n"
+    )
+    assert without.returncode == 0, without.stderr[-2000:]
+    record = json.loads((tmp_path / "n" / "metrics.json").read_text())
+    assert "prior=none" in record["run"]["overrides"]  # report keeps it apart from the run
+    assert not moved.exists()  # the file the checkpoint names is gone, and was not needed
+    predicted = run_module(
+        [
+            "fusion_depth.predict",
+            f"ckpt_path={checkpoint}",
+            "prior=none",
+            "input=split:test",
+            "limit=2",
+            f"hydra.run.dir={tmp_path}/p",
+        ],
+        cwd=tmp_path,
+        env=offline_environment(),
+    )
+    assert predicted.returncode == 0, predicted.stderr[-2000:]
+    assert len(list((tmp_path / "p" / "predictions").glob("*.png"))) >= 2
     other = _evaluate(
         tmp_path,
         f"ckpt_path={checkpoint}",
@@ -154,3 +176,19 @@ def test_a_checkpoint_reads_its_prior_from_another_file(tmp_path, tiny_folder):
     assert other.returncode == 1
     assert "prior=checkpoint: ckpt_path=" in other.stderr
     assert "was trained with prior=depth_anything_v2" in other.stderr
+
+
+def test_a_network_trained_with_a_prior_serves_without_it(tiny_folder):
+    from fusion_depth.models import DepthNet, create_model
+
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    torch.manual_seed(0)
+    trained = DepthNet("resnet10t", "concat", prior=spec).eval()
+    served = DepthNet("resnet10t", "concat", prior={**spec, "enabled": False}).eval()
+    assert served.prior is None  # not built: no weights file is read
+    served.load_state_dict(trained.state_dict())
+    image, sparse = torch.rand(2, 3, 64, 96), torch.rand(2, 1, 64, 96) * 40
+    trained.prior_input = lambda image, cached=None: torch.zeros_like(image[:, :1])
+    torch.testing.assert_close(served(image, sparse), trained(image, sparse))
+    with pytest.raises(ArgumentError, match=r"^prior=none: model=prior_correction corrects"):
+        create_model("prior_correction", prior={**spec, "enabled": False}, backbone="resnet10t")

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -68,12 +70,16 @@ def _guards(cfg: DictConfig) -> dict[str, str | None]:
     }
 
 
-def _chosen_prior(cfg: DictConfig) -> dict | None:
-    """The ``prior=`` node given (None: none, or ``prior=none``)."""
+def _given_prior(cfg: DictConfig) -> dict | None:
+    """The ``prior=`` node given (``prior=none`` included); None where none was."""
     prior = cfg.get("prior")
-    if prior is None or prior.get("name") in (None, NO_PRIOR):
-        return None
-    return OmegaConf.to_container(prior, resolve=True)
+    return None if prior is None else OmegaConf.to_container(prior, resolve=True)
+
+
+def _chosen_prior(cfg: DictConfig) -> dict | None:
+    """The ``prior=`` node given, where it names a prior (None: none given, or ``prior=none``)."""
+    prior = _given_prior(cfg)
+    return None if prior is None or prior.get("name") in (None, NO_PRIOR) else prior
 
 
 def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
@@ -119,9 +125,16 @@ def evaluate_checkpoint(
     and returns the record written."""
     if cfg.split not in SPLITS:
         raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
-    prior = _chosen_prior(cfg)
+    prior = _given_prior(cfg)
     loaded = load_model(ckpt_path, **_guards(cfg), prior=prior)
-    return evaluate_loaded(cfg, loaded, output_dir)
+    # Served without the prior it was trained with: another computation, named in its identity.
+    without = prior is not None and prior["name"] == NO_PRIOR and _trained_prior(loaded) != NO_PRIOR
+    return evaluate_loaded(cfg, loaded, output_dir, served=["prior=none"] if without else [])
+
+
+def _trained_prior(loaded: LoadedModel) -> str:
+    """The prior a checkpoint's network was trained with (``none`` for none)."""
+    return ((loaded.config["model"]["net"].get("prior") or {}).get("name")) or NO_PRIOR
 
 
 def evaluate_model_file(
@@ -136,7 +149,7 @@ def evaluate_model_file(
     """
     if cfg.split not in SPLITS:
         raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
-    if _chosen_prior(cfg):
+    if _given_prior(cfg) is not None:
         raise ConfigError(
             f"prior={cfg.prior.name} with model_file={model_file}: an exported file holds its "
             "prior; prior= goes with ckpt_path=, or alone to score the prior's alignment"
@@ -144,11 +157,15 @@ def evaluate_model_file(
     return evaluate_loaded(cfg, load_exported(model_file, **_guards(cfg)), output_dir)
 
 
-def evaluate_loaded(cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path) -> RunRecord:
+def evaluate_loaded(
+    cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path, served: Sequence[str] = ()
+) -> RunRecord:
     """Score ``loaded`` (a checkpoint's network, or an exported model file's
     :class:`~fusion_depth.export.runtime.ExportedModel`, which runs on the CPU in the
     precision its engine was given, so the Trainer's is fp32); writes ``metrics.json`` and
-    ``per_image.csv`` into ``output_dir`` and returns the record written."""
+    ``per_image.csv`` into ``output_dir`` and returns the record written. ``served``: the
+    overrides that make it compute otherwise than trained (``prior=none``), added to the
+    record's overrides so that ``report`` keeps it apart."""
     exported = isinstance(loaded.net, ExportedModel)
     # Resolved here: once detached from the root config its ${...} references could not be.
     chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
@@ -207,6 +224,8 @@ def evaluate_loaded(cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
     # Before the work: a malformed record fails first.
     identity = rescored_identity(loaded.run, loaded.config, dataset, engine_identity(loaded.net))
+    if served:
+        identity = replace(identity, overrides=sorted({*(identity.overrides or []), *served}))
     check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
     counts = isinstance(loaded.net, FallbackCount)
     with closing(logger):

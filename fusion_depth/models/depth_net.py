@@ -13,6 +13,7 @@ from fusion_depth.models._registry import Recipe, register_model
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.decoder import DenseDepthDecoder
 from fusion_depth.models.depth_prior import (
+    NO_PRIOR,
     build_prior,
     keep_prior_out_of_checkpoints,
     normalized_prior,
@@ -45,8 +46,9 @@ class DepthNet(DepthModel):
 
     ``prior`` (the ``prior`` config node: ``name``, ``weights``, ``input_size``, ``dropout``)
     adds a frozen monocular prior's relative depth as a further input (:class:`InputFusion`,
-    TacoDepth's plug-in mode), computed on the fly from the image; in training a share
-    ``dropout`` of the frames gets none, so that the network learns to work without it. The
+    TacoDepth's plug-in mode), computed from the image (or given: a cached prior); in training
+    a share ``dropout`` of the frames gets none, so that the network learns to work without it,
+    and ``enabled: false`` serves it so (the prior is not built; its channel gets zeros). The
     prior's weights stay in their own files: a checkpoint holds the network's, and names the
     prior's file, from which the prior is built again when the checkpoint is loaded.
     """
@@ -74,7 +76,11 @@ class DepthNet(DepthModel):
                 owner=type(self),
             )
         spec.pop("cache", None)  # where the runner reads it from, not the network's concern
-        self.prior = build_prior(**spec)
+        # enabled: false serves a network trained with a prior without it: its channel gets
+        # zeros, as prior.dropout trained it to take (evaluate ckpt_path=... prior=none).
+        enabled = spec.pop("enabled", True)
+        has_channel = spec.get("name", NO_PRIOR) != NO_PRIOR
+        self.prior = build_prior(**spec) if enabled else None
         # backbone_taps: paper (the paper's DenseNet/ResNet taps) | pyramid (any timm model's
         # own feature pyramid, backbone=timm); see fusion_depth.models.encoder.Encoder.
         self.encoder = Encoder(backbone, pretrained=pretrained, weights=weights, taps=backbone_taps)
@@ -85,7 +91,7 @@ class DepthNet(DepthModel):
             sparse_encoding=sparse_encoding,
             mean=self.encoder.mean,
             std=self.encoder.std,
-            prior=self.prior is not None,
+            prior=has_channel,
         )
         self.decoder = DenseDepthDecoder(self.encoder.channels)
         if self.prior is not None:

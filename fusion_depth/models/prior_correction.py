@@ -87,6 +87,12 @@ class PriorCorrection(DepthNet):
     ) -> None:
         spec = {**dict(prior or {}), "dropout": 0.0}  # the prior is always there
         check_model_takes("prior_correction", fusion=fusion, prior=spec.get("name", "none"))
+        if not spec.get("enabled", True):
+            raise ArgumentError(
+                "{prior}=none: model=prior_correction corrects its prior and cannot run without it",
+                "prior",
+                owner=type(self),
+            )
         if not 0 <= fit_momentum <= 1:
             raise ArgumentError(
                 f"{{fit_momentum}}={fit_momentum}: expected a share in [0, 1]",

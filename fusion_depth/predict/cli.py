@@ -36,10 +36,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.hydra_main import hydra_main
 from fusion_depth.data import SPLITS
+from fusion_depth.errors import ConfigError
 from fusion_depth.export.runtime import check_source, load_exported
 from fusion_depth.predict.files import (
     SPLIT_PREFIX,
@@ -78,11 +79,18 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
             )
     check_source(cfg.get("ckpt_path"), cfg.get("model_file"))
     if cfg.get("model_file") is not None:
+        if cfg.get("prior") is not None:
+            raise ConfigError(
+                f"prior={cfg.prior.name} with model_file={cfg.model_file}: an exported file "
+                "holds its prior; prior= goes with ckpt_path="
+            )
         # Run by its engine on the CPU, in the precision recorded at export.
         loaded = load_exported(cfg.model_file)
         running = contextlib.nullcontext()
     else:
-        loaded = load_model(cfg.ckpt_path)
+        prior = cfg.get("prior")
+        prior = None if prior is None else OmegaConf.to_container(prior, resolve=True)
+        loaded = load_model(cfg.ckpt_path, prior=prior)
         device = resolve_device(str(cfg.device))
         precision = resolve_precision(cfg.precision, device, key="precision")
         speed_up(loaded.net.to(device), cfg.channels_last, False, device)

@@ -75,9 +75,17 @@ def check_expected(
 
 def _with_prior_file(net_config: Any, path: Path, prior: dict[str, Any]) -> dict[str, Any]:
     """``net_config`` with its prior read from ``prior["weights"]``: the same prior as trained
-    with (``prior["name"]``), from another file (weights moved, another machine's copy)."""
+    with (``prior["name"]``), from another file (weights moved, another machine's copy); or,
+    for ``prior["name"] == "none"``, served without the prior it was trained with (its channel
+    given zeros, as ``prior.dropout`` trained it to take)."""
     recorded = net_config.get("prior") if isinstance(net_config, dict) else None
     trained = (recorded or {}).get("name", NO_PRIOR)
+    if prior["name"] == NO_PRIOR:
+        return (
+            net_config
+            if trained == NO_PRIOR
+            else {**net_config, "prior": {**recorded, "enabled": False}}
+        )
     if trained != prior["name"]:
         raise CheckpointError(
             f"prior={prior['name']}: ckpt_path={path} was trained with prior={trained}; give "
@@ -100,7 +108,8 @@ def load_model(
         fusion: when given, the fusion mode it must have been trained with.
         backbone: when given, the backbone it must have been trained with.
         prior: when given, the ``prior`` node (``name``, ``weights``) whose file replaces the
-            one the checkpoint names; ``name`` must be the prior it was trained with.
+            one the checkpoint names; ``name`` must be the prior it was trained with, or
+            ``none``: the network runs without its prior.
 
     Raises:
         CheckpointError: not a training checkpoint, another fusion, backbone or prior than
