@@ -62,6 +62,29 @@ def test_seeds_are_averaged_and_best_is_marked(tmp_path, capsys) -> None:
     assert "**" not in rgb.split("|")[4]  # rgb's RMSE is not the best
 
 
+def test_time_gives_each_groups_training_minutes(tmp_path, capsys) -> None:
+    for name, seed, wall in (("a", 1, 600.0), ("b", 2, 720.0)):
+        _write_run(tmp_path, name, "rgb", "l1", seed, rmse=1.0)
+        path = tmp_path / name / "metrics.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "wall_time_s": wall}))
+    _write_run(tmp_path, "c", "concat", "l1", 1, rmse=0.5)  # no wall time: evaluate's record
+    assert main([str(tmp_path), "--time"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert "| Training (min) |" in lines[0]
+    rgb = next(line for line in lines if "| RGB " in line)
+    cells = [[c.strip() for c in line.split("|")] for line in (lines[0], rgb)]
+    column = cells[0].index("Training (min)")
+    assert cells[1][column] == "11.0 ± 1.4"  # 10 and 12 minutes
+    fusion = next(line for line in lines if "RGB-Fusion" in line)
+    assert [c.strip() for c in fusion.split("|")][column] == "–"
+    assert main([str(tmp_path), "--time", "--format", "csv"]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [r["train_min_mean"] for r in rows] == ["11", ""]
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--time", "--by", "condition"])
+    assert "--time adds a column to the plain table" in capsys.readouterr().err
+
+
 def test_paper_order_loss_then_modality(tmp_path) -> None:
     for i, (fusion, loss) in enumerate(
         [("add", "berhu"), ("rgb", "l2"), ("concat", "l1"), ("rgb", "l1")]

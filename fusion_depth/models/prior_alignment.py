@@ -26,6 +26,7 @@ from fusion_depth.models.depth_prior import NO_PRIOR, build_prior
 from fusion_depth.models.fusion import InputMode
 
 MODEL_NAME = "prior_alignment"  # model.net.name in its records
+LABEL = "Prior + alignment"  # how report's tables name it
 
 
 class GlobalAlignment(FallbackCount, DepthModel):

@@ -274,6 +274,11 @@ def _parser() -> argparse.ArgumentParser:
         "speed (latency, samples/s, speed-ups), engines (latency per engine) or prepare (fill "
         "time per frame and hours per split)",
     )
+    parser.add_argument(
+        "--time",
+        action="store_true",
+        help="the plain table (no --by or --compare) with each group's training wall time",
+    )
     parser.add_argument("--plot", metavar="OUT.png", help="also save the grid as a bar chart")
     parser.add_argument(
         "--output",
@@ -370,6 +375,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {err}", file=sys.stderr)
             return 2
         return 0
+    if args.time and (args.by or args.compare):
+        parser.error("--time adds a column to the plain table; leave out --by and --compare")
     metric = args.metric or "rmse"
     by_model = args.by == BY_MODEL
     section = SECTION if by_model else args.by  # the metrics.json breakdown of the columns
@@ -406,7 +413,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return build_comparison_table(comparisons, fmt, preset=preset)
             if args.by:
                 return build_by_table(groups, args.by, metric, fmt, first=first, preset=preset)
-            return build_table(groups, fmt, preset)
+            return build_table(groups, fmt, preset, time=args.time)
 
         table = render(args.format)
         print(table)

@@ -25,6 +25,8 @@ from fusion_depth.metrics.depth import (
 )
 from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
+from fusion_depth.models.prior_alignment import LABEL as ALIGNMENT_LABEL
+from fusion_depth.models.prior_alignment import MODEL_NAME as ALIGNMENT_MODEL
 from fusion_depth.runner.protocol import BEFORE_PRESETS, protocol_differences
 from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
@@ -96,6 +98,8 @@ def key_label(key: str, value: str) -> str:
     (:data:`fusion_depth.models.MODELS`), a fusion mode or pixel loss by the paper's name
     (RGB-Fusion, L1, ...); any other value, or one the tables do not know, as it is."""
     if key == "model":
+        if value == ALIGNMENT_MODEL:  # scored by evaluate, never trained: not in the table
+            return ALIGNMENT_LABEL
         entry = MODELS.get(value) if isinstance(value, str) else None
         return entry.label if entry is not None else value
     return {"fusion": FUSION_LABELS, "loss": PIXEL_LOSS_LABELS}.get(key, {}).get(value, value)
@@ -271,11 +275,27 @@ def _cap_stats(group: dict, cap: str | None) -> dict[str, tuple[float, float | N
     return {} if any(s is None for s in sections) else _metric_stats(sections)
 
 
-def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | None = None) -> str:
+def training_minutes(group: dict) -> tuple[float, float | None] | None:
+    """Mean and std over seeds of a group's training wall time in minutes (``wall_time_s``:
+    fit and test), None where a run records none (``evaluate``'s records)."""
+    times = [run.wall_time_s for run in group["runs"]]
+    if not times or any(not isinstance(t, int | float) for t in times):
+        return None
+    return mean_std([t / 60 for t in times])
+
+
+def build_table(
+    groups: Sequence[dict],
+    fmt: str = "markdown",
+    preset: Preset | None = None,
+    time: bool = False,
+) -> str:
     """The paper's table for grouped runs: Modality, Loss, then the preset's metrics in its
     order and units (``paper``: RMSE, ARD, SRD, MAE, δ1–δ3 in metres; ``radarnet``: MAE, RMSE in
     mm, iMAE, iRMSE in 1/km). When the runs scored several caps in one pass, a Cap column and
-    one row per cap, as RadarNet's tables have; the best of each column is marked per cap."""
+    one row per cap, as RadarNet's tables have; the best of each column is marked per cap.
+    ``time``: a column of each group's training wall time (:func:`training_minutes`; "–" for
+    records without one), where the machine and the seeds' runs compare."""
     if not groups:
         raise ValueError("no runs to tabulate")
     preset = preset or Preset()
@@ -286,6 +306,8 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | 
     header = [name for name, _ in extra] + ["Modality", "Loss"]
     if show_n:
         header.append("Seeds")
+    if time:
+        header += ["train_min_mean", "train_min_std"] if fmt == "csv" else ["Training (min)"]
     if caps:
         header.append("Cap (m)")
     first_metric = len(header)
@@ -301,6 +323,17 @@ def build_table(groups: Sequence[dict], fmt: str = "markdown", preset: Preset | 
             row = identity_cells(g, extra)
             if show_n:
                 row.append(str(g["n"]))
+            if time:
+                minutes = training_minutes(g)
+                if fmt == "csv":
+                    row += (
+                        ["", ""] if minutes is None else [f"{minutes[0]:.4g}", _fmt_std(minutes[1])]
+                    )
+                elif minutes is None:
+                    row.append("–")
+                else:
+                    spread = "" if minutes[1] is None else f" ± {minutes[1]:.1f}"
+                    row.append(f"{minutes[0]:.1f}{spread}")
             if cap is not None:
                 row.append(cap)
             for metric in preset.metrics:
