@@ -14,7 +14,7 @@ from helpers.prior import offline_environment, refuse_network, tiny_depth_anythi
 
 from fusion_depth.data.depth_io import DataFileError
 from fusion_depth.data.transforms import TrainAugmentation
-from fusion_depth.models.depth_prior import DepthAnythingPrior
+from fusion_depth.models.depth_prior import DepthAnythingPrior, normalized_prior
 from fusion_depth.runner.prior_cache import CachedPriorFrames, PriorCache, frame_digest
 
 
@@ -45,10 +45,28 @@ def test_filled_once_and_read_back_as_the_prior_computes_it(tmp_path, tiny_folde
     assert cache.fill(prior, data, "test frames") == 0  # all cached
     assert (cache.folder / "meta.json").is_file()
     served = CachedPriorFrames(data, cache)[3]
-    expected = prior(data[3]["image"][None].float() / 255)[0]
+    expected = normalized_prior(prior(data[3]["image"][None].float() / 255))[0]
     assert served["prior"].dtype == torch.float16 and served["prior"].shape == (1, 32, 48)
     torch.testing.assert_close(served["prior"].float(), expected, rtol=2e-3, atol=1e-3)
     assert served["index"] == 3  # the frame's own keys pass through
+
+
+class HugePrior(torch.nn.Module):
+    """An affine-invariant prior far beyond float16's range, as an SSI-trained network's is."""
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return -5e5 + 1e5 * image[:, :1]
+
+
+def test_a_prior_beyond_float16_is_stored_by_its_shape(tmp_path, tiny_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    cache = PriorCache(spec, root=tmp_path)
+    data = frames(2)
+    cache.fill(HugePrior(), data, "test frames")
+    served = CachedPriorFrames(data, cache)[1]["prior"].float()
+    assert torch.isfinite(served).all() and served.min() == 0 and served.max() == 1
+    shape = normalized_prior(HugePrior()(data[1]["image"][None].float() / 255))[0]
+    torch.testing.assert_close(served, shape, rtol=1e-3, atol=1e-3)
 
 
 def test_other_weights_input_size_or_image_find_no_stale_prior(tmp_path, tiny_folder):

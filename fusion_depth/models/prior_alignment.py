@@ -86,15 +86,12 @@ class GlobalAlignment(FallbackCount, DepthModel):
         self.fitted_batches = 0
         self.reset_fits()
 
-    def forward(
-        self,
-        image: torch.Tensor,
-        sparse: torch.Tensor | None = None,
-        prior: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
         if sparse is None:
             raise ValueError("the global alignment needs the sparse depth map")
-        relative = (self.prior(image) if prior is None else prior).float()
+        # The prior as it gives it: the depth space's fit takes its reciprocal, so no shift
+        # may be added to it (it is never read from the cache, which normalises).
+        relative = self.prior(image).float()
         # In float64 whatever the autocast (fit_scale_shift): bf16 moves a shift by 10 %.
         with torch.autocast(image.device.type, enabled=False):
             fit = fit_scale_shift(

@@ -4,8 +4,10 @@ corrected pixel by pixel by a learned network: the pipeline of RadarCam-Depth (L
 DenseDepth encoder-decoder as the learner (the authors' nuScenes code is unreleased).
 
 1. ``prior=...`` gives relative inverse depth (frozen; :mod:`fusion_depth.models.depth_prior`).
-2. Its scale and shift are fitted to the frame's sparse returns by least squares in inverse
-   depth (:func:`~fusion_depth.models.alignment.least_squares_fit`); a frame with fewer than two
+2. Mapped to [0, 1] per frame (:func:`~fusion_depth.models.depth_prior.normalized_prior`, which
+   changes no affine fit), its scale and shift are fitted to the frame's sparse returns by least
+   squares in inverse depth (:func:`~fusion_depth.models.alignment.least_squares_fit`); a frame
+   with fewer than two
    returns (or a fit whose scale is not positive) takes the running median fit of training (a
    buffer, like batch norm's).
 3. The learner sees the image, the sparse returns and the aligned depth (the last two
@@ -28,6 +30,7 @@ from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, check_model_takes, register_model
 from fusion_depth.models.alignment import least_squares_fit
 from fusion_depth.models.depth_net import DepthNet
+from fusion_depth.models.depth_prior import normalized_prior
 
 
 # No published recipe for nuScenes (its code is unreleased): the platform's DenseDepth one with
@@ -151,7 +154,9 @@ class PriorCorrection(DepthNet):
         self.check_input_size(image)
         if sparse is None:
             raise ValueError("model=prior_correction needs the sparse depth map")
-        relative = self.prior(image) if prior is None else prior.float()
+        # The fit is affine, so normalising the prior per frame changes no fit, and keeps an
+        # SSI-trained prior's 1e5-sized values in range (and the cache's form, [0, 1]).
+        relative = normalized_prior(self.prior(image) if prior is None else prior.float())
         inverse = self.global_fit(relative, sparse)
         aligned = self.fusion.encode_sparse((1.0 / inverse).clamp(self.min_depth, self.max_depth))
         log_scale = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()

@@ -3,9 +3,10 @@ loaders, so the networks on top of it train at their own cost (``prior.cache: tr
 default; ``prior.cache=false`` runs the prior on every batch instead).
 
 Each frame's prior is stored under
-``<cache root>/priors/<prior key>/<digest[:2]>/<digest>.npy`` as float16 (H, W) relative inverse
-depth at the frame's size (what the prior module returns for the frame's image, before
-augmentation):
+``<cache root>/priors/<prior key>/<digest[:2]>/<digest>.npy`` as float16 (H, W) at the frame's
+size: what the prior module returns for the frame's image (before augmentation), mapped to
+[0, 1] per frame (:func:`~fusion_depth.models.depth_prior.normalized_prior`), the form the
+networks read it in (an affine-invariant prior carries its shape in the frame, not its range):
 
 * the **prior key** is a digest of the prior's name, its weights' content (SHA-256 of the file,
   or of every file of a folder, :func:`weights_digest`), its ``input_size`` and
@@ -17,8 +18,8 @@ augmentation):
 So the cache is keyed by the weights, the input size and the data itself, and needs no index to
 go stale. Files are written under a temporary name and renamed (two processes filling one folder
 write the same bytes); ``meta.json`` records what made the folder. float16 keeps three
-significant digits, well within what an affine-invariant prior carries; a network trained on the
-cache sees the prior of the un-jittered image (the colour jitter reaches the image only), where
+significant digits of each value in [0, 1]; a network trained on the cache sees the prior of the
+un-jittered image (the colour jitter reaches the image only), where
 ``prior.cache=false`` runs it on the jittered one.
 """
 
@@ -42,10 +43,11 @@ from fusion_depth.data.cache import check_settings_file
 from fusion_depth.data.depth_io import DataFileError, read_npy, write_npy
 from fusion_depth.data.encoding import decode_sample
 from fusion_depth.errors import ArgumentError
+from fusion_depth.models.depth_prior import normalized_prior
 
 log = logging.getLogger(__name__)
 
-PRIOR_CACHE_VERSION = 1  # bump when what a cached prior holds changes
+PRIOR_CACHE_VERSION = 2  # bump when what a cached prior holds changes (2: normalised per frame)
 PRIOR_DTYPE = np.float16
 _CHUNK = 1 << 24  # bytes read at a time while hashing weights
 
@@ -123,7 +125,8 @@ class PriorCache:
         return self.folder / digest[:2] / f"{digest}.npy"
 
     def read(self, image: torch.Tensor) -> torch.Tensor:
-        """The cached prior of the frame whose image is ``image`` (3, H, W): (1, H, W) float16.
+        """The cached prior of the frame whose image is ``image`` (3, H, W): (1, H, W) float16,
+        normalised to [0, 1].
 
         Raises:
             DataFileError: none is cached (the cache was filled for other frames, or deleted
@@ -149,7 +152,8 @@ class PriorCache:
         batch_size: int = 4,
         device: torch.device | str = "cpu",
     ) -> int:
-        """Compute and store the prior of every frame of ``frames`` not cached yet, in fp32.
+        """Compute and store the prior of every frame of ``frames`` not cached yet, in fp32,
+        normalised to [0, 1] per frame.
 
         Args:
             prior: the frozen prior (relative inverse depth (B, 1, H, W) from (B, 3, H, W)).
@@ -173,7 +177,11 @@ class PriorCache:
         for start in range(0, len(digests), batch_size):
             chunk = digests[start : start + batch_size]
             images = decode_sample({"image": torch.stack([missing[d] for d in chunk])})["image"]
-            relative = prior(images.to(device).float()).float().cpu().numpy()
+            relative = prior(images.to(device).float()).float()
+            # Stored normalised: an affine-invariant prior may span any range (an SSI-trained
+            # network's reaches 1e5 and more, beyond float16), and what the networks read is
+            # its shape in the frame (normalized_prior), which [0, 1] keeps to 3 digits.
+            relative = normalized_prior(relative).cpu().numpy()
             for digest, frame in zip(chunk, relative, strict=True):
                 self.path(digest).parent.mkdir(exist_ok=True)
                 write_npy(self.path(digest), frame[0].astype(PRIOR_DTYPE))
