@@ -166,37 +166,44 @@ class PriorCache:
             The number of frames computed (0 when all were cached).
         """
         started = time.perf_counter()
-        missing: dict[str, torch.Tensor] = {}
+        prior = prior.to(device).eval()
+        pending: dict[str, torch.Tensor] = {}  # a batch of frames not cached yet, by digest
+        computed = 0
         for index in range(len(frames)):
             image = frames[index]["image"]
             digest = frame_digest(image)
-            if digest not in missing and not self.path(digest).is_file():
-                missing[digest] = image
-        prior = prior.to(device).eval()
-        digests = list(missing)
-        for start in range(0, len(digests), batch_size):
-            chunk = digests[start : start + batch_size]
-            images = decode_sample({"image": torch.stack([missing[d] for d in chunk])})["image"]
-            relative = prior(images.to(device).float()).float()
-            # Stored normalised: an affine-invariant prior may span any range (an SSI-trained
-            # network's reaches 1e5 and more, beyond float16), and what the networks read is
-            # its shape in the frame (normalized_prior), which [0, 1] keeps to 3 digits.
-            relative = normalized_prior(relative).cpu().numpy()
-            for digest, frame in zip(chunk, relative, strict=True):
-                self.path(digest).parent.mkdir(exist_ok=True)
-                write_npy(self.path(digest), frame[0].astype(PRIOR_DTYPE))
-        if digests:
+            if digest not in pending and not self.path(digest).is_file():
+                pending[digest] = image
+            if len(pending) == batch_size or (pending and index == len(frames) - 1):
+                self._store(prior, pending, device)
+                computed += len(pending)
+                pending = {}
+        if computed:
             took = time.perf_counter() - started
             log.info(
                 "prior: %d of %d frames of the %s computed in %.1f s (%.1f frames/s) into %s",
-                len(digests),
+                computed,
                 len(frames),
                 what,
                 took,
-                len(digests) / max(took, 1e-9),
+                computed / max(took, 1e-9),
                 self.folder,
             )
-        return len(digests)
+        return computed
+
+    def _store(
+        self, prior: nn.Module, images: Mapping[str, torch.Tensor], device: torch.device | str
+    ) -> None:
+        """Run ``prior`` on ``images`` (by frame digest) and write each frame's file."""
+        batch = decode_sample({"image": torch.stack(list(images.values()))})["image"]
+        relative = prior(batch.to(device).float()).float()
+        # Stored normalised: an affine-invariant prior may span any range (an SSI-trained
+        # network's reaches 1e5 and more, beyond float16), and what the networks read is its
+        # shape in the frame (normalized_prior), which [0, 1] keeps to 3 digits.
+        shapes = normalized_prior(relative).cpu().numpy()
+        for digest, shape in zip(images, shapes, strict=True):
+            self.path(digest).parent.mkdir(exist_ok=True)
+            write_npy(self.path(digest), shape[0].astype(PRIOR_DTYPE))
 
 
 class CachedPriorFrames(Dataset):
