@@ -402,7 +402,12 @@ def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
     overrides = ["model=prior_correction", "fusion=concat", "prior=depth_anything_v2"]
     done = _train(tmp_path, *overrides, f"prior.weights={tiny_folder}", f"hydra.run.dir={run}")
     assert done.returncode == 0, done.stderr[-2000:]
-    assert json.loads((run / "metrics.json").read_text())["test"]["rmse"] > 0
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["test"]["rmse"] > 0
+    # The test stage's fits, one per frame, counted in the record (a random prior's fit may
+    # reverse the depths, which falls back too).
+    assert record["alignment"]["fits"] == record["test"]["num_images"]
+    assert 0 <= record["alignment"]["fallbacks"] <= record["alignment"]["fits"]
     evaluates_and_exports(run, tmp_path)
     refused = _train(tmp_path, "model=prior_correction", "fusion=concat", f"hydra.run.dir={run}2")
     assert refused.returncode == 1

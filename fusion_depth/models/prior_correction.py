@@ -28,7 +28,7 @@ from torch import nn
 
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, check_model_takes, register_model
-from fusion_depth.models.alignment import least_squares_fit
+from fusion_depth.models.alignment import FallbackCount, least_squares_fit
 from fusion_depth.models.depth_net import DepthNet
 from fusion_depth.models.depth_prior import normalized_prior
 
@@ -49,7 +49,7 @@ from fusion_depth.models.depth_prior import normalized_prior
         schedule_args={"step_size": 7, "gamma": 0.2},
     ),
 )
-class PriorCorrection(DepthNet):
+class PriorCorrection(FallbackCount, DepthNet):
     """The aligned prior times a learned per-pixel scale, in reciprocal depth.
 
     Args:
@@ -137,6 +137,7 @@ class PriorCorrection(DepthNet):
         valid = sparse > 0
         target = torch.where(valid, 1.0 / sparse.clamp_min(1e-6), 0.0)
         scale, shift, fitted = least_squares_fit(relative, target, valid)
+        self.count_fits(~fitted)
         if self.training and bool(fitted.any()):
             batch = torch.stack([scale[fitted].median(), shift[fitted].median()])
             batch = batch.to(self.fit_mean)
@@ -144,6 +145,10 @@ class PriorCorrection(DepthNet):
         scale = torch.where(fitted, scale, self.fit_mean[0]).view(-1, 1, 1, 1)
         shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)
         return (scale * relative + shift).clamp_min(1.0 / self.max_depth)
+
+    def fit_summary(self) -> dict[str, Any]:
+        """The fit's space, and its frame fits and fallbacks since :meth:`reset_fits`."""
+        return {"space": "inverse", "ransac_iterations": 0, **super().fit_summary()}
 
     def forward(
         self,

@@ -24,6 +24,7 @@ from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_con
 from fusion_depth.config.arguments import argument_error, config_message
 from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
 from fusion_depth.errors import CommandError, UserError
+from fusion_depth.models.alignment import FallbackCount
 from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
 from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
@@ -303,9 +304,15 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
             if not trainer.is_global_zero:
                 return None
             trainer = _single_process_trainer(cfg, settings)
+        counting = isinstance(model.net, FallbackCount)  # a prior aligned frame by frame
+        if counting:
+            model.net.reset_fits()
         result = model.run_test(
             trainer, datamodule, ckpt_path=best or None, verbose=False, weights_only=True
         )
+        alignment = model.net.fit_summary() if counting else None
+        if alignment is not None:
+            log.info("alignment: %(fallbacks)d of %(fits)d test frame fits fell back", alignment)
         record = RunRecord.from_result(
             job.identity,
             result,
@@ -317,6 +324,7 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
             global_step=global_step,
             validation=validation,
             wall_time_s=round(time.perf_counter() - started, 2),
+            alignment=alignment,
         )
         _publish(output_dir, model, trainer, result, record, best)
     return record
