@@ -91,6 +91,19 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
         assert 0 < record["test"]["rmse"] < 80
     assert records[0]["alignment"]["fallbacks"] == 0  # every smoke frame has returns
     assert records[0]["test"]["rmse"] != records[1]["test"]["rmse"]
+    # Each fit is its own row in report: its settings are the record's overrides.
+    assert "alignment.space=inverse" in records[0]["run"]["overrides"]
+    assert "alignment.space=depth" in records[1]["run"]["overrides"]
+    ceiling = _evaluate(
+        tmp_path, "experiment=smoke", "dataset=procedural", *prior,
+        "alignment.target=ground_truth", f"hydra.run.dir={tmp_path}/gt",
+    )  # fmt: skip
+    assert ceiling.returncode == 0, ceiling.stderr[-2000:]
+    record = json.loads((tmp_path / "gt" / "metrics.json").read_text())
+    assert record["alignment"]["target"] == "ground_truth"
+    assert record["alignment"]["fits"] == record["test"]["num_images"]
+    assert "alignment.target=ground_truth" in record["run"]["overrides"]
+    assert records[0]["alignment"]["target"] == "sparse"
 
 
 @pytest.mark.parametrize(
@@ -192,3 +205,26 @@ def test_a_network_trained_with_a_prior_serves_without_it(tiny_folder):
     torch.testing.assert_close(served(image, sparse), trained(image, sparse))
     with pytest.raises(ArgumentError, match=r"^prior=none: model=prior_correction corrects"):
         create_model("prior_correction", prior={**spec, "enabled": False}, backbone="resnet10t")
+
+
+def test_the_ceiling_fits_each_frame_to_its_ground_truth():
+    from fusion_depth.evaluate.scoring import GroundTruthAsSparse
+
+    class Split(torch.utils.data.Dataset):
+        def __len__(self):
+            return 1
+
+        def __getitem__(self, index):
+            return {
+                "image": torch.zeros(3, 2, 2),
+                "sparse": torch.zeros(1, 2, 2),
+                "depth": torch.ones(1, 2, 2),
+            }
+
+        def encoded_sample(self, index):
+            return {**self[index], "depth": torch.full((1, 2, 2), 256, dtype=torch.uint16)}
+
+    swapped = GroundTruthAsSparse(Split())
+    assert swapped[0]["sparse"].tolist() == swapped[0]["depth"].tolist()
+    encoded = swapped.encoded_sample(0)
+    assert encoded["sparse"].dtype == torch.uint16 and int(encoded["sparse"][0, 0, 0]) == 256

@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import Dataset
 
 from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data import SPLITS
@@ -102,6 +104,11 @@ def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
             "choose the dataset to fit and score it on with dataset=<name>"
         )
     settings = OmegaConf.to_container(cfg.alignment, resolve=True)
+    target = settings.pop("target", "sparse")
+    if target not in ALIGNMENT_TARGETS:
+        raise ConfigError(
+            f"alignment.target={target}: expected one of {', '.join(ALIGNMENT_TARGETS)}"
+        )
     net = GlobalAlignment(
         prior, **settings, min_depth=cfg.dataset.min_depth, max_depth=cfg.dataset.max_depth
     )
@@ -115,7 +122,39 @@ def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
     loaded = LoadedModel(
         net=net.eval(), config=config, path=Path(prior["weights"]), key="prior.weights"
     )
-    return evaluate_loaded(cfg, loaded, output_dir)
+    # What the fit is, in the record's overrides: report keeps each setting its own row.
+    fit = {**settings, "target": target}
+    if not fit["ransac_iterations"]:
+        fit.pop("ransac_threshold")
+    served = [f"alignment.{key}={value}" for key, value in fit.items()]
+    frames = GroundTruthAsSparse if target == "ground_truth" else None
+    return evaluate_loaded(cfg, loaded, output_dir, served=served, frames=frames)
+
+
+# alignment.target: fit each frame to its sparse returns (what a deployed model has), or to its
+# own ground truth: the prior's ceiling, as relative depth models are scored (MiDaS, Ranftl et
+# al., TPAMI 2022, Sec. 5), not a result a model could reach without the ground truth.
+ALIGNMENT_TARGETS = ("sparse", "ground_truth")
+
+
+class GroundTruthAsSparse(Dataset):
+    """A split whose samples carry their ground truth as the sparse input too (the encoded or
+    float form, as the split serves it): what ``alignment.target=ground_truth`` fits to."""
+
+    def __init__(self, frames: Dataset) -> None:
+        self.frames = frames
+        if hasattr(frames, "encoded_sample"):
+            self.encoded_sample = lambda index: self._swap(frames.encoded_sample(index))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> dict:
+        return self._swap(self.frames[index])
+
+    @staticmethod
+    def _swap(sample: dict) -> dict:
+        return {**sample, "sparse": sample["depth"]}
 
 
 def evaluate_checkpoint(
@@ -158,20 +197,31 @@ def evaluate_model_file(
 
 
 def evaluate_loaded(
-    cfg: DictConfig, loaded: LoadedModel, output_dir: str | Path, served: Sequence[str] = ()
+    cfg: DictConfig,
+    loaded: LoadedModel,
+    output_dir: str | Path,
+    served: Sequence[str] = (),
+    frames: Callable[[Dataset], Dataset] | None = None,
 ) -> RunRecord:
     """Score ``loaded`` (a checkpoint's network, or an exported model file's
     :class:`~fusion_depth.export.runtime.ExportedModel`, which runs on the CPU in the
     precision its engine was given, so the Trainer's is fp32); writes ``metrics.json`` and
     ``per_image.csv`` into ``output_dir`` and returns the record written. ``served``: the
     overrides that make it compute otherwise than trained (``prior=none``), added to the
-    record's overrides so that ``report`` keeps it apart."""
+    record's overrides so that ``report`` keeps it apart; ``frames``: wraps each split read
+    (:class:`GroundTruthAsSparse`)."""
     exported = isinstance(loaded.net, ExportedModel)
     # Resolved here: once detached from the root config its ${...} references could not be.
     chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
     block = dataset_config(loaded, chosen)
     # A block from the checkpoint (or sidecar) is built from the package's table of readers.
     reader = make_reader(block, None if chosen is not None else loaded.path, loaded.key)
+    if frames is not None:
+        read = reader
+
+        def reader(**kwargs: Any) -> Dataset:
+            return frames(read(**kwargs))
+
     dataset = OmegaConf.create(block)
     check_dataset(dataset, loaded.fusion)
     L.seed_everything(cfg.seed, workers=True)
@@ -239,9 +289,11 @@ def evaluate_loaded(
             source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
         if counts:
             source["alignment"] = loaded.net.fit_summary()
+            ceiling = frames is GroundTruthAsSparse
+            source["alignment"]["target"] = "ground_truth" if ceiling else "sparse"
             log.info(
                 "alignment: %(fallbacks)d of %(fits)d frame fits fell back (fewer than 2 "
-                "returns to fit)",
+                "returns, or a fit that would reverse the order of depths)",
                 source["alignment"],
             )
         record = RunRecord.from_result(identity, result, cfg.split, **source, seed=cfg.seed)
