@@ -12,9 +12,9 @@ DenseDepth encoder-decoder as the learner (the authors' nuScenes code is unrelea
    buffer, like batch norm's).
 3. The learner sees the image, the sparse returns and the aligned depth (the last two
    log-encoded as :class:`~fusion_depth.models.fusion.InputFusion` encodes sparse depth) and
-   predicts a log-scale map ``r`` at half resolution; the output is the aligned inverse depth
-   times ``exp(r)``, in reciprocal depth. ``r`` starts at 0, so before training the model is
-   the global alignment.
+   predicts a log-scale map ``r`` at half resolution, bounded softly to ±2 (``2 tanh(x / 2)``);
+   the output is the aligned inverse depth (clipped to the depth range) times ``exp(r)``, in
+   reciprocal depth. ``r`` starts at 0, so before training the model is the global alignment.
 """
 
 from __future__ import annotations
@@ -31,6 +31,9 @@ from fusion_depth.models._registry import Recipe, check_model_takes, register_mo
 from fusion_depth.models.alignment import FallbackCount, least_squares_fit
 from fusion_depth.models.depth_net import DepthNet
 from fusion_depth.models.depth_prior import normalized_prior
+
+# The learned scale's bound: |r| ≤ 2, a correction by a factor of at most e² ≈ 7.4 either way.
+MAX_LOG_SCALE = 2.0
 
 
 # No published recipe for nuScenes (its code is unreleased): the platform's DenseDepth one with
@@ -144,7 +147,8 @@ class PriorCorrection(FallbackCount, DepthNet):
             self.fit_mean.lerp_(batch, self.fit_momentum)
         scale = torch.where(fitted, scale, self.fit_mean[0]).view(-1, 1, 1, 1)
         shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)
-        return (scale * relative + shift).clamp_min(1.0 / self.max_depth)
+        # In the depth range: a fit extrapolated to the frame's nearest pixels may say 1 cm.
+        return (scale * relative + shift).clamp(1.0 / self.max_depth, 1.0 / self.min_depth)
 
     def fit_summary(self) -> dict[str, Any]:
         """The fit's space, and its frame fits and fallbacks since :meth:`reset_fits`."""
@@ -164,6 +168,9 @@ class PriorCorrection(FallbackCount, DepthNet):
         relative = normalized_prior(self.prior(image) if prior is None else prior.float())
         inverse = self.global_fit(relative, sparse)
         aligned = self.fusion.encode_sparse((1.0 / inverse).clamp(self.min_depth, self.max_depth))
-        log_scale = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()
+        raw = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()
+        # Bounded softly (slope 1 at 0): an unbounded exp(r) overflowed within an epoch at the
+        # built-in recipe's learning rate (training loss 1.5e5, then every depth at a clip).
+        log_scale = MAX_LOG_SCALE * torch.tanh(raw / MAX_LOG_SCALE)
         base = F.interpolate(inverse, size=log_scale.shape[-2:], mode="bilinear")
         return self.depth_scale * base * torch.exp(log_scale)
