@@ -65,11 +65,16 @@ def predict_depth(
         if prior is not None:
             prior = F.pad(prior, (0, pad_w, 0, pad_h), mode="replicate")
     points = points if getattr(net, "takes_points", False) else None
-    depth = (
-        net.predict_depth(image, sparse, prior=prior)
-        if points is None
-        else net.predict_depth(image, sparse, points)
-    )
+
+    def run(image: torch.Tensor, sparse: torch.Tensor | None, points, prior) -> torch.Tensor:
+        # Only what is given is passed: a network without a prior need not accept one.
+        if points is not None:
+            return net.predict_depth(image, sparse, points)
+        if prior is not None:
+            return net.predict_depth(image, sparse, prior=prior)
+        return net.predict_depth(image, sparse)
+
+    depth = run(image, sparse, points, prior)
     if flip_tta:
         flipped = None
         if points is not None:  # column u of a W-wide image mirrors to W - 1 - u
@@ -78,13 +83,8 @@ def predict_depth(
                 points[..., 5] > 0, image.shape[-1] - 1 - points[..., 0], points[..., 0]
             )
         mirrored_sparse = None if sparse is None else sparse.flip(-1)
-        if flipped is None:
-            mirrored_prior = None if prior is None else prior.flip(-1)
-            mirrored = net.predict_depth(
-                image.flip(-1), mirrored_sparse, prior=mirrored_prior
-            ).flip(-1)
-        else:
-            mirrored = net.predict_depth(image.flip(-1), mirrored_sparse, flipped).flip(-1)
+        mirrored_prior = None if prior is None else prior.flip(-1)
+        mirrored = run(image.flip(-1), mirrored_sparse, flipped, mirrored_prior).flip(-1)
         # The mean of the two; where one is 0 (no prediction: model=radarnet's association
         # stage), the other alone. Other networks never predict 0.
         both = (depth > 0) & (mirrored > 0)

@@ -117,7 +117,8 @@ def cached_prior(cfg: DictConfig) -> Any:
         ArgumentError: the prior cannot be built (naming ``prior.weights``).
     """
     spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
-    # Imported here: the networks' modules take seconds to import, and most prepares need none.
+    if not spec or spec.get("name", "none") == "none":
+        return None  # before any import: most prepares need no torch (seconds of start-up)
     from fusion_depth.runner.prior_cache import uses_prior_cache
 
     if not uses_prior_cache(spec):
