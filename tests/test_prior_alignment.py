@@ -13,6 +13,7 @@ from helpers.prior import KnownPrior, offline_environment, refuse_network, tiny_
 
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models.prior_alignment import GlobalAlignment
+from fusion_depth.report import main as report_main
 
 
 @pytest.fixture(autouse=True)
@@ -66,7 +67,7 @@ def _evaluate(cwd, *overrides):
     return run_module(["fusion_depth.evaluate", *overrides], cwd=cwd, env=offline_environment())
 
 
-def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_folder):
+def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_folder, capsys):
     prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]
     sweep = _evaluate(
         tmp_path,
@@ -94,6 +95,10 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
     # Each fit is its own row in report: its settings are the record's overrides.
     assert "alignment.space=inverse" in records[0]["run"]["overrides"]
     assert "alignment.space=depth" in records[1]["run"]["overrides"]
+    # report tabulates them: labelled, no training loss or time ("–"), one row per fit.
+    assert report_main([str(tmp_path / "sweep"), "--time"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if "Prior + alignment" in line]
+    assert len(rows) == 2 and all(row.count("–") >= 2 for row in rows), rows
     ceiling = _evaluate(
         tmp_path, "experiment=smoke", "dataset=procedural", *prior,
         "alignment.target=ground_truth", f"hydra.run.dir={tmp_path}/gt",

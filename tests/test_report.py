@@ -173,6 +173,7 @@ def _write_image_run(
     model=None,
     backbone="densenet169",
     protocol=None,
+    overrides=(),
 ):
     """A run with per-image RMSE ``rmse`` (one value per image) and consistent aggregates;
     ``model`` None: a record written before runs named their model; ``protocol``: the record's
@@ -202,7 +203,13 @@ def _write_image_run(
                 "fusion": fusion,
                 "loss": loss,
                 "seed": seed,
-                "overrides": [*model_override, f"fusion={fusion}", f"loss={loss}", f"seed={seed}"],
+                "overrides": [
+                    *model_override,
+                    f"fusion={fusion}",
+                    f"loss={loss}",
+                    f"seed={seed}",
+                    *overrides,
+                ],
             },
             "split": split,
             "protocol": protocol or {"min_depth": 0.5, "max_depth": [80.0], "crop": "none"},
@@ -314,6 +321,38 @@ def test_compare_without_shared_seeds_uses_seed_means(tmp_path, capsys) -> None:
     assert row["Seeds"] == "means 2 vs 1"
     assert float(row["rmse_all_diff"]) == pytest.approx(-1.1)
     assert row["rmse_all_significant"] == "yes"
+
+
+def test_compare_by_model_lets_a_model_bring_its_prior(tmp_path, capsys) -> None:
+    """Under --compare model=..., a prior (prior=, prior.*) and a fit (alignment.*) are part of
+    the model: DenseDepth with a prior and the global alignment pair with DenseDepth RGB, which
+    alone is the baseline (not DenseDepth RGB with a prior); another setting still keeps a group
+    apart."""
+    prior = ("prior=checkpoint", "prior.weights=w.ckpt")
+    dd = {"model": "densedepth"}
+    _write_image_run(tmp_path, "rgb", "rgb", 1, BASE, **dd)
+    _write_image_run(tmp_path, "rgb_prior", "rgb", 1, BASE - 0.5, overrides=prior, **dd)
+    _write_image_run(tmp_path, "cat_prior", "concat", 1, BASE - 1.0, overrides=prior, **dd)
+    _write_image_run(tmp_path, "cat_lr", "concat", 1, BASE, overrides=("optimizer.lr=1",), **dd)
+    fit = ("alignment.space=inverse",)
+    _write_image_run(
+        tmp_path, "fit", "concat", 1, BASE + 2.0, model="prior_alignment", loss=None, overrides=fit
+    )
+    args = [str(tmp_path), "--by", "model", "--compare", "model=densedepth,fusion=rgb"]
+    assert main([*args, "--format", "csv"]) == 0
+    diffs = {
+        (row["Model"], row["Modality"], row["Setting"]): float(row["rmse_all_diff"])
+        for row in _csv(capsys)
+        if row["rmse_all_diff"]
+    }
+    setting = "prior.weights=w.ckpt prior=checkpoint"
+    assert diffs == pytest.approx(
+        {
+            ("DenseDepth", "RGB", setting): -0.5,
+            ("DenseDepth", "RGB-Fusion", setting): -1.0,
+            ("Prior + alignment", "RGB-Fusion", "alignment.space=inverse"): 2.0,
+        }
+    )
 
 
 def test_compare_by_loss_pairs_only_groups_differing_in_loss(grid, capsys) -> None:

@@ -42,6 +42,9 @@ COMPARE_KEYS = ("fusion", "loss", "backbone", "model", "engine")
 _GROUP_KEYS = ("dataset", "sensor", "model", "backbone", "fusion", "loss", "setting", "engine")
 # What a model brings with it (its Recipe: fusion_depth.models.register_model).
 _MODEL_PARTS = ("backbone", "loss")
+# Settings a model brings as well: its prior (prior=, prior.*) and its fit (alignment.*), so that
+# a model with a prior compares with DenseDepth without one under --compare model=...
+_MODEL_SETTINGS = ("prior", "alignment")
 # Protocol fields that change how per-image results are aggregated, not the results themselves.
 _AGGREGATION_ONLY = {"distance_bins", "bin_width", "averaging"}
 
@@ -309,9 +312,10 @@ def compare_to_baseline(
     A baseline group has every ``key: value`` of ``baseline`` (e.g. ``{"model":
     "densedepth", "fusion": "rgb"}``); a group that has them all is a baseline, not compared.
     With ``model`` among the keys, ``backbone`` and ``loss`` count as part of the model (each
-    model has its own encoder and loss), so a group may differ from its baseline in them too; a
-    group matching several baselines is compared with those sharing most of its backbone and
-    loss.
+    model has its own encoder and loss), so a group may differ from its baseline in them too, and
+    in the settings a model brings (its prior, ``prior=``, ``prior.*``, and its fit,
+    ``alignment.*``; a baseline has none); a group matching several baselines is compared with
+    those sharing most of its backbone and loss.
 
     Each comparison holds the mean per-image difference (other − baseline) and its bootstrap
     interval (:func:`fusion_depth.metrics.bootstrap.paired_bootstrap`), over all shared images and,
@@ -323,7 +327,13 @@ def compare_to_baseline(
     """
     spec = compare_spec(baseline)
     _check_compare_request(groups, baseline, spec, by)
-    baselines = [g for g in groups if group_matches(g, baseline)]
+    by_model = "model" in baseline
+
+    def is_baseline(g: dict) -> bool:  # under model=..., the model without a prior of its own
+        plain = not by_model or _without_model_settings(g["setting"]) == g["setting"]
+        return group_matches(g, baseline) and plain
+
+    baselines = [g for g in groups if is_baseline(g)]
     if not baselines:
         have = "; ".join(sorted({",".join(f"{k}={g[k]}" for k in baseline) for g in groups}))
         raise ValueError(
@@ -335,9 +345,9 @@ def compare_to_baseline(
     keys = tuple(baseline)
     comparisons = []
     for g in groups:
-        if group_matches(g, baseline):
+        if is_baseline(g):
             continue
-        for base in _closest_baselines(g, baselines, identity):
+        for base in _closest_baselines(g, baselines, identity, by_model):
             diff, conditions, seeds = paired_differences(base, g, metric, load)
             columns = [ALL]
             if by == "condition":
@@ -380,11 +390,25 @@ def group_matches(group: dict, values: Mapping[str, str]) -> bool:
     return all(group[k] == v for k, v in values.items())
 
 
+def _without_model_settings(setting: str) -> str:
+    """A group's ``setting`` less the overrides a model brings (:data:`_MODEL_SETTINGS`)."""
+    return " ".join(
+        o
+        for o in setting.split()
+        if o.split("=", 1)[0].lstrip("+~").split(".", 1)[0] not in _MODEL_SETTINGS
+    )
+
+
 def _closest_baselines(
-    group: dict, baselines: Sequence[dict], identity: Sequence[str]
+    group: dict, baselines: Sequence[dict], identity: Sequence[str], by_model: bool = False
 ) -> list[dict]:
-    """Baselines equal to ``group`` in ``identity`` sharing most of its backbone and loss."""
-    matching = [b for b in baselines if all(b[k] == group[k] for k in identity)]
+    """Baselines equal to ``group`` in ``identity`` sharing most of its backbone and loss;
+    ``by_model``: the settings a model brings (its prior and its fit) may differ too."""
+
+    def value(g: dict, key: str) -> object:
+        return _without_model_settings(g[key]) if by_model and key == "setting" else g[key]
+
+    matching = [b for b in baselines if all(value(b, k) == value(group, k) for k in identity)]
     # Of the baselines a group may be paired with, those sharing most of what a model
     # brings (its encoder and loss): a model's own loss variant pairs with the same loss.
     closest = max((_shared_parts(b, group) for b in matching), default=0)

@@ -96,7 +96,10 @@ DEFAULT_ENGINE = "torch"
 def key_label(key: str, value: str) -> str:
     """How the tables name an identity value: a model by its label in the model table
     (:data:`fusion_depth.models.MODELS`), a fusion mode or pixel loss by the paper's name
-    (RGB-Fusion, L1, ...); any other value, or one the tables do not know, as it is."""
+    (RGB-Fusion, L1, ...); any other value, or one the tables do not know, as it is; none ("–")
+    where a record has none (the global alignment, scored by evaluate, trains with no loss)."""
+    if value is None:
+        return "–"
     if key == "model":
         if value == ALIGNMENT_MODEL:  # scored by evaluate, never trained: not in the table
             return ALIGNMENT_LABEL
