@@ -95,9 +95,9 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
     # Each fit is its own row in report: its settings are the record's overrides.
     assert "alignment.space=inverse" in records[0]["run"]["overrides"]
     assert "alignment.space=depth" in records[1]["run"]["overrides"]
-    # report tabulates them: labelled, no training loss or time ("–"), one row per fit.
+    # report tabulates them: one row per fit, named by its settings, no training loss or time ("–").
     assert report_main([str(tmp_path / "sweep"), "--time"]) == 0
-    rows = [line for line in capsys.readouterr().out.splitlines() if "Prior + alignment" in line]
+    rows = [line for line in capsys.readouterr().out.splitlines() if "alignment.space=" in line]
     assert len(rows) == 2 and all(row.count("–") >= 2 for row in rows), rows
     ceiling = _evaluate(
         tmp_path, "experiment=smoke", "dataset=procedural", *prior,
