@@ -177,13 +177,74 @@ def test_eigen_is_monodepth2s(tmp_path) -> None:
     assert _columns(results_tables(result)) == columns
 
 
-def test_kitti_dc_counts_every_measured_pixel(tmp_path) -> None:
+def _devkit_fill(depth: np.ndarray) -> np.ndarray:
+    """``DepthImage::interpolateBackground`` of the KITTI devkit (cpp/io_depth.h), line by line."""
+    d = depth.copy()
+    height, width = d.shape
+    for v in range(height):
+        count = 0
+        for u in range(width):
+            if d[v, u] >= 0:
+                if count >= 1:
+                    u1, u2 = u - count, u - 1
+                    if u1 > 0 and u2 < width - 1:
+                        d[v, u1 : u2 + 1] = min(d[v, u1 - 1], d[v, u2 + 1])
+                count = 0
+            else:
+                count += 1
+        for u in range(width):
+            if d[v, u] >= 0:
+                d[v, :u] = d[v, u]
+                break
+        for u in range(width - 1, -1, -1):
+            if d[v, u] >= 0:
+                d[v, u + 1 :] = d[v, u]
+                break
+    for u in range(width):
+        for v in range(height):
+            if d[v, u] >= 0:
+                d[:v, u] = d[v, u]
+                break
+        for v in range(height - 1, -1, -1):
+            if d[v, u] >= 0:
+                d[v + 1 :, u] = d[v, u]
+                break
+    return d
+
+
+def _devkit_reads(pred: np.ndarray, tmp_path) -> np.ndarray:
+    """A prediction (H, W) written as a submission's uint16 PNG (256·d truncated, the largest
+    value 65535), then read as the devkit reads it: 0 is invalid (-1), else value / 256, and
+    the invalid pixels interpolated."""
+    from PIL import Image
+
+    stored = np.clip(np.floor(pred * 256), 0, 65535).astype(np.uint16)
+    path = tmp_path / "prediction.png"
+    Image.fromarray(stored).save(path)
+    read = np.asarray(Image.open(path)).astype(np.float64)
+    assert read.max() == stored.max()  # a real 16-bit PNG
+    return _devkit_fill(np.where(read > 0, read / 256, -1.0))
+
+
+def test_kitti_dc_scores_the_prediction_as_the_devkit_reads_its_png(tmp_path) -> None:
     """The KITTI devkit: every gt > 0 counts with no cap (85 m and 200 m included), no clamp,
-    per image, printed as MAE RMSE iMAE iRMSE in mm and 1/km."""
+    per image, printed as MAE RMSE iMAE iRMSE in mm and 1/km; the prediction is scored as the
+    devkit reads it back from a uint16 PNG (0.3 m reads 76/256 m; 1e-4 m stores 0, which the
+    devkit fills with the smaller of its row neighbours, 0.01 m's 2/256 m)."""
     result = _score("kitti_dc", tmp_path)
-    a = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (85.0, 90.0), (0.5, 0.3)]
-    a += [(60.0, 100.0), (10.0, 1e-4), (5e-4, 0.01), (200.0, 70.0), *UNCROPPED]
-    _check(result.overall, _per_image_mean([a, [(30.0, 33.0)]]), ["mae", "rmse", "imae", "irmse"])
+    assert result.protocol.quantize == "kitti_png"
+    pred, target = _frames()
+    expected = []
+    for image in (0, 2):
+        read = _devkit_reads(pred[image, 0].numpy(), tmp_path)
+        gt = target[image, 0].numpy()
+        scored = np.isfinite(gt) & (gt > 0)
+        expected.append(list(zip(gt[scored], read[scored], strict=True)))
+    assert (10.0, 2 / 256) in expected[0] and (0.5, 76 / 256) in expected[0]
+    _check(result.overall, _per_image_mean(expected), ["mae", "rmse", "imae", "irmse"])
+    # Scored as floats instead, the numbers move.
+    floats = _score("kitti_dc", tmp_path, "eval.quantize=none")
+    assert floats.overall["imae"] != pytest.approx(result.overall["imae"], rel=1e-3)
     assert _columns(results_tables(result)) == [
         "MAE (mm)",
         "RMSE (mm)",
@@ -192,12 +253,46 @@ def test_kitti_dc_counts_every_measured_pixel(tmp_path) -> None:
     ]
 
 
+def test_the_devkits_fill_of_empty_prediction_pixels() -> None:
+    """Runs of empty pixels inside a row, at its ends, whole rows above, between and below the
+    measured ones, and a map with nothing: each as the devkit's loops fill it."""
+    from fusion_depth.metrics.depth import kitti_interpolate_background
+
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1, 80, (9, 23))
+    depth[rng.random(depth.shape) < 0.4] = -1.0
+    depth[[0, 4, 8]] = -1.0  # whole rows: above, between and below
+    depth[2, :5] = depth[2, -3:] = -1.0  # runs at the ends of a row
+    np.testing.assert_array_equal(kitti_interpolate_background(depth), _devkit_fill(depth))
+    empty = np.full((3, 4), -1.0)
+    np.testing.assert_array_equal(kitti_interpolate_background(empty), empty)
+
+
+def test_densedepth_upsamples_with_mirrored_edges() -> None:
+    """DenseDepth's scale_up (skimage resize, order=1, mode="reflect"; SciPy's zoom with
+    mode="mirror" computes the same): the interior is plain bilinear, the 1-pixel border is not."""
+    from scipy import ndimage
+
+    from fusion_depth.models.inference import resize_depth
+
+    low = torch.rand(2, 1, 6, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    ours = resize_depth(low, (12, 20), "bilinear_reflect")
+    for i in range(2):
+        reference = ndimage.zoom(low[i, 0].numpy(), 2, order=1, mode="mirror", grid_mode=True)
+        np.testing.assert_allclose(ours[i, 0].numpy(), reference, atol=1e-12)
+    plain = resize_depth(low, (12, 20), "bilinear")
+    moved = (ours - plain).abs() > 1e-12
+    assert not moved[..., 1:-1, 1:-1].any()
+    assert moved[..., 0, :].any() and moved[..., -1, :].any() and moved[..., :, 0].any()
+
+
 def test_densedepth_pools_and_divides_by_the_prediction(tmp_path) -> None:
     """DenseDepth's utils.py: clamped to the model's range, every pixel of every image pooled,
     rel divided by the prediction (its swapped compute_errors arguments), a1 a2 a3 rel rms
     log_10, with flip TTA."""
     result = _score("densedepth", tmp_path)
     assert result.protocol.flip_tta is True and result.protocol.averaging == "pooled"
+    assert result.protocol.upsample == "bilinear_reflect"
     pooled = [(45.0, 70.0), (50.0, 40.0), (20.0, 22.0), (10.0, 8.0), (60.0, 80.0), (10.0, 0.5)]
     pooled += [*UNCROPPED, (30.0, 33.0)]  # both images' pixels in one set
     expected = _image_errors(pooled)

@@ -27,6 +27,7 @@ pytest.importorskip("nuscenes")
 
 from nuscenes.nuscenes import NuScenes  # noqa: E402
 from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
+from nuscenes.utils.geometry_utils import view_points  # noqa: E402
 
 import fusion_depth.data.nuscenes as nus  # noqa: E402
 from fusion_depth.data import RADAR_POINT_FIELDS  # noqa: E402
@@ -37,9 +38,10 @@ from fusion_depth.data.nuscenes import NuScenesDepth  # noqa: E402
 CAM_W, CAM_H = 128, 72  # the fixture's "1600x900": 16:9
 INTRINSIC = [[100.0, 0.0, 64.0], [0.0, 100.0, 36.0], [0.0, 0.0, 1.0]]
 # The prepared size in most tests: scale 0.5 (64x36), then 4 rows cropped from the top, so the
-# intrinsics become f = 50, c = (32, 18 - 4).
+# intrinsics become f = 50, c = (0.5 (64 + 0.5) - 0.5, 0.5 (36 + 0.5) - 0.5 - 4): pixel centres
+# at integers, as the devkit's.
 HEIGHT, WIDTH = 32, 64
-F_OUT, CX_OUT, CY_OUT = 50.0, 32.0, 14.0
+F_OUT, CX_OUT, CY_OUT = 50.0, 31.75, 13.75
 
 
 def yaw_matrix(degrees: float) -> np.ndarray:
@@ -103,8 +105,8 @@ def camera_point(row: float, col: float, depth: float) -> np.ndarray:
     """The camera-frame point seen at the centre of prepared pixel (row, col) at ``depth``."""
     return np.array(
         [
-            (col + 0.5 - CX_OUT) * depth / F_OUT,
-            (row + 0.5 - CY_OUT) * depth / F_OUT,
+            (col - CX_OUT) * depth / F_OUT,
+            (row - CY_OUT) * depth / F_OUT,
             depth,
         ]
     )
@@ -493,14 +495,69 @@ def test_project_points_keeps_the_nearest_and_drops_the_rest() -> None:
     assert nonzero(depth) == {(1, 2): 3.0, (1, 3): 1.0}
 
 
+def _distinct_pixel_points(rng, height: int, width: int, count: int) -> np.ndarray:
+    """Camera-frame points (3, count) of the intrinsics below, each in its own full-resolution
+    pixel: the first at pixel centres, the rest anywhere in their pixel."""
+    flat = rng.choice(height * width, count, replace=False)
+    v, u = (flat // width).astype(float), (flat % width).astype(float)
+    offsets = rng.uniform(-0.49, 0.49, (2, count))
+    offsets[:, : count // 4] = 0.0
+    u, v = u + offsets[0], v + offsets[1]
+    z = rng.uniform(2.0, 80.0, count)
+    f, cx, cy = NUSCENES_K[0, 0], NUSCENES_K[0, 2], NUSCENES_K[1, 2]
+    return np.stack([(u - cx) * z / f, (v - cy) * z / f, z])
+
+
+NUSCENES_K = np.array([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]])
+
+
+def test_points_land_where_radarnet_places_them_at_full_and_scaled_resolution() -> None:
+    """RadarNet's rule (setup/setup_dataset_nuscenes.py of nesl/radar-camera-fusion-depth): the
+    devkit's view_points, then np.round to a pixel. At 900x1600 every point lands there; at
+    448x800 (scaled by 0.5, 2 rows cut) in the pixel whose resized image shows its
+    full-resolution pixel."""
+    rng = np.random.default_rng(0)
+    points = _distinct_pixel_points(rng, 900, 1600, 400)
+    full = nus.project_points(points, NUSCENES_K, 900, 1600, min_distance=1.0)
+    uv = view_points(points, NUSCENES_K, normalize=True)
+    cols, rows = np.round(uv[0]).astype(int), np.round(uv[1]).astype(int)
+    expected = np.zeros((900, 1600), np.float32)
+    expected[rows, cols] = points[2]  # one point per pixel: the order does not matter
+    np.testing.assert_array_equal(full, expected)
+
+    image = np.zeros((900, 1600, 3), np.uint8)
+    out, k = nus.resize_and_crop(image, NUSCENES_K, 448, 800)
+    scaled = nus.project_points(points, k, 448, 800, min_distance=1.0)
+    expected = np.zeros((448, 800), np.float32)
+    out_rows, out_cols = rows // 2 - 2, cols // 2  # the 2x2 block each full pixel falls in
+    inside = out_rows >= 0
+    for r, c, z in sorted(
+        zip(out_rows[inside], out_cols[inside], points[2][inside], strict=True),
+        key=lambda p: -p[2],
+    ):
+        expected[r, c] = z  # the nearest last: it wins a shared pixel
+    np.testing.assert_array_equal(scaled, expected)
+    # The image says the same: one lit full-resolution pixel is brightest in that pixel.
+    for i in range(5):
+        lit = image.copy()
+        lit[rows[i], cols[i]] = 255
+        shown, _ = nus.resize_and_crop(lit, NUSCENES_K, 448, 800)
+        if out_rows[i] >= 0:
+            assert np.unravel_index(shown[..., 0].argmax(), (448, 800)) == (
+                out_rows[i],
+                out_cols[i],
+            )
+
+
 def test_resize_and_crop_scales_the_intrinsics() -> None:
     image = np.zeros((900, 1600, 3), np.uint8)
     k = np.array([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]])
     out, k2 = nus.resize_and_crop(image, k, 448, 800)
     assert out.shape == (448, 800, 3)
-    np.testing.assert_allclose(k2, [[633.2, 0, 408.15], [0, 633.2, 245.75 - 2], [0, 0, 1]])
+    # Centre-aware: c' = s (c + 0.5) - 0.5 - crop.
+    np.testing.assert_allclose(k2, [[633.2, 0, 407.9], [0, 633.2, 246.0 - 0.5 - 2], [0, 0, 1]])
     out, k3 = nus.resize_and_crop(image, k, 256, 640)  # scale 0.4: 640x360, 104 rows cut
-    np.testing.assert_allclose(k3, [[506.56, 0, 326.52], [0, 506.56, 196.6 - 104], [0, 0, 1]])
+    np.testing.assert_allclose(k3, [[506.56, 0, 326.22], [0, 506.56, 196.8 - 0.5 - 104], [0, 0, 1]])
 
 
 def test_splits_conditions_and_stride(nusc_root, tmp_path) -> None:
@@ -771,11 +828,12 @@ def test_radar_points_are_the_returns_of_the_sparse_map(nusc_root, tmp_path) -> 
         # Every return of the map, nearest first, at the pixel centre the fixture chose (the
         # devkit's chain, resized and cropped like the image), with the map's depth.
         assert depth.tolist() == sorted(depth.tolist())
-        cells = {(int(r), int(c)): float(z) for r, c, z in zip(v // 1, u // 1, depth, strict=True)}
+        at = zip(v.round(), u.round(), depth, strict=True)
+        cells = {(int(r), int(c)): float(z) for r, c, z in at}
         assert cells == pytest.approx(FILTERS_OFF, abs=1e-3)
         assert nonzero(item["sparse"]) == pytest.approx(cells, abs=1 / 256)
-        np.testing.assert_allclose(u % 1, 0.5, atol=1e-3)
-        np.testing.assert_allclose(v % 1, 0.5, atol=1e-3)
+        np.testing.assert_allclose(u, u.round(), atol=1e-3)
+        np.testing.assert_allclose(v, v.round(), atol=1e-3)
         assert (rcs == 5.0).all() and (velocity == 0).all()  # the fixture's rcs, still targets
     # P is applied when serving: the nearest two, nothing prepared again.
     files = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))

@@ -5,7 +5,6 @@ datasets without radar, batching, and damaged files. nuScenes: tests/test_nuscen
 from __future__ import annotations
 
 import functools
-import math
 from pathlib import Path
 
 import numpy as np
@@ -70,10 +69,12 @@ def check_points_on_map(points: torch.Tensor, sparse: torch.Tensor, max_points: 
     valid = rows[:count]
     assert (np.diff(valid[:, DEPTH]) >= 0).all(), "nearest first"
     u, v, depth = valid[:, U], valid[:, V], valid[:, DEPTH]
-    assert ((u >= 0) & (u < width) & (v >= 0) & (v < height)).all()
+    # Pixel centres at integers: a return lies in pixel (round(v), round(u)), as RadarNet's.
+    cols, rows_ = np.round(u).astype(int), np.round(v).astype(int)
+    assert ((cols >= 0) & (cols < width) & (rows_ >= 0) & (rows_ < height)).all()
     assert (depth > 0).all()
     sparse_map = sparse.numpy().reshape(height, width)
-    cells = list(zip(np.floor(v).astype(int), np.floor(u).astype(int), strict=True))
+    cells = list(zip(rows_, cols, strict=True))
     for (r, c), z in zip(cells, depth, strict=True):
         nearest = min(d for cell, d in zip(cells, depth, strict=True) if cell == (r, c))
         assert sparse_map[r, c] > 0
@@ -103,7 +104,7 @@ def test_procedural_points_are_the_returns_of_the_sparse_map(single_pixels) -> N
         sparse = sample["sparse"][0].numpy()
         rows = _valid(sample["radar_points"])
         cells = set(
-            zip(np.floor(rows[:, V]).astype(int), np.floor(rows[:, U]).astype(int), strict=True)
+            zip(np.round(rows[:, V]).astype(int), np.round(rows[:, U]).astype(int), strict=True)
         )
         assert cells == {(int(r), int(c)) for r, c in zip(*np.nonzero(sparse), strict=True)}
         assert (rows[:, [RCS, VELOCITY]] == 0).all()  # a static scene without cross-sections
@@ -118,7 +119,7 @@ def test_procedural_points_sit_on_the_vertical_lines(procedural_root, single_pix
         sparse = sample["sparse"][0].numpy()
         assert (sparse > 0).sum() > (single_pixels[i]["sparse"][0].numpy() > 0).sum()
         for u, v, z, *_ in _valid(sample["radar_points"]):
-            row, col = math.floor(v), math.floor(u)
+            row, col = round(v), round(u)
             # The line through the point crosses its row at its column (the camera's roll of
             # up to 1 degree may move the drawn pixel by one column), no farther than it (the
             # pitch changes z by a few mm along the metre or so of the line one row covers).
@@ -197,16 +198,18 @@ def test_a_damaged_procedural_points_array_is_named(tmp_path, damage) -> None:
 
 
 def test_point_rows_sort_nearest_first_and_stay_in_their_pixel() -> None:
-    u = np.array([5.5, 52.99999999, 0.0, 95.99999999])
-    v = np.array([1.0, 2.0, 3.0, 63.99999999])
+    u = np.array([5.25, 52.49999999, 0.0, 95.49999999])
+    v = np.array([1.0, 2.0, 3.0, 63.49999999])
     rows = point_rows(u, v, [9.0, 3.0, 3.0, 1.0], rcs=[1, 2, 3, 4], velocity=[-1, -2, -3, -4])
     assert rows.dtype == np.float32 and rows.shape == (4, NUM_FIELDS)
     assert rows[:, DEPTH].tolist() == [1.0, 3.0, 3.0, 9.0]  # a stable sort: ties keep order
     assert rows[:, RCS].tolist() == [4, 2, 3, 1] and rows[:, VELOCITY].tolist() == [-4, -2, -3, -1]
-    assert np.floor(rows[:, U]).tolist() == [95, 52, 0, 5]  # float32 never rounds into the next
-    assert np.floor(rows[:, V]).tolist() == [63, 2, 3, 1]
+    # float32 never rounds into the next pixel (95.49999999 is 95.5 in float32, which is 96)
+    assert np.round(rows[:, U]).tolist() == [95, 52, 0, 5]
+    assert np.round(rows[:, V]).tolist() == [63, 2, 3, 1]
     assert (rows[:, VALID] == 1).all()
-    assert np.floor(same_pixel_float32(np.array([2.0 - 1e-9, 2.0, 7.25]))).tolist() == [1, 2, 7]
+    near_halves = np.array([1.5 - 1e-9, 2.5 + 1e-9, 2.5, 7.25, -0.5 + 1e-9])
+    assert np.round(same_pixel_float32(near_halves)).tolist() == [1, 3, 2, 7, 0]
     padded = pad_points(rows, 6)
     assert padded.shape == (6, NUM_FIELDS) and (padded[4:] == 0).all()
     assert np.array_equal(pad_points(rows, 2), rows[:2])
@@ -217,11 +220,12 @@ def _radar_frame(frame_id: str) -> PreparedFrame:
     rng = np.random.default_rng(len(frame_id) + ord(frame_id[0]))
     h, w = 8, 12
     count = {"a": 5, "b": 0, "c": 2}[frame_id]
-    u, v = rng.uniform(0, w, count), rng.uniform(0, h, count)
+    # Pixel centres at integers: pixel i spans [i - 0.5, i + 0.5].
+    u, v = rng.uniform(-0.5, w - 0.5, count), rng.uniform(-0.5, h - 0.5, count)
     depth = rng.uniform(1, 60, count)
     sparse = np.zeros((h, w), np.float32)
     for col, row, z in sorted(zip(u, v, depth, strict=True), key=lambda p: -p[2]):
-        sparse[int(row), int(col)] = z
+        sparse[round(row), round(col)] = z
     return PreparedFrame(
         image=rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
         sparse=sparse,
@@ -360,11 +364,12 @@ def test_carla_points_are_the_detections_of_the_sparse_map(recording, tmp_path) 
         assert count == (3 if i == 0 else 1)  # behind the camera, outside the image: dropped
         rows = _valid(sample["radar_points"])
         assert (rows[:, VELOCITY] == np.float32(-1.5)).all() and (rows[:, RCS] == 0).all()
-    # (20, 2, -1) lands at u = 48 + 48 * 2/20 = 52.8, v = 32 + 48 * 1/20 = 34.4 (test_carla);
-    # the pair on one pixel keeps both points, 24 m and 30 m, nearest first.
+    # (20, 2, -1) lands at u = 47.5 + 48 * 2/20 = 52.3, v = 31.5 + 48 * 1/20 = 33.9 (test_carla;
+    # pixel centres at integers, so the image centre of 96x64 is (47.5, 31.5)); the pair on one
+    # pixel keeps both points, 24 m and 30 m, nearest first.
     rows = _valid(train[0]["radar_points"])
     np.testing.assert_allclose(
-        rows[:, :3], [[52.8, 34.4, 20], [38.4, 27.2, 24], [38.4, 27.2, 30]], atol=1e-4
+        rows[:, :3], [[52.3, 33.9, 20], [37.9, 26.7, 24], [37.9, 26.7, 30]], atol=1e-4
     )
 
 

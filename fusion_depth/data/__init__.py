@@ -18,8 +18,10 @@ SPLITS: tuple[str, ...] = ("train", "val", "test")
 CONDITIONS: tuple[str, ...] = ("day", "night", "fog", "rain", "cloudy")
 
 # The columns of a sample's ``radar_points`` (see :class:`Sample`), in order:
-# - u, v: the return's continuous pixel position in the sample's image (column, row; pixel i
-#   spans [i, i + 1), so it lies in pixel (floor(v), floor(u)) of ``image`` and ``sparse``);
+# - u, v: the return's continuous pixel position in the sample's image (column, row), pixel
+#   centres at integers (pixel i spans [i - 0.5, i + 0.5], the OpenCV and nuScenes devkit
+#   convention), so it lies in pixel (round(v), round(u)) of ``image`` and ``sparse``, as
+#   RadarNet places its points (radar_points.pixel_index);
 # - depth: metres, camera-frame z (the forward distance), the quantity ``sparse`` holds;
 # - rcs: radar cross-section in dBsm, where the dataset records it (nuScenes), else 0;
 # - velocity: radial velocity in m/s, as the dataset's radar reports it (nuScenes: ego-motion
@@ -62,7 +64,7 @@ class Sample(_SampleKeys):
           (``dataset.max_radar_points``): a frame with more returns keeps the nearest ``P``
           (the others stay in ``sparse``), one with fewer is padded with rows of zeros
           (``valid`` = 0). Every valid row's return is drawn in ``sparse`` at pixel
-          ``(floor(v), floor(u))`` (with its depth unless a nearer return shares the pixel);
+          ``(round(v), round(u))`` (with its depth unless a nearer return shares the pixel);
           the procedural radar's ``radar_height_extension`` draws it as a vertical line through
           that pixel.
     """

@@ -19,6 +19,7 @@ from fusion_depth.data._procedural_scene import (
     Camera,
     Scene,
 )
+from fusion_depth.data.radar_points import pixel_index, same_pixel_float32
 
 RADAR_HEIGHT = 0.5  # metres; nuScenes-like front radar below the camera
 RADAR_RANGE = 100.0
@@ -183,9 +184,9 @@ def radar_returns(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One radar scan: the sparse depth map (H, W) float32 in the camera frame, and its returns
     in the image as float32 (M, 3) ``u, v, z`` rows (continuous pixel position, column and row,
-    and camera-frame z in metres), in scan order.
+    pixel centres at integers, and camera-frame z in metres), in scan order.
 
-    Each return is a point at the radar's mounting height, drawn at pixel ``(int(v), int(u))``
+    Each return is a point at the radar's mounting height, drawn at pixel ``(round(v), round(u))``
     with depth ``z`` (the nearer winning a shared pixel); ``height_extension`` > 0 draws it as a
     vertical line up to that height instead (see :func:`extend_height`), which passes through
     that point, whose row stays the one returned. Returns whose point lies outside the image
@@ -194,7 +195,18 @@ def radar_returns(
     points = radar_points(scene, rng, weather)
     u, v, z = _in_image(points, scene.camera)
     sparse = _splat(extend_height(points, scene.camera, height_extension), scene.camera)
-    return sparse, np.stack([u, v, z], 1).astype(np.float32)
+    return sparse, np.stack([_centred(u), _centred(v), z], 1).astype(np.float32)
+
+
+def _centred(x: np.ndarray) -> np.ndarray:
+    """Coordinates with pixel corners at integers (the camera's, drawn at ``int(x)``) as the
+    rows give them, with pixel centres at integers (:func:`~fusion_depth.data.radar_points.
+    pixel_index`), in the same pixel: ``x - 0.5``, a half stepped towards its pixel."""
+    cell = np.floor(x.astype(np.float64))
+    centred = x.astype(np.float64) - 0.5
+    tie = pixel_index(centred) != cell
+    centred[tie] = np.nextafter(centred[tie], cell[tie])
+    return same_pixel_float32(centred)
 
 
 def radar_map(

@@ -54,9 +54,12 @@ sin(az)``, ``z = d sin(alt)`` in the radar frame (positive azimuth: to the right
 altitude: up). ``radar_to_camera`` maps it to the camera frame with the matrix of
 ``carla.Transform.get_matrix()`` (:func:`transform_matrix`; pitch about y, nose up positive; yaw
 about z, to the right positive; roll about x; degrees). The camera is a pinhole with square
-pixels: focal ``f = W / (2 tan(fov / 2))``, principal point at the image centre ``(W/2, H/2)``, and
-a camera-frame point lands at ``u = W/2 + f y / x`` (right), ``v = H/2 - f z / x`` (down), in pixel
-``(floor(v), floor(u))``, with depth ``x``: the same forward distance the depth camera encodes.
+pixels: focal ``f = W / (2 tan(fov / 2))`` and the principal point at the image centre. With pixel
+centres at integers (every reader's convention,
+:func:`~fusion_depth.data.radar_points.pixel_index`) the centre is ``((W - 1) / 2, (H - 1) / 2)``,
+and a camera-frame point lands at
+``u = (W - 1) / 2 + f y / x`` (right), ``v = (H - 1) / 2 - f z / x`` (down), in pixel
+``(round(v), round(u))``, with depth ``x``: the same forward distance the depth camera encodes.
 Points behind the camera, at or beyond ``max_range``, or outside the image are dropped; where two
 detections land on one pixel the nearer wins. The detections that land in the image are also
 served as ``radar_points`` (:data:`~fusion_depth.data.RADAR_POINT_FIELDS`: ``u, v`` as above,
@@ -120,10 +123,17 @@ from fusion_depth.data.folders import (
     resize_depth_nearest,
     resize_rgb,
 )
-from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
+from fusion_depth.data.radar_points import (
+    DEFAULT_MAX_RADAR_POINTS,
+    in_image,
+    pixel_index,
+    point_rows,
+)
 from fusion_depth.errors import ArgumentError
 
-FORMAT_VERSION = 1  # bump when decoding or projection changes, so old caches are not reused
+# Bump when decoding or projection changes, so old caches are not reused. 2: radar_points' u, v
+# put pixel centres at integers (the same pixels as 1, which put their corners there).
+FORMAT_VERSION = 2
 SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
 RADAR_COLUMNS = ("depth", "azimuth", "altitude", "velocity")
 DEPTH_FAR = 1000.0  # metres at CARLA's depth code 256**3 - 1
@@ -303,11 +313,9 @@ def radar_image_points(
         stored = x.astype(np.float32)
         ahead = (stored > 0) & (stored < min(max_range, _FLOAT32_MAX))
         x, y, z = x[ahead], y[ahead], z[ahead]
-        u = width / 2.0 + fx * y / x
-        v = height / 2.0 - fy * z / x
-    # NaN compares false, so this also drops what overflowed; floor(u) in [0, width) <=>
-    # u in [0, width).
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        u = (width - 1) / 2.0 + fx * y / x
+        v = (height - 1) / 2.0 - fy * z / x
+        inside = in_image(u, v, height, width)  # also drops what overflowed (NaN)
     velocity = detections[ahead, 3][inside]
     return u[inside], v[inside], x[inside], velocity
 
@@ -316,10 +324,10 @@ def splat_points(
     u: np.ndarray, v: np.ndarray, depth: np.ndarray, size: tuple[int, int]
 ) -> np.ndarray:
     """Points inside the image (:func:`radar_image_points`) to a float32 (height, width) sparse
-    depth map in metres (0 = none): each at pixel ``(floor(v), floor(u))``, the nearer winning
-    a shared pixel."""
+    depth map in metres (0 = none): each at pixel ``(round(v), round(u))``
+    (:func:`~fusion_depth.data.radar_points.pixel_index`), the nearer winning a shared pixel."""
     sparse = np.full(size, np.inf)
-    rows, cols = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    rows, cols = pixel_index(v), pixel_index(u)
     np.minimum.at(sparse, (rows, cols), depth)
     sparse[np.isinf(sparse)] = 0.0
     return sparse.astype(np.float32)

@@ -40,7 +40,9 @@ The devkit does it: ``from_file_multisweep(nusc, sample, channel, "CAM_FRONT", n
 min_distance)`` takes every sweep from its sensor through the ego pose at the sweep's timestamp
 into the global frame and back through the ego pose at the camera's timestamp into the camera
 (the chain of ``NuScenesExplorer.map_pointcloud_to_image``), and ``view_points`` projects with the
-intrinsics. A point lands in pixel ``(floor(v), floor(u))`` with its camera-frame ``z`` as depth.
+intrinsics. ``u, v`` put pixel centres at integers (the devkit's and OpenCV's convention), and a
+point lands in pixel ``(round(v), round(u))`` with its camera-frame ``z`` as depth, as RadarNet's
+setup places it (:func:`~fusion_depth.data.radar_points.pixel_index`).
 Points with ``z < min_distance`` (default 1 m; the devkit also drops points within that distance
 of their own sensor), outside the image, or beyond the cache's 255.99 m ceiling are dropped; where
 two points land on one pixel the nearer wins.
@@ -55,8 +57,10 @@ frame of the sweep that measured it, positive moving away (m/s).
 Resolution: the image is scaled uniformly (bilinear; area-averaging when shrinking) until it covers
 ``height x width``, then cropped: centred horizontally, from the top vertically (sky, where lidar
 never returns). The default 448x800 is 1600x900 halved with 2 rows cut from the top. Sparse maps
-are never resampled: points are projected with the intrinsics scaled and shifted the same way
-(``f_x, c_x`` times ``W'/W``, minus the crop offset), so every depth stays a measured one.
+are never resampled: points are projected with the intrinsics scaled and shifted the same way,
+centre-aware (``u' = s (u + 0.5) - 0.5 - left``: ``f_x`` times ``s``, ``c_x`` to
+``s (c_x + 0.5) - 0.5 - left``), so every depth stays a measured one and a point lands where the
+resized image shows it.
 
 Splits and conditions
 ---------------------
@@ -111,10 +115,17 @@ from fusion_depth.data.cache import (
 )
 from fusion_depth.data.depth_io import MAX_ENCODED_DEPTH, read_rgb
 from fusion_depth.data.filling import FILL_METHODS, fill_depth
-from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, point_rows
+from fusion_depth.data.radar_points import (
+    DEFAULT_MAX_RADAR_POINTS,
+    in_image,
+    pixel_index,
+    point_rows,
+)
 from fusion_depth.errors import ArgumentError, check_choice
 
-FORMAT_VERSION = 1  # bump when projection or resizing changes, so old caches are not reused
+# Bump when projection or resizing changes, so old caches are not reused. 2: points placed at
+# round() of centre-aware coordinates, as the devkit and RadarNet (1 put them half a pixel off).
+FORMAT_VERSION = 2
 INSTALL = 'pip install -e ".[nuscenes]"'
 CAMERA = "CAM_FRONT"
 LIDAR = "LIDAR_TOP"
@@ -212,8 +223,18 @@ def resize_and_crop(
     """Scales ``image`` uniformly to cover ``height x width`` and crops it (centred horizontally,
     from the top vertically); returns it with the intrinsics that project into the result.
 
-    Pixel ``i`` covers ``[i, i + 1)``, so scaling by ``s`` maps ``u`` to ``s u``: the intrinsics
-    scale by the same factors (per axis, after rounding the resized size) and shift by the crop.
+    Pixel centres sit at integers (the devkit's ``view_points`` convention), so scaling by ``s``
+    maps ``u`` to ``s (u + 0.5) - 0.5`` (PIL's resampling aligns pixel areas the same way): the
+    intrinsics' rows scale by the factors (per axis, after rounding the resized size), and the
+    principal point also moves by ``0.5 s - 0.5`` and the crop offset.
+
+    Args:
+        image: (H0, W0, 3) uint8 RGB.
+        intrinsic: (3, 3) camera matrix of ``image`` in pixels.
+        height: output rows; width: output columns.
+
+    Returns:
+        The (height, width, 3) image and the float64 (3, 3) matrix projecting into it.
     """
     h0, w0 = image.shape[:2]
     scale = max(width / w0, height / h0)
@@ -224,10 +245,9 @@ def resize_and_crop(
         image = np.asarray(resized)
     left, top = (new_w - width) // 2, new_h - height
     k = np.asarray(intrinsic, dtype=np.float64).copy()
-    k[0] *= new_w / w0
-    k[1] *= new_h / h0
-    k[0, 2] -= left
-    k[1, 2] -= top
+    for axis, scale_axis, offset in ((0, new_w / w0, left), (1, new_h / h0, top)):
+        k[axis] *= scale_axis
+        k[axis, 2] += 0.5 * scale_axis - 0.5 - offset
     return np.ascontiguousarray(image[top : top + height, left : left + width]), k
 
 
@@ -239,7 +259,8 @@ def image_points(
     min_distance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The camera-frame points ``(>=3, N)`` (rows x, y, z first) that land in the image: float64
-    ``(M,)`` arrays ``u, v`` (continuous pixel position: column, row) and ``z`` (depth, metres),
+    ``(M,)`` arrays ``u, v`` (continuous pixel position: column, row; pixel centres at
+    integers) and ``z`` (depth, metres),
     and the int64 ``(M,)`` indices of those points among the N, in their order.
 
     Drops points with depth ``z < min_distance`` (behind the camera included), beyond the cache's
@@ -253,8 +274,7 @@ def image_points(
     uv = require_devkit().view_points(
         points[:, keep], np.asarray(intrinsic, np.float64), normalize=True
     )
-    # floor(u) in [0, width) <=> u in [0, width)
-    inside = (uv[0] >= 0) & (uv[0] < width) & (uv[1] >= 0) & (uv[1] < height)
+    inside = in_image(uv[0], uv[1], height, width)
     index = keep[inside]
     return uv[0, inside], uv[1, inside], points[2, index], index
 
@@ -263,11 +283,12 @@ def splat_nearest(
     u: np.ndarray, v: np.ndarray, z: np.ndarray, height: int, width: int
 ) -> np.ndarray:
     """Points inside the image (:func:`image_points`) to a float32 ``(height, width)`` depth map
-    (0 = none): each at pixel ``(floor(v), floor(u))``, the nearest winning a shared pixel."""
+    (0 = none): each at pixel ``(round(v), round(u))`` (:func:`pixel_index`), the nearest
+    winning a shared pixel."""
     depth_map = np.zeros((height, width), dtype=np.float32)
     if not len(z):
         return depth_map
-    flat = np.floor(v).astype(np.int64) * width + np.floor(u).astype(np.int64)
+    flat = pixel_index(v) * width + pixel_index(u)
     order = np.lexsort((z, flat))  # by pixel, nearest first within a pixel
     _, first = np.unique(flat[order], return_index=True)
     depth_map.flat[flat[order][first]] = z[order][first]
@@ -284,7 +305,9 @@ def project_points(
     """Camera-frame points ``(3, N)`` to a float32 ``(height, width)`` depth map (0 = none).
 
     Drops points with depth ``z < min_distance`` (behind the camera included), beyond the cache's
-    ceiling, or outside the image; the nearest point wins a shared pixel.
+    ceiling, or outside the image; a point lands in pixel ``(round(v), round(u))`` of its
+    projection (pixel centres at integers, as the devkit's ``view_points`` and RadarNet), and the
+    nearest point wins a shared pixel.
     """
     u, v, z, _ = image_points(points, intrinsic, height, width, min_distance)
     return splat_nearest(u, v, z, height, width)

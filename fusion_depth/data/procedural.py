@@ -73,7 +73,9 @@ from fusion_depth.data.radar_points import check_max_points, pad_points, point_r
 from fusion_depth.utils.atomic import fsync_file, owner_tag, remove_orphaned_temporaries
 from fusion_depth.utils.processes import die_with_parent
 
-GENERATOR_VERSION = 2  # bump whenever rendering changes, so old caches are not reused
+# Bump whenever rendering changes, so old caches are not reused. 3: radar_points' u, v put pixel
+# centres at integers (the same pixels as 2, which put their corners there).
+GENERATOR_VERSION = 3
 SENSORS = ("radar", "lidar")
 DEPTH_SCALE = DEPTH_PNG_SCALE  # cache stores uint16 depth * 256, as the prepared caches
 _ARRAYS = ("image", "depth", "sparse")  # every split's; a radar split adds RADAR_ARRAY

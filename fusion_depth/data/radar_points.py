@@ -78,18 +78,45 @@ def point_rows(
     return rows[np.argsort(depth, kind="stable")]
 
 
+def pixel_index(x: np.ndarray) -> np.ndarray:
+    """The pixel (int64, same shape) each continuous coordinate lies in: ``round(x)``, halves to
+    even as numpy rounds them.
+
+    The coordinates put pixel centres at integers (pixel ``i`` spans ``[i - 0.5, i + 0.5]``), the
+    OpenCV and nuScenes devkit convention (``view_points``); RadarNet's setup places a projected
+    point on ``np.round`` of it (``setup/setup_dataset_nuscenes.py`` of
+    github.com/nesl/radar-camera-fusion-depth), and so does every reader here.
+    """
+    return np.rint(np.asarray(x)).astype(np.int64)
+
+
+def in_image(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Whether each point (M,) lies in a pixel of a ``height x width`` image: its
+    :func:`pixel_index` column in ``[0, width)`` and row in ``[0, height)``. False for NaN and
+    for values too large to round to int64."""
+    u, v = np.asarray(u), np.asarray(v)
+    with np.errstate(invalid="ignore"):
+        near = (u > -1) & (u < width) & (v > -1) & (v < height)  # NaN compares false
+    out = near.copy()
+    col, row = pixel_index(u[near]), pixel_index(v[near])
+    out[near] = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    return out
+
+
 def same_pixel_float32(x: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (M,) as float32 in the same pixel: ``floor`` of the result equals
-    ``floor(x)``. Rounding to float32 alone can carry a coordinate a few millionths below an
-    integer onto it, i.e. into the next pixel; such values become the largest float32 below
-    that integer."""
+    """Pixel coordinates (M,) as float32 in the same pixel: :func:`pixel_index` of the result
+    equals that of ``x``. Rounding to float32 alone can carry a coordinate a few millionths off
+    a half onto it, i.e. into the neighbouring pixel; such values step back towards their
+    pixel by one float32 at a time (once or twice)."""
     x = np.asarray(x).reshape(-1)
     out = x.astype(np.float32)
     if x.dtype == np.float32:
         return out
-    cell = np.floor(x)
-    moved = np.floor(out) != cell
-    out[moved] = np.nextafter((cell[moved] + 1).astype(np.float32), np.float32(-np.inf))
+    cell = pixel_index(x)
+    moved = pixel_index(out) != cell
+    while moved.any():
+        out[moved] = np.nextafter(out[moved], cell[moved].astype(np.float32))
+        moved = pixel_index(out) != cell
     return out
 
 
@@ -103,10 +130,8 @@ def pad_points(rows: np.ndarray, max_points: int) -> np.ndarray:
 
 
 def inside_image(rows: np.ndarray, height: int, width: int) -> bool:
-    """Whether every row (M, K) lies inside a ``height x width`` image: 0 <= u < width and
-    0 <= v < height."""
-    u, v = rows[:, U], rows[:, V]
-    return bool(((u >= 0) & (u < width) & (v >= 0) & (v < height)).all())
+    """Whether every row (M, K) lies in a pixel of a ``height x width`` image (:func:`in_image`)."""
+    return bool(in_image(rows[:, U], rows[:, V], height, width).all())
 
 
 def write_points(path: str | os.PathLike, rows: np.ndarray) -> None:

@@ -14,6 +14,8 @@ comparable with published ones):
   without any valid pixel are skipped (they would be 0/0).
 * ``max_depth`` may be several caps (RadarNet reports 50, 70 and 80 m): each cap is scored in the
   same pass, with predictions clamped to ``[min_depth, cap]``; the largest is the headline.
+* ``quantize="kitti_png"`` first reads each prediction as the KITTI devkit reads a submission's
+  uint16 PNG (truncated to 1/256 m, empty pixels filled from their neighbours).
 * ``crop`` keeps only the Garg et al. or Eigen et al. region of the frame, given as fractions of the
   *original* frame (KITTI's convention); a sample's ``frame_box`` says where that frame lies when a
   reader padded or cropped it.
@@ -40,6 +42,7 @@ import math
 from collections.abc import Sequence
 from contextlib import AbstractContextManager
 
+import numpy as np
 import torch
 from torch import Tensor
 from torchmetrics import Metric
@@ -142,6 +145,65 @@ AVERAGING: tuple[str, ...] = ("per_image", "pooled")
 RELATIVE_TO: tuple[str, ...] = ("ground_truth", "prediction")
 """What ARD and SRD divide by: the ground truth (Eigen et al.), or the prediction (DenseDepth's
 utils.py, which calls ``compute_errors(predictions, gt)`` with its arguments swapped)."""
+
+QUANTIZATIONS: tuple[str, ...] = ("none", "kitti_png")
+"""How a prediction is read before scoring: as it is, or as the KITTI devkit reads a submission
+(:func:`kitti_png_prediction`)."""
+KITTI_PNG_SCALE = 256.0  # a KITTI depth PNG stores 256 · metres as uint16
+KITTI_PNG_MAX = 65535
+
+
+def kitti_png_prediction(pred: Tensor) -> Tensor:
+    """Depth maps ``(B, 1, H, W)`` or ``(B, H, W)`` in metres as the KITTI depth-completion
+    devkit scores them from a submission's uint16 PNGs: ``floor(256 d)`` clipped to
+    ``[0, 65535]``, divided by 256 (so at most 255.996 m, truncated to 1/256 m); a pixel that
+    stores 0 (a prediction below 1/256 m) is invalid, and each image's invalid pixels are filled
+    by :func:`kitti_interpolate_background`.
+
+    Source: the devkit's ``cpp/io_depth.h`` (``readDepthMap``, ``interpolateBackground``) and
+    ``cpp/evaluate_depth.cpp``, which scores ``D_ipol``, the interpolated prediction.
+
+    Returns:
+        A tensor of ``pred``'s shape, dtype and device.
+    """
+    stored = torch.floor(pred.clamp(0.0, KITTI_PNG_MAX / KITTI_PNG_SCALE) * KITTI_PNG_SCALE)
+    depth = torch.where(stored > 0, stored / KITTI_PNG_SCALE, torch.full_like(pred, -1.0))
+    if not (stored == 0).any():
+        return depth
+    images = depth.detach().reshape(-1, *pred.shape[-2:]).cpu().double().numpy()
+    filled = np.stack([kitti_interpolate_background(image) for image in images])
+    return torch.from_numpy(filled).to(pred.device, pred.dtype).reshape(pred.shape)
+
+
+def kitti_interpolate_background(depth: np.ndarray) -> np.ndarray:
+    """The KITTI devkit's ``DepthImage::interpolateBackground`` on one ``(H, W)`` map whose
+    invalid pixels are negative: per row, a run of invalid pixels between two valid ones takes
+    the smaller of the two, and the runs at the row's ends take the nearest valid value; then per
+    column, the rows above the first valid one and below the last take its value (so a row with
+    no valid pixel between valid rows stays invalid, as there).
+
+    Source: ``cpp/io_depth.h`` of the KITTI depth devkit.
+
+    Returns:
+        A filled float64 copy.
+    """
+    out = np.array(depth, dtype=np.float64)
+    for row in out:
+        valid = np.flatnonzero(row >= 0)
+        if not len(valid) or len(valid) == len(row):
+            continue
+        gaps = np.flatnonzero(row < 0)
+        inner = gaps[(gaps > valid[0]) & (gaps < valid[-1])]
+        right = valid[np.searchsorted(valid, inner)]
+        row[inner] = np.minimum(row[right], row[valid[np.searchsorted(valid, inner) - 1]])
+        row[: valid[0]] = row[valid[0]]
+        row[valid[-1] + 1 :] = row[valid[-1]]
+    rows = np.flatnonzero((out >= 0).any(axis=1))  # after the rows: each row all or nothing
+    if len(rows):
+        out[: rows[0]] = out[rows[0]]
+        out[rows[-1] + 1 :] = out[rows[-1]]
+    return out
+
 
 # Evaluation crops as (top, bottom, left, right) fractions of the full frame: Garg et al. (ECCV
 # 2016) and Eigen et al. (NIPS 2014), with the constants of the monodepth2/KITTI scripts.
@@ -402,7 +464,8 @@ class DepthMetrics(Metric):
     ... and, with conditions, ``"<condition>/abs_rel"``, ... for each condition with a scored
     image. :meth:`results` gives every breakdown; :meth:`per_image` the per-image records. The
     metrics do not share a direction, so ``higher_is_better`` is None; see
-    :data:`HIGHER_IS_BETTER` for each key.
+    :data:`HIGHER_IS_BETTER` for each key. ``quantize="kitti_png"`` scores each prediction as
+    the KITTI devkit reads it from a submission's PNG (:func:`kitti_png_prediction`).
     """
 
     is_differentiable = False
@@ -424,9 +487,12 @@ class DepthMetrics(Metric):
         distance_bins: Sequence[float] | None = None,
         clamp: bool = True,
         relative_to: str = "ground_truth",
+        quantize: str = "none",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
+        check_choice(quantize, QUANTIZATIONS, "quantize", owner=DepthMetrics)
+        self.quantize = quantize
         caps = [max_depth] if isinstance(max_depth, int | float) else list(max_depth)
         if not caps:
             raise ValueError("max_depth: expected a depth cap or a non-empty list of caps")
@@ -501,6 +567,8 @@ class DepthMetrics(Metric):
             raise ValueError(
                 f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}"
             )
+        if self.quantize == "kitti_png":
+            pred = kitti_png_prediction(pred)
         flat_target = target.detach().reshape(b, -1)
         base = crop_mask(tuple(target.shape[-2:]), self.crop, frame_box, b, target.device)
         base = base.reshape(b, -1) & (flat_target > self.min_depth)

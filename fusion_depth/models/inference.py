@@ -12,7 +12,11 @@ import torch.nn.functional as F
 from fusion_depth.errors import check_choice
 from fusion_depth.models import DepthModel
 
-UPSAMPLING = ("bilinear", "nearest")
+UPSAMPLING = ("bilinear", "nearest", "bilinear_reflect")
+"""How a depth map is resized to the ground truth's size: bilinear (pixel areas aligned, edges
+replicated: ``F.interpolate(align_corners=False)``), nearest, or bilinear with mirrored edges
+(``bilinear_reflect``: scikit-image's ``resize(order=1, mode="reflect")``, which DenseDepth's
+``utils.py`` ``scale_up`` calls)."""
 
 
 def _check_upsample(mode: str) -> None:
@@ -22,13 +26,44 @@ def _check_upsample(mode: str) -> None:
 def resize_depth(
     depth: torch.Tensor, size: tuple[int, int], mode: str = "bilinear"
 ) -> torch.Tensor:
-    """Depth ``(B, 1, h, w)`` → ``(B, 1, *size)`` by ``bilinear`` or ``nearest`` interpolation."""
+    """Depth ``(B, 1, h, w)`` → ``(B, 1, *size)`` by one of :data:`UPSAMPLING`.
+
+    Raises:
+        ArgumentError: ``mode`` is not one of :data:`UPSAMPLING` (naming ``upsample``).
+    """
     _check_upsample(mode)
     if tuple(depth.shape[-2:]) == tuple(size):
         return depth
     if mode == "nearest":
         return F.interpolate(depth, size=size, mode="nearest")
+    if mode == "bilinear_reflect":
+        return _linear_mirrored(_linear_mirrored(depth, size[0], -2), size[1], -1)
     return F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
+
+
+def _linear_mirrored(x: torch.Tensor, size: int, dim: int) -> torch.Tensor:
+    """Linear resampling of ``x`` along ``dim`` to ``size`` samples, pixel areas aligned (output
+    ``i`` reads input ``(i + 0.5) n / size - 0.5``), samples past an edge mirrored about the edge
+    pixel (``x[-1]`` reads ``x[1]``: SciPy's ``mode="mirror"``, scikit-image's ``"reflect"``)."""
+    n = x.shape[dim]
+    position = (torch.arange(size, dtype=torch.float64, device=x.device) + 0.5) * n / size - 0.5
+    low = torch.floor(position)
+    weight = (position - low).to(x.dtype)
+    low = low.long()
+
+    def mirrored(index: torch.Tensor) -> torch.Tensor:
+        if n == 1:
+            return torch.zeros_like(index)
+        period = 2 * (n - 1)
+        index = index.remainder(period)
+        return torch.where(index > n - 1, period - index, index)
+
+    shape = [1] * x.dim()
+    shape[dim] = size
+    weight = weight.view(shape)
+    a = x.index_select(dim, mirrored(low))
+    b = x.index_select(dim, mirrored(low + 1))
+    return a * (1 - weight) + b * weight
 
 
 @torch.no_grad()

@@ -23,6 +23,7 @@ from fusion_depth.metrics.depth import (
     AVERAGING,
     EVAL_CROPS,
     METRIC_KEYS,
+    QUANTIZATIONS,
     RELATIVE_TO,
     TABLE_METRICS,
     UNITS,
@@ -43,9 +44,10 @@ BEFORE_PRESETS: dict[str, Any] = {
     "relative_to": "ground_truth",
     "units": "m",
     "metrics": list(TABLE_METRICS),
+    "quantize": "none",
 }
-"""The protocol keys added with the presets, with the values that score as every protocol
-written before them did: a record or run config without them means these."""
+"""The protocol keys added with or after the presets, with the values that score as every
+protocol written before them did: a record or run config without them means these."""
 
 
 def protocol_differences(
@@ -69,9 +71,10 @@ class EvalProtocol:
     (``conf/eval/<preset>.yaml``, see docs/guides/evaluation.md).
 
     ``preset`` names it; ``clamp`` says whether predictions are clamped to ``[min_depth,
-    cap]`` before scoring; ``relative_to`` what ARD and SRD divide by; ``units`` and ``metrics``
-    are the printed tables' units and columns, in the reference's order (metrics.json always
-    holds every metric, in metres and 1/km).
+    cap]`` before scoring; ``quantize`` how they are read first
+    (:data:`~fusion_depth.metrics.depth.QUANTIZATIONS`); ``relative_to`` what ARD and SRD
+    divide by; ``units`` and ``metrics`` are the printed tables' units and columns, in the
+    reference's order (metrics.json always holds every metric, in metres and 1/km).
     """
 
     min_depth: float
@@ -86,6 +89,7 @@ class EvalProtocol:
     relative_to: str = "ground_truth"
     units: str = "m"
     metrics: tuple[str, ...] = TABLE_METRICS
+    quantize: str = "none"
 
     @classmethod
     def from_config(
@@ -125,6 +129,7 @@ class EvalProtocol:
             relative_to=cfg.get("relative_to", "ground_truth"),
             units=cfg.get("units", "m"),
             metrics=metrics,
+            quantize=cfg.get("quantize", "none"),
         )
         try:
             protocol.scorer()  # validates the depth range, crop and averaging names
@@ -152,6 +157,7 @@ class EvalProtocol:
             distance_bins=self.distance_bins,
             clamp=self.clamp,
             relative_to=self.relative_to,
+            quantize=self.quantize,
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -326,6 +332,7 @@ def config_schema(cfg: DictConfig) -> Schema:
         "eval.crop": one_of(*EVAL_CROPS),
         "eval.averaging": one_of(*AVERAGING),
         "eval.upsample": one_of(*UPSAMPLING),
+        "eval.quantize": one_of(*QUANTIZATIONS),
         "eval.flip_tta": BOOLEAN,
         "eval.bin_width": positive_metres.or_null("no distance breakdown"),
         "eval.min_depth": min_depth.or_null("dataset.min_depth"),
