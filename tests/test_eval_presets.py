@@ -340,3 +340,38 @@ def test_a_prediction_of_zero_or_less_unclamped_is_wrong_not_undefined() -> None
     assert math.isfinite(out["rmse_log"]) and math.isfinite(out["log10"])
     expected_log = math.sqrt((math.log(1e-6) - math.log(10.0)) ** 2 / 2)
     assert out["rmse_log"] == pytest.approx(expected_log)
+
+
+def test_full_resolution_scoring_reads_the_upsampled_prediction_at_each_point() -> None:
+    """eval.resolution=full: the network's prediction, upsampled bilinearly to the camera's
+    resolution and placed with the crop offset, read at each ground-truth pixel. Here a 20x24
+    camera frame served at 8x12 (halved, 2 rows cut from the top: 4 at full resolution)."""
+    from fusion_depth.data.nuscenes import full_resolution_points
+    from fusion_depth.models.inference import depth_at_points
+
+    generator = torch.Generator().manual_seed(1)
+    pred = torch.rand(2, 1, 8, 12, dtype=torch.float64, generator=generator) * 50 + 1
+    rows, cols = np.meshgrid(np.arange(20), np.arange(24), indexing="ij")
+    rows, cols = rows.ravel(), cols.ravel()
+    depth = np.linspace(1.0, 70.0, len(rows))
+    points = full_resolution_points(rows, cols, depth, (20, 24), (8, 12))
+    assert len(points) == (20 - 4) * 24  # the 4 cut rows left out
+    batch = torch.from_numpy(np.stack([points, points])).to(torch.float64)
+    at_points, target = depth_at_points(pred, batch)
+    assert at_points.shape == target.shape == (2, 1, 1, len(points))
+    full = torch.nn.functional.interpolate(pred, size=(16, 24), mode="bilinear")
+    kept = rows >= 4
+    expected = full[:, 0, rows[kept] - 4, cols[kept]]
+    torch.testing.assert_close(at_points[:, 0, 0], expected, rtol=0, atol=1e-6)
+    assert torch.equal(target[0, 0, 0], torch.from_numpy(depth[kept]).to(torch.float32).double())
+
+
+def test_full_resolution_refuses_what_it_cannot_read(tmp_path) -> None:
+    for override, message in (
+        ("eval.upsample=nearest", "eval.resolution=full reads the prediction bilinearly"),
+        ("eval.resolution=half", "eval.resolution"),
+    ):
+        cfg = compose_config(["eval=radarnet", override], tmp_path)
+        with pytest.raises(ValueError, match=message):
+            validate_config(cfg)
+            EvalProtocol.from_config(cfg.eval, cfg.dataset.min_depth, cfg.dataset.max_depth)

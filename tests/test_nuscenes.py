@@ -15,7 +15,7 @@ import json
 import math
 import os
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,7 @@ from PIL import Image
 
 pytest.importorskip("nuscenes")
 
-from nuscenes.nuscenes import NuScenes  # noqa: E402
+from nuscenes.nuscenes import NuScenes, NuScenesExplorer  # noqa: E402
 from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
 from nuscenes.utils.geometry_utils import view_points  # noqa: E402
 
@@ -549,6 +549,87 @@ def test_points_land_where_radarnet_places_them_at_full_and_scaled_resolution() 
             )
 
 
+def _radarnets_ground_truth(nusc, token: str, png: Path) -> np.ndarray:
+    """RadarNet's ground truth for one keyframe, by its own steps (lidar_depth_map_from_token in
+    setup/setup_dataset_nuscenes.py, save_depth and load_depth in src/data_utils.py of
+    nesl/radar-camera-fusion-depth): the devkit's map_pointcloud_to_image, np.round, each point
+    written in turn, a 16-bit PNG of uint32(256 z) read back / 256."""
+    sample = nusc.get("sample", token)
+    points, depth, image = NuScenesExplorer(nusc).map_pointcloud_to_image(
+        sample["data"]["LIDAR_TOP"], sample["data"]["CAM_FRONT"]
+    )
+    depth_map = np.zeros((image.size[1], image.size[0]))
+    quantized = np.round(points).astype(int)
+    for i in range(quantized.shape[1]):
+        depth_map[quantized[1, i], quantized[0, i]] = depth[i]
+    # Its Pillow wrote the uint32 mode-I image as a 16-bit PNG; this one writes that directly.
+    Image.fromarray(np.uint32(depth_map * 256.0).astype(np.uint16)).save(png)
+    return np.array(Image.open(png), dtype=np.float32) / 256.0
+
+
+def test_radarnet_ground_truth_rounds_keeps_the_last_point_and_truncates() -> None:
+    """Its rule on points the fixture cannot give: halves (np.round to even), several points on
+    one pixel (the last written wins, not the nearest) and depths between 1/256 m steps."""
+    rng = np.random.default_rng(3)
+    u = np.concatenate([rng.uniform(1.01, 126.99, 300), [20.5, 21.5, 40.2, 40.4]])
+    v = np.concatenate([rng.uniform(1.01, 70.99, 300), [10.5, 10.5, 30.0, 30.1]])
+    depth = np.concatenate([rng.uniform(1.01, 90.0, 300), [5.123, 6.789, 7.7777, 30.0]])
+    points = np.stack([u, v, np.ones_like(u)])
+
+    class Explorer:  # the devkit's, having projected these points
+        def __init__(self, nusc) -> None:
+            pass
+
+        def map_pointcloud_to_image(self, lidar_token, camera_token):
+            assert (lidar_token, camera_token) == ("lidar", "camera")
+            return points, depth, None
+
+    devkit = replace(nus.require_devkit(), NuScenesExplorer=Explorer)
+    sample = {"token": "s", "data": {"LIDAR_TOP": "lidar", "CAM_FRONT": "camera"}}
+    rows, cols, values = nus.radarnet_ground_truth(devkit, None, sample)
+    expected = np.zeros((72, 128))
+    for i in range(len(u)):  # RadarNet's loop, then its uint32 PNG
+        expected[int(np.round(v[i])), int(np.round(u[i]))] = depth[i]
+    expected = np.uint32(expected * 256.0) / 256.0
+    ours = np.zeros_like(expected)
+    ours[rows, cols] = values
+    np.testing.assert_array_equal(ours, expected)
+    assert ours[10, 20] == np.floor(5.123 * 256) / 256  # 20.5 rounds to 20, 21.5 to 22
+    assert ours[10, 22] == np.floor(6.789 * 256) / 256
+    assert ours[30, 40] == 30.0  # the last written, though farther than the 7.78 m before it
+
+
+@pytest.mark.parametrize("size", [(HEIGHT, WIDTH), (64, 128)], ids=["halved", "full-width"])
+def test_full_resolution_ground_truth_is_radarnets(nusc_root, tmp_path, size) -> None:
+    """Val and test keep RadarNet's ground truth at the camera's resolution as points; mapped
+    back to full-resolution pixels they are its PNG, pixel for pixel and value for value, but
+    for the rows the crop cut."""
+    root, _ = nusc_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    height, width = size
+    new_h, new_w, top, left = nus.resize_geometry(CAM_H, CAM_W, height, width)
+    scale_y, scale_x = new_h / CAM_H, new_w / CAM_W
+    train = make_reader(root, tmp_path, height=height, width=width)
+    assert "depth_points" not in train[0]  # training scores nothing
+    checked = 0
+    for split in ("val", "test"):
+        reader = make_reader(root, tmp_path, split, height=height, width=width)
+        for index in range(len(reader)):
+            expected = _radarnets_ground_truth(nusc, reader.frames[index]["id"], tmp_path / "a.png")
+            rows = reader[index]["depth_points"].numpy()
+            rows = rows[rows[:, 2] > 0]
+            ours = np.zeros_like(expected)
+            r = np.round((rows[:, 0] + 0.5 + top) / scale_y - 0.5).astype(int)
+            c = np.round((rows[:, 1] + 0.5 + left) / scale_x - 0.5).astype(int)
+            ours[r, c] = rows[:, 2]
+            cut = int(np.ceil(top / scale_y))  # full rows above the cropped frame
+            assert (expected[cut:] > 0).sum() > 0
+            np.testing.assert_array_equal(ours[cut:], expected[cut:])
+            assert not ours[:cut].any()
+            checked += 1
+    assert checked == 8
+
+
 def test_resize_and_crop_scales_the_intrinsics() -> None:
     image = np.zeros((900, 1600, 3), np.uint8)
     k = np.array([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]])
@@ -775,12 +856,20 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
         "callbacks.model_checkpoint.save_last=false",
         "+callbacks.model_checkpoint.save_weights_only=true",
         "model.num_val_panels=1",
+        "eval=radarnet",
     )
     assert cfg.dataset.fill == "colorization" and cfg.backbone.name == "resnet50"
     assert prepare(cfg) == {"train": 4, "val": 4, "test": 4}
     results = train(cfg)
     assert results["run"]["dataset"] == "nuscenes" and results["run"]["sensor"] == "radar"
     assert results["test"]["num_images"] == 4
+    # Scored at the camera's resolution: every pixel of RadarNet's ground truth below the cap
+    # that the 64x128 frame (72x128 with 8 rows cut) covers, not the frames' own depth maps.
+    test = make_reader(root, Path(os.environ["FUSION_DEPTH_CACHE"]), "test", height=64, width=128)
+    points = np.concatenate([test[i]["depth_points"].numpy() for i in range(len(test))])
+    scored = int(((points[:, 2] > 0) & (points[:, 2] < 80)).sum())
+    maps = sum(int((test[i]["depth"] > 0).sum()) for i in range(len(test)))
+    assert results["test"]["num_pixels"] == scored != maps
     assert set(results["test_by_condition"]) == {"rain", "day"}
     assert all(math.isfinite(v) for v in results["test"].values())
     assert Path(cfg.paths.output_dir, "metrics.json").is_file()

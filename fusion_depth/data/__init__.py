@@ -39,6 +39,7 @@ class _SampleKeys(TypedDict):
     condition: str
     frame_box: NotRequired[Tensor]
     radar_points: NotRequired[Tensor]
+    depth_points: NotRequired[Tensor]
 
 
 class Sample(_SampleKeys):
@@ -67,6 +68,12 @@ class Sample(_SampleKeys):
           ``(round(v), round(u))`` (with its depth unless a nearer return shares the pixel);
           the procedural radar's ``radar_height_extension`` draws it as a vertical line through
           that pixel.
+        - depth_points: optional (Q, 3) float32, only from a reader that resamples its frames
+          and keeps ground truth at the dataset's full resolution (nuScenes' val and test:
+          RadarNet's): rows ``y, x, depth``, each full-resolution pixel's centre in the
+          sample's coordinates (pixel centres at integers) and its depth in metres, padded with
+          rows of zeros (depth 0: not scored) to the split's largest count. ``eval.resolution=
+          full`` scores the prediction read at these points.
     """
 
 

@@ -13,6 +13,10 @@ writes them under ``<cache root>/<dataset>/<hash of the settings>/<split>/`` as 
   rows, columns :data:`~fusion_depth.data.RADAR_POINT_FIELDS`, nearest first, every return of
   the frame (:mod:`fusion_depth.data.radar_points`); served cut or padded to
   ``max_radar_points`` rows, so that setting changes nothing in the cache
+* ``000123.fullres.npy`` ground truth kept at the dataset's full resolution, only where a reader
+  resamples its frames and keeps it (nuScenes' val and test: RadarNet's): float32 (N, 3) rows
+  ``y, x, depth``, each pixel's centre in the prepared frame's coordinates; served as
+  ``depth_points``, padded with zero rows to the split's largest N
 * ``000123.json``       the frame's source id and condition, written last
 * ``index.json``        every frame of the split, written when all are done
 
@@ -103,6 +107,7 @@ from fusion_depth.data.radar_points import (
     DEFAULT_MAX_RADAR_POINTS,
     VALID,
     check_max_points,
+    in_image,
     inside_image,
     pad_points,
     read_points,
@@ -160,6 +165,10 @@ class PreparedFrame:
     # point_rows), every return drawn in ``sparse``; None for a dataset without a radar. A radar
     # dataset gives every frame an array, (0, K) when it has no return.
     radar_points: np.ndarray | None = None
+    # float32 (N, 3) ground truth at the dataset's full resolution (rows y, x, depth: each
+    # pixel's centre in the arrays' coordinates, metres), for eval.resolution=full; None where
+    # the reader keeps none. A split gives every frame an array or none.
+    full_points: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -1040,6 +1049,8 @@ def _arrays_problem(split_dir: Path, record: dict, headers: bool) -> str | None:
         expected.append(("filled", np.uint16, (None, None)))
     if record.get("radar_points"):
         expected.append(("radar", np.float32, (None, len(RADAR_POINT_FIELDS))))
+    if "full_points" in record:
+        expected.append(("fullres", np.float32, (record["full_points"], 3)))
     for name, dtype, shape in expected:
         try:
             check_npy(f"{stem}.{name}.npy", dtype, shape, "prepared array")
@@ -1164,6 +1175,8 @@ def index_problem(data: Any, frame_ids: Sequence[str] | None = None) -> str | No
         return "lists no frames"
     if len({bool(frame.get("radar_points")) for frame in frames}) > 1:
         return "says some frames have radar points and others not, expected all or none"
+    if len({"full_points" in frame for frame in frames}) > 1:
+        return "says some frames have full-resolution points and others not, expected all or none"
     ids = [frame["id"] for frame in frames]
     if any(frame["file"] != f"{i:06d}" for i, frame in enumerate(frames)):
         return "does not list each frame once, in the order of its files"
@@ -1218,6 +1231,10 @@ def _write_frame(
     if frame.radar_points is not None:
         write_points(split_dir / f"{stem}.radar.npy", frame.radar_points)
         arrays["radar"] = frame.radar_points
+    if frame.full_points is not None:
+        full = np.ascontiguousarray(frame.full_points, dtype=np.float32).reshape(-1, 3)
+        write_npy(split_dir / f"{stem}.fullres.npy", full)
+        arrays["fullres"] = full
     record: dict[str, Any] = {
         "id": frame_id,
         "file": stem,
@@ -1226,6 +1243,8 @@ def _write_frame(
     }
     if frame.radar_points is not None:
         record["radar_points"] = True
+    if frame.full_points is not None:
+        record["full_points"] = len(arrays["fullres"])
     if frame.frame_box is not None:
         record["frame_box"] = [int(v) for v in frame.frame_box]
     record["arrays"] = {name: os.stat(split_dir / f"{stem}.{name}.npy").st_size for name in arrays}
@@ -1330,6 +1349,7 @@ def _valid_record(record: Any) -> bool:
         and isinstance(record.get("condition"), str)
         and isinstance(record.get("filled"), bool)
         and isinstance(record.get("radar_points", False), bool)
+        and _count_or_absent(record.get("full_points"))
         and (
             box is None
             or isinstance(box, list)
@@ -1337,6 +1357,11 @@ def _valid_record(record: Any) -> bool:
             and all(isinstance(v, int) and not isinstance(v, bool) for v in box)
         )
     )
+
+
+def _count_or_absent(value: Any) -> bool:
+    """Whether ``value`` is None or a count (an int >= 0, not a bool)."""
+    return value is None or (isinstance(value, int) and not isinstance(value, bool) and value >= 0)
 
 
 def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
@@ -1375,6 +1400,20 @@ def _check_frame(frame: PreparedFrame, frame_id: str) -> None:
             f"(M, {len(RADAR_POINT_FIELDS)}) rows with valid = 1 and (u, v) inside the {h}x{w} "
             "image (radar_points.point_rows)"
         )
+    full = frame.full_points
+    if full is not None:
+        full = np.asarray(full)
+        if (
+            full.ndim != 2
+            or full.shape[1] != 3
+            or not np.isfinite(full).all()
+            or not (full[:, 2] > 0).all()
+            or not in_image(full[:, 1], full[:, 0], h, w).all()
+        ):
+            raise ValueError(
+                f"frame {frame_id}: full_points {full.dtype} {full.shape}, expected finite (N, 3) "
+                f"rows y, x, depth > 0 with (x, y) inside the {h}x{w} image"
+            )
 
 
 class PreparedSplit:
@@ -1383,7 +1422,9 @@ class PreparedSplit:
     :class:`~fusion_depth.data.Sample`. ``use_filled`` serves the filled ground truth as
     ``depth`` where it exists (training); evaluation leaves it off and scores the measured
     points. A split prepared with radar points serves ``radar_points`` as float32
-    (``max_radar_points``, K): the nearest returns, zero rows after.
+    (``max_radar_points``, K): the nearest returns, zero rows after. A split prepared with
+    full-resolution ground truth serves it as ``depth_points``, float32 (Q, 3) rows ``y, x,
+    depth``, zero rows after (Q: the split's largest count).
 
     A map-style dataset (``len(split)``, ``split[i]``), as torch's ``DataLoader`` takes it. Torch
     is imported on the first read, not with this module: ``prepare``, which only writes splits,
@@ -1416,6 +1457,8 @@ class PreparedSplit:
             raise DataFileError(index, f"{problem}; {again}")
         frames = data["frames"]
         self.frames: list[dict] = frames
+        # Full-resolution points pad to the split's largest count, so a split's samples batch.
+        self.max_full_points = max(frame.get("full_points") or 0 for frame in frames)
         self.use_filled = use_filled
         self.conditions = [frame["condition"] for frame in self.frames]
 
@@ -1466,4 +1509,15 @@ class PreparedSplit:
                     f"radar points outside the {h}x{w} image of {stem}.image.npy; {again}",
                 )
             sample["radar_points"] = torch.from_numpy(pad_points(rows, self.max_radar_points))
+        if "full_points" in frame:
+            rows = read_npy(
+                f"{stem}.fullres.npy",
+                np.float32,
+                (frame["full_points"], 3),
+                "prepared full-resolution points",
+                again,
+            )
+            padded = np.zeros((self.max_full_points, 3), dtype=np.float32)
+            padded[: len(rows)] = rows
+            sample["depth_points"] = torch.from_numpy(padded)
         return sample

@@ -124,7 +124,8 @@ from fusion_depth.data.radar_points import (
 from fusion_depth.errors import ArgumentError, check_choice
 
 # Bump when projection or resizing changes, so old caches are not reused. 2: points placed at
-# round() of centre-aware coordinates, as the devkit and RadarNet (1 put them half a pixel off).
+# round() of centre-aware coordinates, as the devkit and RadarNet (1 put them half a pixel off),
+# and val/test keep RadarNet's full-resolution ground truth as points.
 FORMAT_VERSION = 2
 INSTALL = 'pip install -e ".[nuscenes]"'
 CAMERA = "CAM_FRONT"
@@ -189,12 +190,13 @@ class Devkit:
     LidarPointCloud: type
     view_points: Callable[..., np.ndarray]
     create_splits_scenes: Callable[..., dict]
+    NuScenesExplorer: type
 
 
 def require_devkit() -> Devkit:
     """Imports the devkit, or fails with the install command (it is an optional extra)."""
     try:
-        from nuscenes.nuscenes import NuScenes
+        from nuscenes.nuscenes import NuScenes, NuScenesExplorer
         from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud
         from nuscenes.utils.geometry_utils import view_points
         from nuscenes.utils.splits import create_splits_scenes
@@ -205,7 +207,14 @@ def require_devkit() -> Devkit:
             "checkout (or pip install nuscenes-devkit). It pins numpy<2, which is why it is not "
             "a core dependency."
         ) from err
-    return Devkit(NuScenes, RadarPointCloud, LidarPointCloud, view_points, create_splits_scenes)
+    return Devkit(
+        NuScenes,
+        RadarPointCloud,
+        LidarPointCloud,
+        view_points,
+        create_splits_scenes,
+        NuScenesExplorer,
+    )
 
 
 def condition_from_description(description: str) -> str:
@@ -215,6 +224,16 @@ def condition_from_description(description: str) -> str:
     if _RAIN.search(description):
         return "rain"
     return "day"
+
+
+def resize_geometry(h0: int, w0: int, height: int, width: int) -> tuple[int, int, int, int]:
+    """``(new_h, new_w, top, left)``: the size an ``h0 x w0`` image is scaled to, uniformly, to
+    cover ``height x width`` (rounded per axis), and the crop offset (centred horizontally, from
+    the top vertically) that cuts it to that size. :func:`resize_and_crop` applies it."""
+    scale = max(width / w0, height / h0)
+    new_w = max(width, round(w0 * scale))
+    new_h = max(height, round(h0 * scale))
+    return new_h, new_w, new_h - height, (new_w - width) // 2
 
 
 def resize_and_crop(
@@ -237,13 +256,10 @@ def resize_and_crop(
         The (height, width, 3) image and the float64 (3, 3) matrix projecting into it.
     """
     h0, w0 = image.shape[:2]
-    scale = max(width / w0, height / h0)
-    new_w = max(width, round(w0 * scale))
-    new_h = max(height, round(h0 * scale))
+    new_h, new_w, top, left = resize_geometry(h0, w0, height, width)
     if (new_w, new_h) != (w0, h0):
         resized = Image.fromarray(image).resize((new_w, new_h), Image.Resampling.BILINEAR)
         image = np.asarray(resized)
-    left, top = (new_w - width) // 2, new_h - height
     k = np.asarray(intrinsic, dtype=np.float64).copy()
     for axis, scale_axis, offset in ((0, new_w / w0, left), (1, new_h / h0, top)):
         k[axis] *= scale_axis
@@ -311,6 +327,52 @@ def project_points(
     """
     u, v, z, _ = image_points(points, intrinsic, height, width, min_distance)
     return splat_nearest(u, v, z, height, width)
+
+
+def radarnet_ground_truth(
+    devkit: Devkit, nusc: Any, sample: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RadarNet's evaluation ground truth of one keyframe, at the camera's full resolution:
+    int64 ``(N,)`` pixel ``rows`` and ``cols`` and float64 ``depth`` in metres, one per pixel.
+
+    Its rule (``lidar_depth_map_from_token`` and ``save_depth`` in ``setup/`` and ``src/`` of
+    github.com/nesl/radar-camera-fusion-depth): the keyframe's single lidar sweep through the
+    devkit's ``NuScenesExplorer.map_pointcloud_to_image`` (depth > 1 m, ``1 < u < W - 1``,
+    ``1 < v < H - 1``), each point on pixel ``np.round`` of its ``(v, u)``, the last point
+    written winning a shared pixel, stored as a PNG of ``uint32(256 z)``, so the depth is
+    truncated to 1/256 m.
+    """
+    explorer = devkit.NuScenesExplorer(nusc)
+    points, depth, _ = explorer.map_pointcloud_to_image(
+        _channel_token(sample, LIDAR), _channel_token(sample, CAMERA)
+    )
+    cols, rows = np.round(points[0]).astype(np.int64), np.round(points[1]).astype(np.int64)
+    stored = np.floor(np.asarray(depth, dtype=np.float64) * 256.0)  # uint32(z * 256), z > 1
+    # The last point written wins a pixel: keep each pixel's last occurrence.
+    flat = rows * (int(cols.max(initial=0)) + 1) + cols
+    _, last_reversed = np.unique(flat[::-1], return_index=True)
+    last = np.sort(len(flat) - 1 - last_reversed)
+    return rows[last], cols[last], stored[last] / 256.0
+
+
+def full_resolution_points(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    depth: np.ndarray,
+    source_size: tuple[int, int],
+    size: tuple[int, int],
+) -> np.ndarray:
+    """Full-resolution ground-truth pixels as float32 ``(M, 3)`` rows ``y, x, depth``: each
+    pixel's centre in the coordinates of the resized and cropped frame (:func:`resize_geometry`;
+    pixel centres at integers, ``y = s (row + 0.5) - 0.5 - top``), the pixels that fall outside
+    that frame (the rows the crop cut) left out. What ``eval.resolution=full`` reads the
+    prediction at (:func:`fusion_depth.models.inference.depth_at_points`)."""
+    (h0, w0), (height, width) = source_size, size
+    new_h, new_w, top, left = resize_geometry(h0, w0, height, width)
+    y = new_h / h0 * (rows + 0.5) - 0.5 - top
+    x = new_w / w0 * (cols + 0.5) - 0.5 - left
+    inside = in_image(x, y, height, width)
+    return np.stack([y[inside], x[inside], depth[inside]], axis=1).astype(np.float32)
 
 
 def radar_filter_states(
@@ -405,6 +467,7 @@ class FrameSettings:
     lidar_nsweeps: int
     min_distance: float
     fill: str  # "none" for val/test
+    full_ground_truth: bool = False  # val/test: RadarNet's full-resolution ground truth too
 
 
 def _channel_token(sample: dict, channel: str) -> str:
@@ -552,6 +615,11 @@ def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -
         "lidar",
     )
     depth = project_points(lidar[:3], intrinsic, *size, settings.min_distance)
+    full_points = None
+    if settings.full_ground_truth:
+        full_points = full_resolution_points(
+            *radarnet_ground_truth(devkit, nusc, sample), (h0, w0), size
+        )
     scene = nusc.get("scene", sample["scene_token"])
     return PreparedFrame(
         image=image,
@@ -560,6 +628,7 @@ def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -
         condition=condition_from_description(scene.get("description", "")),
         filled=None if settings.fill == "none" else fill_depth(depth, image, settings.fill),
         radar_points=point_rows(u, v, z, rcs=features[0], velocity=features[1]),
+        full_points=full_points,
     )
 
 
@@ -821,7 +890,7 @@ def _prepare(
         tokens = split_frames(
             nusc, scene_splits[key], conditions, stride, f"the {key} split of {version}"
         )
-        split_settings = replace(settings, fill=fill)
+        split_settings = replace(settings, fill=fill, full_ground_truth=name != "train")
         check_files(nusc, tokens, split_settings)
         plans.append((name, params, nusc, tokens, split_settings))
     jobs = []

@@ -41,6 +41,29 @@ def resize_depth(
     return F.interpolate(depth, size=size, mode="bilinear", align_corners=False)
 
 
+def depth_at_points(depth: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A depth map read at ground-truth points, as the metrics take maps.
+
+    Reads ``depth`` bilinearly at each point's ``(y, x)``, pixel areas aligned and edges
+    replicated: the value ``resize_depth(depth, full_size, "bilinear")`` holds at that point's
+    full-resolution pixel, when ``(y, x)`` is that pixel's centre in ``depth``'s coordinates
+    (:func:`fusion_depth.data.nuscenes.full_resolution_points`).
+
+    Shape:
+        - depth: (B, 1, H, W) metres.
+        - points: (B, Q, 3) rows ``y, x, depth`` (pixel centres at integers; depth 0: a padding
+          row, never scored), a batch's ``depth_points``.
+        - output: ``(prediction, target)``, each (B, 1, 1, Q) metres.
+    """
+    height, width = depth.shape[-2:]
+    y, x, target = points.to(depth.dtype).unbind(-1)
+    grid = torch.stack([(2 * x + 1) / width - 1, (2 * y + 1) / height - 1], dim=-1)
+    read = F.grid_sample(
+        depth, grid.unsqueeze(1), mode="bilinear", padding_mode="border", align_corners=False
+    )
+    return read, target[:, None, None, :]
+
+
 def _linear_mirrored(x: torch.Tensor, size: int, dim: int) -> torch.Tensor:
     """Linear resampling of ``x`` along ``dim`` to ``size`` samples, pixel areas aligned (output
     ``i`` reads input ``(i + 0.5) n / size - 0.5``), samples past an edge mirrored about the edge

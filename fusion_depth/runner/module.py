@@ -17,7 +17,7 @@ from fusion_depth.data.visualize import PanelFrame
 from fusion_depth.losses.depth_loss import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics.depth import DepthMetrics
 from fusion_depth.models import DepthModel
-from fusion_depth.models.inference import predict_depth, resize_depth
+from fusion_depth.models.inference import depth_at_points, predict_depth, resize_depth
 from fusion_depth.optim.schedules import schedule_interval
 from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, latency_summary
 from fusion_depth.runner.record import RunIdentity
@@ -360,7 +360,14 @@ class DepthModule(L.LightningModule):
         if image.device.type == "cuda":
             torch.cuda.synchronize(image.device)
         self._latencies.append((time.perf_counter() - start) / len(image))
-        self._update(self.test_metrics, pred, batch)
+        points = batch.get("depth_points")
+        if self.protocol.resolution == "full" and points is not None:
+            # The ground truth at the dataset's full resolution, read where it lies.
+            at_points, target = depth_at_points(pred, points)
+            scored = {k: v for k, v in batch.items() if k != "frame_box"}
+            self._update(self.test_metrics, at_points, {**scored, "depth": target})
+        else:
+            self._update(self.test_metrics, pred, batch)
         self._collect_test_panels(batch, pred)
         if batch_idx == 0:
             self._test_input = (len(image), tuple(image.shape[-2:]))

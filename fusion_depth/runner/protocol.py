@@ -38,6 +38,13 @@ from fusion_depth.utils.config_values import ABSENT, config_value
 from fusion_depth.utils.schema import BOOLEAN, Rule, Schema, is_number, one_of
 from fusion_depth.utils.tables import format_table
 
+RESOLUTIONS: tuple[str, ...] = ("network", "full")
+"""Where the ground truth is scored: the network's frames (the prediction resized to them), or
+``full``: the dataset's own resolution where a reader keeps it as points (``depth_points``,
+nuScenes' val and test), the prediction read there bilinearly
+(:func:`~fusion_depth.models.inference.depth_at_points`); a reader that keeps none is scored on
+its frames as they are."""
+
 BEFORE_PRESETS: dict[str, Any] = {
     "preset": "paper",
     "clamp": True,
@@ -45,6 +52,7 @@ BEFORE_PRESETS: dict[str, Any] = {
     "units": "m",
     "metrics": list(TABLE_METRICS),
     "quantize": "none",
+    "resolution": "network",
 }
 """The protocol keys added with or after the presets, with the values that score as every
 protocol written before them did: a record or run config without them means these."""
@@ -72,7 +80,8 @@ class EvalProtocol:
 
     ``preset`` names it; ``clamp`` says whether predictions are clamped to ``[min_depth,
     cap]`` before scoring; ``quantize`` how they are read first
-    (:data:`~fusion_depth.metrics.depth.QUANTIZATIONS`); ``relative_to`` what ARD and SRD
+    (:data:`~fusion_depth.metrics.depth.QUANTIZATIONS`); ``resolution`` where the ground truth
+    is (:data:`RESOLUTIONS`); ``relative_to`` what ARD and SRD
     divide by; ``units`` and ``metrics`` are the printed tables' units and columns, in the
     reference's order (metrics.json always holds every metric, in metres and 1/km).
     """
@@ -90,6 +99,7 @@ class EvalProtocol:
     units: str = "m"
     metrics: tuple[str, ...] = TABLE_METRICS
     quantize: str = "none"
+    resolution: str = "network"
 
     @classmethod
     def from_config(
@@ -130,7 +140,21 @@ class EvalProtocol:
             units=cfg.get("units", "m"),
             metrics=metrics,
             quantize=cfg.get("quantize", "none"),
+            resolution=cfg.get("resolution", "network"),
         )
+        if protocol.resolution not in RESOLUTIONS:
+            raise ValueError(
+                f"eval.resolution={protocol.resolution!r}: expected one of {list(RESOLUTIONS)}"
+            )
+        if protocol.resolution == "full" and (protocol.upsample, protocol.crop) != (
+            "bilinear",
+            "none",
+        ):
+            raise ValueError(
+                "eval.resolution=full reads the prediction bilinearly at the full-resolution "
+                f"points: expected eval.upsample=bilinear and eval.crop=none, got "
+                f"{protocol.upsample} and {protocol.crop}"
+            )
         try:
             protocol.scorer()  # validates the depth range, crop and averaging names
         except ArgumentError as err:  # the metrics name their argument: here, the eval block's
@@ -333,6 +357,7 @@ def config_schema(cfg: DictConfig) -> Schema:
         "eval.averaging": one_of(*AVERAGING),
         "eval.upsample": one_of(*UPSAMPLING),
         "eval.quantize": one_of(*QUANTIZATIONS),
+        "eval.resolution": one_of(*RESOLUTIONS),
         "eval.flip_tta": BOOLEAN,
         "eval.bin_width": positive_metres.or_null("no distance breakdown"),
         "eval.min_depth": min_depth.or_null("dataset.min_depth"),
