@@ -375,3 +375,18 @@ def test_full_resolution_refuses_what_it_cannot_read(tmp_path) -> None:
         with pytest.raises(ValueError, match=message):
             validate_config(cfg)
             EvalProtocol.from_config(cfg.eval, cfg.dataset.min_depth, cfg.dataset.max_depth)
+
+
+def test_full_resolution_reads_bf16_outputs_at_fp32_positions() -> None:
+    """A bf16 output (bf16-mixed precision) is read at its points' exact positions: bf16 holds
+    no column between 796 and 800, so 798.75 would read column 799 alone."""
+    from fusion_depth.models.inference import depth_at_points
+
+    pred = torch.ones(1, 1, 2, 800)
+    pred[..., 799] = 2.0  # both values exact in bf16
+    points = torch.tensor([[[0.0, 798.75, 10.0], [1.0, 12.25, 20.0]]])
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        read, target = depth_at_points(pred.to(torch.bfloat16), points)
+    assert read.dtype == torch.float32
+    assert read[0, 0, 0].tolist() == [1.75, 1.0]
+    assert target[0, 0, 0].tolist() == [10.0, 20.0]

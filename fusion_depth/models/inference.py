@@ -53,14 +53,22 @@ def depth_at_points(depth: torch.Tensor, points: torch.Tensor) -> tuple[torch.Te
         - depth: (B, 1, H, W) metres.
         - points: (B, Q, 3) rows ``y, x, depth`` (pixel centres at integers; depth 0: a padding
           row, never scored), a batch's ``depth_points``.
-        - output: ``(prediction, target)``, each (B, 1, 1, Q) metres.
+        - output: ``(prediction, target)``, each (B, 1, 1, Q) metres, float32 or wider (read
+          with autocast off).
     """
     height, width = depth.shape[-2:]
-    y, x, target = points.to(depth.dtype).unbind(-1)
+    # At least fp32, autocast off: bf16 would move a column near 800 by a whole pixel.
+    dtype = torch.promote_types(depth.dtype, torch.float32)
+    y, x, target = points.to(dtype).unbind(-1)
     grid = torch.stack([(2 * x + 1) / width - 1, (2 * y + 1) / height - 1], dim=-1)
-    read = F.grid_sample(
-        depth, grid.unsqueeze(1), mode="bilinear", padding_mode="border", align_corners=False
-    )
+    with torch.autocast(depth.device.type, enabled=False):
+        read = F.grid_sample(
+            depth.to(dtype),
+            grid.unsqueeze(1),
+            mode="bilinear",
+            padding_mode="border",
+            align_corners=False,
+        )
     return read, target[:, None, None, :]
 
 
