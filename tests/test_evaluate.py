@@ -170,6 +170,10 @@ def test_protocol_options_reach_the_numbers(checkpoints, tmp_path) -> None:
     assert pooled["test"]["num_pixels"] == plain["test"]["num_pixels"]
     assert pooled["test"]["rmse"] != pytest.approx(plain["test"]["rmse"])
     assert cropped["split"] == "val" and cropped["protocol"]["crop"] == "garg"
+    # The built-in dataset keeps no full-resolution points: eval=radarnet scores its frames, and
+    # the record says so (resolution network, as the records written before the key).
+    (radarnet,) = _evaluate([*base, "eval=radarnet"], tmp_path / "radarnet")
+    assert radarnet["protocol"]["resolution"] == "network"
     with pytest.raises(ValueError, match="eval.averaging='mean'"):
         _evaluate([*base, "eval.averaging=mean"], tmp_path / "bad")
 

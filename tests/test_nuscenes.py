@@ -870,6 +870,8 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
     scored = int(((points[:, 2] > 0) & (points[:, 2] < 80)).sum())
     maps = sum(int((test[i]["depth"] > 0).sum()) for i in range(len(test)))
     assert results["test"]["num_pixels"] == scored != maps
+    record = json.loads(Path(cfg.paths.output_dir, "metrics.json").read_text())
+    assert record["protocol"]["resolution"] == "full"
     assert set(results["test_by_condition"]) == {"rain", "day"}
     assert all(math.isfinite(v) for v in results["test"].values())
     assert Path(cfg.paths.output_dir, "metrics.json").is_file()

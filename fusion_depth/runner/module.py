@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import lightning as L
@@ -340,6 +341,7 @@ class DepthModule(L.LightningModule):
 
     def on_test_epoch_start(self) -> None:
         self._latencies = []
+        self._scored_full = False  # whether the batches brought full-resolution points
         self._test_result = None
         self.test_panels = []
 
@@ -366,6 +368,7 @@ class DepthModule(L.LightningModule):
             at_points, target = depth_at_points(pred, points)
             scored = {k: v for k, v in batch.items() if k != "frame_box"}
             self._update(self.test_metrics, at_points, {**scored, "depth": target})
+            self._scored_full = True
         else:
             self._update(self.test_metrics, pred, batch)
         self._collect_test_panels(batch, pred)
@@ -377,7 +380,11 @@ class DepthModule(L.LightningModule):
         self.log_dict({f"test/{k}": v for k, v in flat.items()})
         batch_size, size = self._test_input
         latency = latency_summary(self._latencies, self.device, batch_size, size)
-        self._test_result = EvaluationResult.from_metrics(self.protocol, self.test_metrics, latency)
+        protocol = self.protocol
+        if protocol.resolution == "full" and not getattr(self, "_scored_full", False):
+            # A dataset without full-resolution points was scored on its frames: say so.
+            protocol = replace(protocol, resolution="network")
+        self._test_result = EvaluationResult.from_metrics(protocol, self.test_metrics, latency)
         self.test_metrics.reset()
 
     def build_optimizer(self) -> torch.optim.Optimizer:
