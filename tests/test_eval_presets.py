@@ -370,6 +370,7 @@ def test_full_resolution_refuses_what_it_cannot_read(tmp_path) -> None:
     for override, message in (
         ("eval.upsample=nearest", "eval.resolution=full reads the prediction bilinearly"),
         ("eval.resolution=half", "eval.resolution"),
+        ("+eval.quantize=kitti_png", "eval.quantize=none"),
     ):
         cfg = compose_config(["eval=radarnet", override], tmp_path)
         with pytest.raises(ValueError, match=message):

@@ -177,6 +177,27 @@ def test_a_zero_prediction_is_scored_unless_the_network_declares_partial_output(
     assert filled_only["rmse"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_at_full_resolution_a_point_read_partly_from_no_prediction_is_not_scored(
+    monkeypatch,
+) -> None:
+    # eval.resolution=full reads bilinearly: next to a pixel without a prediction (0), the read
+    # would blend in that 0. Such a point has no prediction, as the pixel itself has none.
+    net = DepthNet("resnet18", "concat", pretrained=False)
+    module = DepthModule(net, loss=DepthLoss())
+    monkeypatch.setattr(type(net), "partial_output", property(lambda self: True))
+    pred = torch.full((1, 1, 4, 8), 10.0)
+    pred[..., :4] = 0.0  # columns 0-3: no prediction
+    points = torch.tensor([[[1.0, 3.25, 10.0], [1.0, 5.0, 10.0], [2.0, 6.5, 10.0]]])
+    batch = {"depth_points": points, "condition": ["day"], "depth": torch.zeros(1, 1, 4, 8)}
+    module._update_at_points(module.val_metrics, pred, batch)
+    result = module.val_metrics.results()["overall"]
+    module.val_metrics.reset()
+    assert result["rmse"] == pytest.approx(0.0, abs=1e-6) and result["num_pixels"] == 2
+    monkeypatch.setattr(type(net), "partial_output", property(lambda self: False))
+    module._update_at_points(module.val_metrics, pred, batch)
+    assert module.val_metrics.compute()["rmse"] > 1.0  # 3.25 reads 2.5 m: scored as a miss
+
+
 def test_the_evaluation_range_comes_from_the_config_not_the_network(make_config) -> None:
     """A run scores by its eval block, and null limits take the dataset's, whatever range the
     network was given (it is not read back from the network)."""

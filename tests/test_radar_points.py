@@ -210,6 +210,13 @@ def test_point_rows_sort_nearest_first_and_stay_in_their_pixel() -> None:
     assert (rows[:, VALID] == 1).all()
     near_halves = np.array([1.5 - 1e-9, 2.5 + 1e-9, 2.5, 7.25, -0.5 + 1e-9])
     assert np.round(same_pixel_float32(near_halves)).tolist() == [1, 3, 2, 7, 0]
+    # A half (which rounds to even) is stored inside its pixel, so its mirror W - 1 - u lands
+    # in the mirrored pixel, as the flipped map's does; float32 holds no pixel beyond 2^22.
+    halves = np.arange(800) + 0.5
+    stored = same_pixel_float32(halves)
+    assert (np.round(stored) == np.round(halves)).all()
+    assert (np.round(np.float32(799) - stored) == 799 - np.round(halves)).all()
+    assert same_pixel_float32(np.array([2.0**25 + 1]))[0] == np.float32(2.0**25)
     padded = pad_points(rows, 6)
     assert padded.shape == (6, NUM_FIELDS) and (padded[4:] == 0).all()
     assert np.array_equal(pad_points(rows, 2), rows[:2])

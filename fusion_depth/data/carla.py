@@ -132,7 +132,8 @@ from fusion_depth.data.radar_points import (
 from fusion_depth.errors import ArgumentError
 
 # Bump when decoding or projection changes, so old caches are not reused. 2: radar_points' u, v
-# put pixel centres at integers (the same pixels as 1, which put their corners there).
+# put pixel centres at integers (1 put their corners there; the same pixels but for a detection
+# exactly on a pixel border, which rounds to even now).
 FORMAT_VERSION = 2
 SENSOR_DIRS = {"rgb": ".png", "depth": ".png", "radar": ".csv", "meta": ".json"}
 RADAR_COLUMNS = ("depth", "azimuth", "altitude", "velocity")

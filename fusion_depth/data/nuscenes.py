@@ -123,10 +123,10 @@ from fusion_depth.data.radar_points import (
 )
 from fusion_depth.errors import ArgumentError, check_choice
 
-# Bump when projection or resizing changes, so old caches are not reused. 2: points placed at
+# Bump when projection or resizing changes, so old caches are not reused. 3: points placed at
 # round() of centre-aware coordinates, as the devkit and RadarNet (1 put them half a pixel off),
-# and val/test keep RadarNet's full-resolution ground truth as points.
-FORMAT_VERSION = 2
+# and val/test keep RadarNet's full-resolution ground truth as points (2 did not yet).
+FORMAT_VERSION = 3
 INSTALL = 'pip install -e ".[nuscenes]"'
 CAMERA = "CAM_FRONT"
 LIDAR = "LIDAR_TOP"

@@ -103,20 +103,27 @@ def in_image(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndarra
     return out
 
 
+# How far inside its pixel a stored coordinate stays from the pixel's border: mirrored
+# (``W - 1 - u``) in float32 at up to 8192 columns, it stays in the mirrored pixel.
+_BORDER_MARGIN = 1 / 512
+
+
 def same_pixel_float32(x: np.ndarray) -> np.ndarray:
-    """Pixel coordinates (M,) as float32 in the same pixel: :func:`pixel_index` of the result
-    equals that of ``x``. Rounding to float32 alone can carry a coordinate a few millionths off
-    a half onto it, i.e. into the neighbouring pixel; such values step back towards their
-    pixel by one float32 at a time (once or twice)."""
+    """Pixel coordinates (M,) as float32 in the same pixel, clear of its border:
+    :func:`pixel_index` of the result equals that of ``x``. A value within 1/512 pixel of a
+    half is moved 1/512 pixel inside its pixel: on a half it would round to even, so its mirror
+    ``W - 1 - u`` would not land in the mirrored pixel, and rounding to float32 alone can carry a
+    value a few millionths off a half into the neighbouring pixel. Coordinates beyond 2^22,
+    where float32 holds no value inside a pixel, are left as the cast gives them."""
     x = np.asarray(x).reshape(-1)
-    out = x.astype(np.float32)
-    if x.dtype == np.float32:
-        return out
-    cell = pixel_index(x)
-    moved = pixel_index(out) != cell
-    while moved.any():
-        out[moved] = np.nextafter(out[moved], cell[moved].astype(np.float32))
-        moved = pixel_index(out) != cell
+    held = np.isfinite(x) & (np.abs(x) < 2**22)  # NaN, inf and huge values: as cast
+    cell = pixel_index(np.where(held, x, 0.0))
+    offset = np.where(held, x, 0.0) - cell  # in [-0.5, 0.5]
+    near = held & (np.abs(np.abs(offset) - 0.5) < _BORDER_MARGIN)
+    inside = np.where(near, cell + np.sign(offset) * (0.5 - _BORDER_MARGIN), x)
+    out = inside.astype(np.float32)
+    off = held & (pixel_index(np.where(held, out, 0.0)) != cell)
+    out[off] = np.nextafter(out[off], cell[off].astype(np.float32))  # at most one step
     return out
 
 

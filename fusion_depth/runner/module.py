@@ -298,6 +298,19 @@ class DepthModule(L.LightningModule):
             frame_box=batch.get("frame_box"),
         )
 
+    def _update_at_points(self, metrics: DepthMetrics, pred: torch.Tensor, batch: dict) -> None:
+        """Score ``pred`` against the batch's full-resolution ground truth, ``depth_points``
+        (``eval.resolution=full``): read where each point lies
+        (:func:`~fusion_depth.models.inference.depth_at_points`). For a network whose 0 means
+        no prediction, a point read partly from such a pixel has none either."""
+        points = batch["depth_points"]
+        at_points, target = depth_at_points(pred, points)
+        if self.net.partial_output:
+            covered, _ = depth_at_points((pred > 0).to(pred.dtype), points)
+            at_points = torch.where(covered >= 1.0, at_points, torch.zeros_like(at_points))
+        scored = {k: v for k, v in batch.items() if k != "frame_box"}
+        self._update(metrics, at_points, {**scored, "depth": target})
+
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         output = self._network_output(batch)
         depth = batch["depth"]
@@ -362,12 +375,8 @@ class DepthModule(L.LightningModule):
         if image.device.type == "cuda":
             torch.cuda.synchronize(image.device)
         self._latencies.append((time.perf_counter() - start) / len(image))
-        points = batch.get("depth_points")
-        if self.protocol.resolution == "full" and points is not None:
-            # The ground truth at the dataset's full resolution, read where it lies.
-            at_points, target = depth_at_points(pred, points)
-            scored = {k: v for k, v in batch.items() if k != "frame_box"}
-            self._update(self.test_metrics, at_points, {**scored, "depth": target})
+        if self.protocol.resolution == "full" and batch.get("depth_points") is not None:
+            self._update_at_points(self.test_metrics, pred, batch)
             self._scored_full = True
         else:
             self._update(self.test_metrics, pred, batch)

@@ -146,14 +146,15 @@ class EvalProtocol:
             raise ValueError(
                 f"eval.resolution={protocol.resolution!r}: expected one of {list(RESOLUTIONS)}"
             )
-        if protocol.resolution == "full" and (protocol.upsample, protocol.crop) != (
-            "bilinear",
-            "none",
-        ):
+        if protocol.resolution == "full" and (
+            protocol.upsample,
+            protocol.crop,
+            protocol.quantize,
+        ) != ("bilinear", "none", "none"):
             raise ValueError(
                 "eval.resolution=full reads the prediction bilinearly at the full-resolution "
-                f"points: expected eval.upsample=bilinear and eval.crop=none, got "
-                f"{protocol.upsample} and {protocol.crop}"
+                "points: expected eval.upsample=bilinear, eval.crop=none and eval.quantize=none, "
+                f"got {protocol.upsample}, {protocol.crop} and {protocol.quantize}"
             )
         try:
             protocol.scorer()  # validates the depth range, crop and averaging names
