@@ -42,6 +42,7 @@ from fusion_depth.data.nuscenes import full_resolution_points, resize_geometry, 
 from fusion_depth.data.radar_points import in_image
 from fusion_depth.metrics.depth import DepthMetrics
 from fusion_depth.models.inference import depth_at_points
+from fusion_depth.utils.tables import format_table
 
 FULL = (900, 1600)
 SIZE = (448, 800)  # the nuScenes reader's default
@@ -281,62 +282,64 @@ def simulate(frames: int, seed: int) -> dict:
     }
 
 
+def _before_after(labels: tuple[str, str], before: list, after: list, cell: str, change: str):
+    """Rows of two measurements of the same quantities and their difference, per cent."""
+    return [
+        [labels[0], *(format(v, cell) for v in before)],
+        [labels[1], *(format(v, cell) for v in after)],
+        [
+            "difference, per cent",
+            *(format(100 * (b / a - 1), change) for a, b in zip(before, after, strict=True)),
+        ],
+    ]
+
+
 def tables(record: dict) -> str:
-    """The results page's tables: mean MAE and RMSE (mm) per pipeline and cap, and each
-    pipeline's difference from RadarNet's own steps."""
+    """The results page's tables: mean MAE and RMSE (mm) per pipeline and cap, each pipeline's
+    difference from RadarNet's own steps, and the other presets' measurements
+    (:func:`other_presets`)."""
     mean = record["mean_mm"]
     caps = list(mean["radarnet"])
-    lines = [
-        f"{record['frames']} frames, seed {record['seed']}. MAE / RMSE in mm, mean over frames:",
-        "",
-        "| pipeline | " + " | ".join(f"{c} m MAE | {c} m RMSE" for c in caps) + " |",
-        "|---|" + "---:|" * (2 * len(caps)),
-    ]
-    for name in PIPELINES:
-        cells = [f"{mean[name][c][i]:,.1f}" for c in caps for i in (0, 1)]
-        lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "Difference from `radarnet` (RadarNet's own steps), per cent:",
-        "",
-        "| pipeline | " + " | ".join(f"{c} m MAE | {c} m RMSE" for c in caps) + " |",
-        "|---|" + "---:|" * (2 * len(caps)),
-    ]
-    for name in PIPELINES[:-1]:
-        cells = [
-            f"{100 * (mean[name][c][i] / mean['radarnet'][c][i] - 1):+.3f}"
-            for c in caps
-            for i in (0, 1)
-        ]
-        lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
+    by_cap = ["pipeline", *(f"{c} m {m}" for c in caps for m in ("MAE", "RMSE"))]
+
+    def per_pipeline(names, cell) -> str:
+        return format_table(
+            by_cap, [[f"`{n}`", *(cell(n, c, i) for c in caps for i in (0, 1))] for n in names]
+        )
+
     other = record["other_presets"]
-    plain, png = other["kitti_dc/none"], other["kitti_dc/kitti_png"]
-    lines += [
-        "",
+    sections = [
+        f"{record['frames']} frames, seed {record['seed']}. MAE / RMSE in mm, mean over frames:",
+        per_pipeline(PIPELINES, lambda n, c, i: f"{mean[n][c][i]:,.1f}"),
+        "Difference from `radarnet` (RadarNet's own steps), per cent:",
+        per_pipeline(
+            PIPELINES[:-1],
+            lambda n, c, i: f"{100 * (mean[n][c][i] / mean['radarnet'][c][i] - 1):+.3f}",
+        ),
         "`kitti_dc`, the same output as floats and as the devkit reads its PNG (every gt > 0):",
-        "",
-        "| prediction | MAE (mm) | RMSE (mm) | iMAE (1/km) | iRMSE (1/km) |",
-        "|---|---:|---:|---:|---:|",
-        "| floats | " + " | ".join(f"{v:,.3f}" for v in plain) + " |",
-        "| read from the PNG | " + " | ".join(f"{v:,.3f}" for v in png) + " |",
-        "| difference, per cent | "
-        + " | ".join(f"{100 * (b / a - 1):+.3f}" for a, b in zip(plain, png, strict=True))
-        + " |",
-    ]
-    replicated, mirrored = other["densedepth/bilinear"], other["densedepth/bilinear_reflect"]
-    lines += [
-        "",
+        format_table(
+            ["prediction", "MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)"],
+            _before_after(
+                ("floats", "read from the PNG"),
+                other["kitti_dc/none"],
+                other["kitti_dc/kitti_png"],
+                ",.3f",
+                "+.3f",
+            ),
+        ),
         "`densedepth`, a 224x400 output upsampled to 448x800 (pooled, dense truth 1-80 m):",
-        "",
-        "| upsampling | RMSE (mm) | ARD | δ1 |",
-        "|---|---:|---:|---:|",
-        "| `bilinear` (edges replicated) | " + " | ".join(f"{v:.5f}" for v in replicated) + " |",
-        "| `bilinear_reflect` (mirrored) | " + " | ".join(f"{v:.5f}" for v in mirrored) + " |",
-        "| difference, per cent | "
-        + " | ".join(f"{100 * (b / a - 1):+.4f}" for a, b in zip(replicated, mirrored, strict=True))
-        + " |",
+        format_table(
+            ["upsampling", "RMSE (mm)", "ARD", "δ1"],
+            _before_after(
+                ("`bilinear` (edges replicated)", "`bilinear_reflect` (mirrored)"),
+                other["densedepth/bilinear"],
+                other["densedepth/bilinear_reflect"],
+                ".5f",
+                "+.4f",
+            ),
+        ),
     ]
-    return "\n".join(lines) + "\n"
+    return "\n\n".join(sections) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
