@@ -46,6 +46,7 @@ ARGUMENT_KEYS: dict[str, str | Mapping[str, str]] = {
     "fusion_depth.metrics.depth": "eval",
     "fusion_depth.optim.schedules": "scheduler",
     "fusion_depth.data.cache.PrepareOptions": "prepare",
+    "fusion_depth.data.transforms": "augment",  # the training augmentation's arguments
     "fusion_depth.data": "dataset.reader",  # every reader's arguments: the dataset's reader node
 }
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")

@@ -48,18 +48,29 @@ def check_backbone(cfg: DictConfig) -> None:
 
 
 def check_bottleneck(cfg: DictConfig) -> None:
-    """A training batch must hold more than one value per channel at the encoder's bottleneck
-    (1/32 of the input): batch norm in training mode cannot normalise a single value, so batch 1
-    at 32×32 would fail inside the first training step.
+    """A training crop (``augment.crop``) fits in the dataset's frames, and a training batch
+    holds more than one value per channel at the encoder's bottleneck (1/32 of the input, the
+    crop where there is one): batch norm in training mode cannot normalise a single value, so
+    batch 1 at 32×32 would fail inside the first training step.
 
     Raises:
-        ConfigError: naming ``data.batch_size`` and the dataset's size.
+        ConfigError: naming ``augment.crop``, or ``data.batch_size`` and the training size.
     """
     batch = config_value(cfg, "data.batch_size")
     height, width = cfg.dataset.height, cfg.dataset.width
+    crop = config_value(cfg, "augment.crop")
+    size = f"dataset.height={height}, dataset.width={width}"
+    if isinstance(crop, list) and len(crop) == 2 and all(is_int(x) for x in crop):
+        if crop[0] > height or crop[1] > width:
+            raise ConfigError(
+                f"augment.crop={crop}: larger than the frames ({size}); expected at most "
+                f"[{height}, {width}]"
+            )
+        height, width = crop
+        size = f"augment.crop={crop}"
     if is_int(batch) and batch * (height // 32) * (width // 32) < 2:
         raise ConfigError(
-            f"data.batch_size={batch} with dataset.height={height}, dataset.width={width}: the "
+            f"data.batch_size={batch} with {size}: the "
             "encoder's bottleneck (1/32 of the input) is 1×1, and batch norm needs more than one "
             "value per channel to train; use data.batch_size=2 or a height or width of 64"
         )

@@ -4,8 +4,8 @@ network with ``@register_model``), and each dataset's own recipe for a model
 
 For each model ``<m>``, dataset ``<d>`` and source ``<s>`` (an option of the ``recipe_from``
 group), in Hydra's config store, an option ``<s>_<d>_<m>`` of ``backbone``,
-``loss``, ``optimizer``, ``scheduler`` and ``model_recipe`` (batch, epochs and the dataset
-recipe's other values):
+``loss``, ``optimizer``, ``scheduler`` and ``model_recipe`` (batch, epochs, augmentation and
+the dataset recipe's other values):
 
 - ``dataset`` (the default): the dataset's recipe for the model where it has one, on top of the
   model's own: the choices it switches, with the values it gives under them;
@@ -83,12 +83,17 @@ def model_options(name: str, entry: ModelEntry) -> dict[str, dict]:
     }
 
 
-def _length(entry: ModelEntry) -> dict:
-    """The model's batch and epochs, where its recipe sets them."""
-    data, trainer = {"batch_size": entry.recipe.batch_size}, {"max_epochs": entry.recipe.max_epochs}
+def _run_values(entry: ModelEntry) -> dict:
+    """The model's batch, epochs and augmentation, where its recipe sets them."""
+    recipe = entry.recipe
+    nodes = {
+        "data": {"batch_size": recipe.batch_size},
+        "trainer": {"max_epochs": recipe.max_epochs},
+        "augment": dict(recipe.augment),
+    }
     return {
         node: {key: value for key, value in keys.items() if value is not None}
-        for node, keys in {"data": data, "trainer": trainer}.items()
+        for node, keys in nodes.items()
         if any(value is not None for value in keys.values())
     }
 
@@ -165,7 +170,7 @@ def register_model_recipes(config_dir: str | None = None, overrides: Sequence[st
         own = model_options(name, entry)
         for group, node in own.items():
             put(group, f"for_{name}", node)
-        own["model_recipe"] = _length(entry)
+        own["model_recipe"] = _run_values(entry)
         smoke = own.copy()
         if entry.backbones is None:  # a model that takes any encoder gets the smallest
             smoke["backbone"] = {"defaults": [SMALLEST_BACKBONE, "_self_"]}

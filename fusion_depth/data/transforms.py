@@ -1,23 +1,84 @@
-"""Batch-level training augmentation (Kornia), run on the device after transfer."""
+"""Batch-level training augmentation (Kornia), run on the device after transfer.
+
+The default is the paper's (Siddiqui et al., Sec. 4.1: horizontal flip, brightness and contrast
+jitter). A model's recipe may bring its authors' own (:class:`~fusion_depth.models.Recipe`'s
+``augment``, and a dataset's recipe ``conf/experiment/<dataset>_<model>.yaml``):
+
+- RadarNet (Singh et al. 2023; ``nesl/radar-camera-fusion-depth``, ``src/fusionnet_transforms.py``
+  and ``bash/train_fusionnet_nuscenes.sh``): brightness, contrast and saturation in [0.8, 1.2],
+  each on its own with probability 0.5 and in that order (``color_each``), a flip with
+  probability 0.5, and random 448×448 crops (``crop``, in the dataset's recipe);
+- Sparse-to-Dense (Ma & Karaman 2018; ``fangchangma/sparse-to-dense.pytorch``,
+  ``dataloaders/kitti_dataloader.py``): a rotation in ±5°, a zoom ``s`` in [1, 1.5] with depth
+  divided by ``s`` (``scale``), nearest-neighbour resampling of image and depth, a crop centred on
+  a fixed point, a flip, and ColorJitter 0.4/0.4/0.4 (factors in [0.6, 1.4], random order).
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import kornia.augmentation as K
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from fusion_depth.utils.schema import PROBABILITY, Rule, Schema, is_number
+from fusion_depth.data.radar_points import DEPTH, VALID, U, V
+from fusion_depth.errors import ArgumentError
+from fusion_depth.utils.schema import (
+    BOOLEAN,
+    NON_NEGATIVE,
+    PROBABILITY,
+    Rule,
+    Schema,
+    is_int,
+    is_number,
+    one_of,
+)
+
+# Batch keys that hold metres (divided by the zoom) and are resampled nearest-neighbour: a mean
+# of two depths across an edge is a depth that is nowhere.
+_DEPTH_MAPS = ("sparse", "depth")
 
 
 class TrainAugmentation(nn.Module):
-    """The paper's online augmentation: horizontal flip, brightness and contrast jitter.
+    """A training batch's augmentation: geometry (crop, zoom, rotation), flip, colour.
 
-    The flip moves image, sparse map, depth, a cached prior (``prior``) and radar points
-    (``radar_points``: u → W - 1 - u) together; the colour jitter touches the image only.
-    Kornia's ``ColorJitter`` uses the torchvision formulas (multiplicative brightness, contrast
-    blended with the mean), which is what the paper's ranges refer to.
+    The geometry and the flip move image, sparse map, depth, a cached prior (``prior``) and
+    radar points (``radar_points``) together; the colour jitter touches the image only. Kornia's
+    ``ColorJitter`` uses the torchvision formulas (multiplicative brightness, contrast blended
+    with the grey mean, saturation blended with grey), which the paper's and the peers' ranges
+    refer to. With the defaults the batch keeps its size and only flip and colour apply, drawing
+    the same random numbers as before the geometry existed.
+
+    Args:
+        flip_p: probability of a horizontal flip.
+        color_p: probability of the colour jitter (``color_each``: of each of its operations).
+        brightness: ``[low, high]`` brightness factors.
+        contrast: ``[low, high]`` contrast factors.
+        saturation: ``[low, high]`` saturation factors; None: saturation is not changed.
+        color_each: brightness, contrast and saturation each drawn on its own with ``color_p``,
+            in that order (RadarNet); false: one jitter, its operations in random order.
+        crop: ``[height, width]`` in pixels of the served frame, multiples of 32; None: the
+            whole frame.
+        crop_center: ``[row, column]`` of the crop's centre in the frame (pixel centres at
+            integers), about which zoom and rotation turn; None: a random position with the
+            crop inside the frame (whole pixels, so a crop alone resamples nothing).
+        scale: ``[low, high]`` zoom factors ``s`` (≥ 1 magnifies); depth and sparse depth are
+            divided by ``s``, as an object ``s`` times nearer looks ``s`` times larger. None: no
+            zoom.
+        rotation: the largest rotation in degrees (uniform in ±``rotation``); 0: none.
+        resample: how the image is resampled under zoom or rotation, ``bilinear`` or ``nearest``
+            (Sparse-to-Dense's; depth maps are always nearest).
+
+    Shape:
+        - batch["image"]: (B, 3, H, W); "sparse", "depth": (B, 1, H, W) metres; "prior":
+          (B, 1, H, W); "radar_points": (B, P, K). Out: the same with ``H, W`` = ``crop``;
+          a radar point moved outside the crop becomes a zero row (``valid`` 0).
+
+    Raises:
+        ArgumentError: a ``crop`` larger than the batch's frames.
     """
 
     def __init__(
@@ -26,32 +87,50 @@ class TrainAugmentation(nn.Module):
         color_p: float = 0.5,
         brightness: Sequence[float] = (0.75, 1.25),
         contrast: Sequence[float] = (0.9, 1.1),
+        saturation: Sequence[float] | None = None,
+        color_each: bool = False,
+        crop: Sequence[int] | None = None,
+        crop_center: Sequence[float] | None = None,
+        scale: Sequence[float] | None = None,
+        rotation: float = 0.0,
+        resample: str = "bilinear",
     ) -> None:
         super().__init__()
         self.flip = K.RandomHorizontalFlip(p=flip_p)
-        self.color = K.ColorJitter(
-            brightness=tuple(brightness), contrast=tuple(contrast), p=color_p
-        )
+        factors = {"brightness": brightness, "contrast": contrast}
+        if saturation is not None:
+            factors["saturation"] = saturation
+        if color_each:  # RadarNet: each operation on its own draw, in this order
+            self.color = nn.Sequential(
+                *(K.ColorJitter(**{name: tuple(f)}, p=color_p) for name, f in factors.items())
+            )
+        else:
+            self.color = K.ColorJitter(**{k: tuple(f) for k, f in factors.items()}, p=color_p)
+        self.crop = tuple(crop) if crop is not None else None
+        self.crop_center = tuple(crop_center) if crop_center is not None else None
+        self.scale = tuple(scale) if scale is not None else None
+        self.rotation = float(rotation)
+        self.resample = resample
 
     @torch.no_grad()
     def forward(self, batch: dict) -> dict:
-        image, sparse, depth = batch["image"], batch["sparse"], batch["depth"]
+        out = self._geometry(dict(batch))
+        image, sparse, depth = out["image"], out["sparse"], out["depth"]
         maps = [image, sparse, depth]
-        prior = batch.get("prior")
+        prior = out.get("prior")
         if prior is not None:
             maps.append(prior.to(image.dtype))
         stacked = self.flip(torch.cat(maps, dim=1))
         image, sparse, depth, *flipped_prior = stacked.split([m.shape[1] for m in maps], dim=1)
-        out = dict(batch)
         if prior is not None:
             out["prior"] = flipped_prior[0].contiguous()
-        points = batch.get("radar_points")
+        points = out.get("radar_points")
         if points is not None:  # the flipped images' returns mirror too: u → W - 1 - u
             flipped = self.flip._params["batch_prob"].to(points.device) > 0.5
-            mirror = flipped[:, None] & (points[..., 5] > 0)
+            mirror = flipped[:, None] & (points[..., VALID] > 0)
             points = points.clone()
-            points[..., 0] = torch.where(
-                mirror, image.shape[-1] - 1 - points[..., 0], points[..., 0]
+            points[..., U] = torch.where(
+                mirror, image.shape[-1] - 1 - points[..., U], points[..., U]
             )
             out["radar_points"] = points
         return {
@@ -61,6 +140,129 @@ class TrainAugmentation(nn.Module):
             "depth": depth.contiguous(),
         }
 
+    def _geometry(self, batch: dict) -> dict:
+        """Crop, zoom and rotation (none drawn when none is asked for)."""
+        if self.crop is None and self.scale is None and self.rotation == 0:
+            return batch
+        image = batch["image"]
+        n, _, height, width = image.shape
+        out_h, out_w = self.crop or (height, width)
+        if out_h > height or out_w > width:
+            raise ArgumentError(
+                f"{{crop}}={[out_h, out_w]}: larger than the frames ({height}×{width})",
+                "crop",
+                owner=TrainAugmentation,
+            )
+        if self.crop_center is not None:
+            centre = torch.tensor(self.crop_center, dtype=torch.float64).expand(n, 2)
+        else:  # whole-pixel offsets: a crop alone moves pixels, it does not resample them
+            top = torch.randint(0, height - out_h + 1, (n,))
+            left = torch.randint(0, width - out_w + 1, (n,))
+            centre = torch.stack([top + (out_h - 1) / 2, left + (out_w - 1) / 2], 1).double()
+        zoom = torch.ones(n, dtype=torch.float64)
+        if self.scale is not None:
+            low, high = self.scale
+            zoom = low + (high - low) * torch.rand(n, dtype=torch.float64)
+        angle = torch.zeros(n, dtype=torch.float64)
+        if self.rotation:
+            angle = (2 * torch.rand(n, dtype=torch.float64) - 1) * math.radians(self.rotation)
+        # output pixel p (row, col) reads input c + R(angle) (p - c_out) / zoom
+        cos, sin = torch.cos(angle) / zoom, torch.sin(angle) / zoom
+        to_input = torch.stack([torch.stack([cos, -sin], 1), torch.stack([sin, cos], 1)], 1)
+        out_centre = torch.tensor([(out_h - 1) / 2, (out_w - 1) / 2], dtype=torch.float64)
+        if self.scale is None and self.rotation == 0:
+            centre = (centre - out_centre).round() + out_centre  # whole pixels for points too
+            batch = self._slice(batch, centre - out_centre, out_h, out_w)
+        else:
+            batch = self._warp(batch, to_input, centre, out_centre, out_h, out_w, zoom)
+        points = batch.get("radar_points")
+        if points is not None:
+            batch["radar_points"] = _move_points(
+                points, to_input, centre, out_centre, zoom, out_h, out_w
+            )
+        return batch
+
+    @staticmethod
+    def _slice(batch: dict, corner: torch.Tensor, out_h: int, out_w: int) -> dict:
+        corner = corner.round().long().tolist()
+        for key in ("image", *_DEPTH_MAPS, "prior"):
+            if batch.get(key) is not None:
+                maps = batch[key]
+                batch[key] = torch.stack(
+                    [
+                        m[:, t : t + out_h, c : c + out_w]
+                        for m, (t, c) in zip(maps, corner, strict=True)
+                    ]
+                )
+        return batch
+
+    def _warp(
+        self,
+        batch: dict,
+        to_input: torch.Tensor,
+        centre: torch.Tensor,
+        out_centre: torch.Tensor,
+        out_h: int,
+        out_w: int,
+        zoom: torch.Tensor,
+    ) -> dict:
+        image = batch["image"]
+        height, width = image.shape[-2:]
+        rows, cols = torch.meshgrid(
+            torch.arange(out_h, dtype=torch.float64),
+            torch.arange(out_w, dtype=torch.float64),
+            indexing="ij",
+        )
+        offset = torch.stack([rows, cols], -1).reshape(-1, 2) - out_centre  # (HW, 2)
+        source = centre[:, None, :] + torch.einsum("nij,pj->npi", to_input, offset)
+        # grid_sample's (x, y) in [-1, 1] with corner pixels' centres at ±1 (align_corners)
+        grid = torch.stack(
+            [2 * source[..., 1] / (width - 1) - 1, 2 * source[..., 0] / (height - 1) - 1], -1
+        )
+        grid = grid.reshape(len(image), out_h, out_w, 2).to(image.device, torch.float32)
+        modes = {
+            "image": self.resample,
+            "prior": "bilinear",
+            **dict.fromkeys(_DEPTH_MAPS, "nearest"),
+        }
+        divide = zoom.to(image.device, torch.float32)[:, None, None, None]
+        for key, mode in modes.items():
+            maps = batch.get(key)
+            if maps is None:
+                continue
+            warped = F.grid_sample(
+                maps.float(), grid, mode=mode, padding_mode="zeros", align_corners=True
+            ).to(maps.dtype)
+            batch[key] = warped / divide if key in _DEPTH_MAPS else warped
+        return batch
+
+
+def _move_points(
+    points: torch.Tensor,
+    to_input: torch.Tensor,
+    centre: torch.Tensor,
+    out_centre: torch.Tensor,
+    zoom: torch.Tensor,
+    out_h: int,
+    out_w: int,
+) -> torch.Tensor:
+    """Radar rows at their place in the output (the inverse of ``to_input``), depth ÷ zoom; a
+    row whose point leaves the output's pixels becomes a zero row."""
+    place = points[..., [V, U]].double() - centre[:, None, :].to(points.device)
+    to_output = torch.linalg.inv(to_input).to(points.device)
+    moved = out_centre.to(points.device) + torch.einsum("nij,npj->npi", to_output, place)
+    inside = (
+        (moved[..., 0] >= -0.5)
+        & (moved[..., 0] < out_h - 0.5)
+        & (moved[..., 1] >= -0.5)
+        & (moved[..., 1] < out_w - 0.5)
+    )
+    out = points.clone()
+    out[..., V], out[..., U] = moved[..., 0].to(points.dtype), moved[..., 1].to(points.dtype)
+    out[..., DEPTH] = points[..., DEPTH] / zoom.to(points.device, points.dtype)[:, None]
+    keep = inside & (points[..., VALID] > 0)
+    return out * keep[..., None].to(points.dtype)
+
 
 _FACTOR_RANGE = Rule(
     lambda v: (
@@ -68,10 +270,30 @@ _FACTOR_RANGE = Rule(
     ),
     "[low, high] factors with 0 < low ≤ high",
 )
+_CROP = Rule(
+    lambda v: (
+        isinstance(v, list)
+        and len(v) == 2
+        and all(is_int(x) and x % 32 == 0 for x in v)
+        and min(v) > 0
+    ),
+    "[height, width], positive multiples of 32",
+)
+_POINT = Rule(
+    lambda v: isinstance(v, list) and len(v) == 2 and all(is_number(x) for x in v),
+    "[row, column] in pixels",
+)
 # What :class:`TrainAugmentation`'s arguments accept (fusion_depth.utils.schema).
 ARGUMENT_RULES: Schema = {
     "flip_p": PROBABILITY,
     "color_p": PROBABILITY,
     "brightness": _FACTOR_RANGE,
     "contrast": _FACTOR_RANGE,
+    "saturation": _FACTOR_RANGE.or_null("saturation unchanged"),
+    "color_each": BOOLEAN,
+    "crop": _CROP.or_null("the whole frame"),
+    "crop_center": _POINT.or_null("a random position"),
+    "scale": _FACTOR_RANGE.or_null("no zoom"),
+    "rotation": NON_NEGATIVE,
+    "resample": one_of("bilinear", "nearest"),
 }

@@ -31,6 +31,10 @@ class Recipe:
             :func:`fusion_depth.optim.schedules.create_schedule`'s table) and ``schedule_args``.
         batch_size: the training batch; None keeps ``conf/train.yaml``'s (2, the paper's).
         max_epochs: the epochs; None keeps the trainer's (20, the paper's).
+        augment: the training augmentation's values that differ from the paper's
+            (``conf/train.yaml``'s ``augment``: :class:`~fusion_depth.data.transforms.
+            TrainAugmentation`'s arguments); what depends on a dataset's frames (``crop``,
+            ``crop_center``) belongs in that dataset's recipe.
     """
 
     backbone: str
@@ -41,6 +45,7 @@ class Recipe:
     schedule_args: Mapping[str, Any] = field(default_factory=dict)
     batch_size: int | None = None
     max_epochs: int | None = None
+    augment: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -350,6 +350,16 @@ class RadarInput(nn.Module):
         schedule="constant",
         batch_size=16,
         max_epochs=450,
+        # bash/train_fusionnet_nuscenes.sh, src/fusionnet_transforms.py: each colour operation
+        # on its own draw (p 0.5), then a flip; its 448×448 crops: conf/experiment/nuscenes_radarnet
+        augment={
+            "brightness": [0.8, 1.2],
+            "contrast": [0.8, 1.2],
+            "saturation": [0.8, 1.2],
+            "color_each": True,
+            "color_p": 0.5,
+            "flip_p": 0.5,
+        },
     ),
 )
 class RadarNet(DepthModel):

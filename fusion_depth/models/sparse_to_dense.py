@@ -145,6 +145,19 @@ class RGBdInput(nn.Module):
         schedule_args={"step_size": 5, "gamma": 0.1},
         batch_size=8,
         max_epochs=15,
+        # dataloaders/kitti_dataloader.py and dataloader.py: rotation ±5°, zoom 1-1.5 (depth ÷
+        # zoom), nearest-neighbour resampling, flip, ColorJitter(0.4, 0.4, 0.4) on every frame;
+        # its KITTI crop: conf/experiment/kitti_sparse_to_dense.yaml
+        augment={
+            "rotation": 5.0,
+            "scale": [1.0, 1.5],
+            "resample": "nearest",
+            "flip_p": 0.5,
+            "color_p": 1.0,
+            "brightness": [0.6, 1.4],
+            "contrast": [0.6, 1.4],
+            "saturation": [0.6, 1.4],
+        },
     ),
 )
 class SparseToDense(DepthModel):

@@ -174,6 +174,15 @@ def finished_results(output_dir: Path) -> dict | None:
 # the run did without them: a stored config that lacks one of these is the same run.
 # The prior group (0.3.0) at prior=none, which computes as a run without it did.
 _NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0, "cache": False}
+_NO_GEOMETRY = {
+    "saturation": None,
+    "color_each": False,
+    "crop": None,
+    "crop_center": None,
+    "scale": None,
+    "rotation": 0.0,
+    "resample": "bilinear",
+}
 _ADDED_KEYS: dict[str, Any] = {
     **{
         f"{block}.{key}": value
@@ -184,6 +193,12 @@ _ADDED_KEYS: dict[str, Any] = {
         f"{block}.{key}": value
         for block in ("prior", "model.net.prior")
         for key, value in _NO_PRIOR.items()
+    },
+    # the augmentation's saturation and geometry (each model's own augmentation), all off
+    **{
+        f"{block}.{key}": value
+        for block in ("augment", "model.augmentation")
+        for key, value in _NO_GEOMETRY.items()
     },
 }
 # Nodes a later version no longer writes, that computed nothing themselves: 0.2.0's `recipe:` (a
