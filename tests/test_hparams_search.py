@@ -197,6 +197,10 @@ def test_the_objective_is_a_validation_metric_at_the_kept_checkpoint() -> None:
     assert objective(record) == 2.0
     assert objective(record, "val_abs_rel") == 0.4
     assert objective(record, "val_delta1") == 0.6
+    # a rule of several metrics kept epoch 2, whose RMSE (float32) the record gives
+    assert objective(_record(record.validation, best=2.0000001), "val_abs_rel") == 0.4
+    kept_later = [*record.validation[:2], {**record.validation[2], "rmse": 2.5}]
+    assert objective(_record(kept_later, best=2.5000001), "val_abs_rel") == 0.1
     assert objective(_record([], best=1.5)) == 1.5  # an older record: no validation history
     assert objective(_record([], best=float("inf"))) is None  # a failed trial, not a value
     assert objective(None) is None

@@ -5,13 +5,15 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import lightning as L
-from lightning.pytorch.callbacks import Checkpoint
+from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
 from lightning.pytorch.loggers import WandbLogger
+from lightning.pytorch.utilities.exceptions import MisconfigurationException
+from torch import Tensor
 
 from fusion_depth.data.visualize import PANEL_CAPTION, panel_figure, write_panel_figure
 from fusion_depth.runner.resume import LAST_CHECKPOINT, LAST_CHECKPOINT_STATE
@@ -265,3 +267,71 @@ class ProgressLog(L.Callback):
 
 # The callbacks' values (fusion_depth.utils.schema).
 CONFIG_SCHEMA: Schema = {"callbacks.progress_log.every_s": Rule(POSITIVE.ok, "seconds > 0")}
+
+
+class MajorityCheckpoint(ModelCheckpoint):
+    """Keeps a validation's checkpoint when at least ``at_least`` of ``metrics`` are no worse
+    than at the one kept before, each rounded to its resolution (RadarNet's rule: its
+    ``fusionnet_main.py``, ``validate``, keeps a step when 3 of MAE, RMSE, iMAE and iRMSE,
+    rounded to 0.01 mm and 0.01 /km, are ≤ the best; the best then takes all four of the step's
+    values). The first validation is always kept. It is Lightning's ``ModelCheckpoint`` with
+    ``save_top_k=1`` otherwise: ``monitor`` (``val/rmse``) is what it names the file and records
+    as the kept checkpoint's score.
+
+    Args:
+        metrics: logged validation metric (``val/<key>``) → the resolution its value is rounded
+            to before comparing, in its logged unit (metres, 1/km); lower is better for each.
+        at_least: how many of them must be no worse.
+        **kwargs: :class:`~lightning.pytorch.callbacks.ModelCheckpoint`'s arguments.
+
+    Raises:
+        ValueError: no metrics, a resolution that is not > 0, or ``at_least`` outside
+            1..len(metrics).
+    """
+
+    def __init__(self, metrics: Mapping[str, float], at_least: int, **kwargs: Any) -> None:
+        super().__init__(**{**kwargs, "save_top_k": 1})
+        self.resolutions = {str(k): float(v) for k, v in dict(metrics).items()}
+        if not self.resolutions or min(self.resolutions.values()) <= 0:
+            raise ValueError(f"metrics={dict(metrics)}: expected metric → resolution > 0")
+        if not 1 <= at_least <= len(self.resolutions):
+            raise ValueError(f"at_least={at_least}: expected 1..{len(self.resolutions)}")
+        self.at_least = at_least
+        self.kept_metrics: dict[str, float] = {}
+
+    def _rounded(self, name: str, value: float) -> int:
+        return round(value / self.resolutions[name])
+
+    def keeps(self, current: Mapping[str, float]) -> bool:
+        """Whether the rule keeps a validation whose metrics are ``current`` (plain numbers)."""
+        if not self.kept_metrics:
+            return True
+        no_worse = sum(
+            self._rounded(k, current[k]) <= self._rounded(k, self.kept_metrics[k])
+            for k in self.resolutions
+        )
+        return no_worse >= self.at_least
+
+    def check_monitor_top_k(self, trainer: L.Trainer, current: Tensor | None = None) -> bool:
+        if current is None:
+            return False
+        logged = trainer.callback_metrics
+        missing = [k for k in self.resolutions if k not in logged]
+        if missing:
+            raise MisconfigurationException(
+                f"MajorityCheckpoint: the validation logged no {', '.join(missing)} (its "
+                f"metrics: {sorted(logged)})"
+            )
+        values = {k: float(logged[k]) for k in self.resolutions}
+        finite = all(math.isfinite(v) for v in values.values())
+        keep = trainer.strategy.reduce_boolean_decision(finite and self.keeps(values))
+        if keep:
+            self.kept_metrics = values
+        return keep
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "kept_metrics": dict(self.kept_metrics)}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        super().load_state_dict(state_dict)
+        self.kept_metrics = dict(state_dict.get("kept_metrics") or {})

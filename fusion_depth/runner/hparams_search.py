@@ -77,9 +77,11 @@ def metric_key(optimized_metric: Any) -> str:
 
 def objective(record: RunRecord | None, optimized_metric: str = DEFAULT_METRIC) -> float | None:
     """What a run returns to a sweeper: ``optimized_metric`` (``val_<metric>``) at the
-    validation with the lowest RMSE, the one whose checkpoint the run keeps and tests (for
-    ``val_rmse``: the best validation RMSE). None when there is none, or it is not finite (a
-    sweeper records that trial as failed), and on the ranks that do not test."""
+    validation whose checkpoint the run keeps and tests: the one with the lowest RMSE, or under
+    a rule of several metrics (:class:`~fusion_depth.runner.callbacks.MajorityCheckpoint`) the
+    one whose RMSE the record gives as the kept checkpoint's (for ``val_rmse``: that RMSE). None
+    when there is none, or it is not finite (a sweeper records that trial as failed), and on the
+    ranks that do not test."""
     key = metric_key(optimized_metric)
     if record is None:
         return None
@@ -88,7 +90,11 @@ def objective(record: RunRecord | None, optimized_metric: str = DEFAULT_METRIC) 
         for entry in record.validation or []
         if _finite(entry.get("rmse")) and _finite(entry.get(key))
     ]
-    if scored:
+    best = record.best_val_rmse  # logged in float32: equal to its validation's to 1e-6
+    kept = [e for e in scored if _finite(best) and abs(e["rmse"] - best) <= 1e-6 * abs(best)]
+    if kept:
+        value = kept[0][key]  # the first with the kept RMSE: Lightning keeps the first best
+    elif scored:
         value = min(scored, key=lambda entry: entry["rmse"])[key]  # the first best, as kept
     elif key == "rmse":  # a record without the validation history
         value = record.best_val_rmse

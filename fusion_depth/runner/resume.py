@@ -445,6 +445,13 @@ def check_resume_state(checkpoint: Any, last: Path) -> None:
     ):
         raise _refuse(last, f"callbacks.{LAST_CHECKPOINT_STATE}.pending_log_row is not a row")
     for name, state in callbacks.items():
+        kept = state.get("kept_metrics")  # MajorityCheckpoint's: the kept validation's metrics
+        if kept is not None and not (
+            isinstance(kept, dict)
+            and all(isinstance(k, str) for k in kept)
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in kept.values())
+        ):
+            raise _refuse(last, f"callbacks[{name!r}].kept_metrics is not metric values")
         folder = state.get("dirpath")
         for path in _named_checkpoints(state):
             inside = (
