@@ -45,6 +45,7 @@ NO_GEOMETRY = {
 }
 ADDED_IF_PRESENT = {
     ("model", "net", "prior"): NO_PRIOR,
+    ("model", "net", "fake_point_probability"): 0.0,  # RadarNet's fake points: none
     **{("augment", key): value for key, value in NO_GEOMETRY.items()},
     **{("model", "augmentation", key): value for key, value in NO_GEOMETRY.items()},
 }

@@ -325,3 +325,35 @@ def test_the_training_flip_mirrors_the_radar_points_with_the_image() -> None:
     assert not flipped["radar_points"][0, 1].any()
     kept = TrainAugmentation(flip_p=0.0, color_p=0.0)(batch)
     assert torch.equal(kept["radar_points"], batch["radar_points"])
+
+
+def test_fake_points_come_from_the_ground_truth_as_radarnets_training_draws_them() -> None:
+    """RadarNet's RadarNetTrainingDataset: with probability p an image's points become ground-
+    truth pixels deeper than 1 m, the column moved by N(0, 25 px at 1600 columns) and
+    truncated, the depth by U(0, 0.4) m, the radar's row kept."""
+    torch.manual_seed(0)
+    n, width = 3000, 320  # σ = 25 × 320 / 1600 = 5 pixels
+    depth = torch.zeros(n, 1, 32, width)
+    depth[:, 0, 8:24, 150] = 20.0  # the only pixels deeper than 1 m: one column
+    depth[:, 0, 0, :] = 0.9  # shallower than 1 m: never a fake's origin
+    radar = torch.zeros(n, 4, 6)
+    radar[..., 0], radar[..., 1], radar[..., 2], radar[..., 5] = 40.0, 17.6, 7.0, 1.0
+    net = RadarNet(stage="association", fake_point_probability=1.0)
+    fake = net._fake_points(radar, depth)
+    assert torch.equal(fake[..., 1], torch.full((n, 4), 17.0))  # the radar's row, truncated
+    assert torch.equal(fake[..., 5], torch.ones(n, 4))
+    assert ((fake[..., 2] >= 20.0) & (fake[..., 2] < 20.4)).all()
+    assert fake[..., 2].mean().item() == pytest.approx(20.2, abs=0.01)
+    u = fake[..., 0]
+    assert torch.equal(u, u.trunc()) and (u >= 0).all() and (u <= width).all()
+    # truncation moves the mean half a pixel down; the spread is σ
+    assert u.mean().item() == pytest.approx(149.5, abs=0.1)
+    assert u.std().item() == pytest.approx(5.0, rel=0.05)
+    # at probability 0.1, about a tenth of the images; an image without deep pixels keeps its own
+    net.fake_point_probability = 0.1
+    changed = (net._fake_points(radar, depth) != radar).any(-1).any(-1).float().mean().item()
+    assert changed == pytest.approx(0.1, abs=0.02)
+    net.fake_point_probability = 1.0
+    assert torch.equal(net._fake_points(radar, torch.zeros_like(depth)), radar)
+    net.fake_point_probability = 0.0
+    assert net._fake_points(radar, depth) is radar

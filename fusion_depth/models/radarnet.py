@@ -32,7 +32,9 @@ Two stages (the paper's Sec. 3, Fig. 2):
 Training (``training_loss``):
 
 * ``stage=association``: binary cross-entropy (``pos_weight`` 2.0, ``--w_positive_class``) on
-  ``train_points`` sampled points per image (``--total_points_sampled 4``), against labels from
+  ``train_points`` sampled points per image (``--total_points_sampled 4``; with probability
+  ``fake_point_probability`` an image's points are fakes drawn from its ground truth,
+  ``--sample_probability_lidar``), against labels from
   the ground-truth depth: a window pixel belongs to the point when the ground truth there is
   within ``max_distance`` = 0.4 m (``--max_distance_correspondence``) of the point's depth;
   pixels without ground truth count as negatives (``--set_invalid_to_negative``), pixels
@@ -71,7 +73,7 @@ from fusion_depth.models._registry import Recipe, check_model_takes, register_mo
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
-from fusion_depth.utils.schema import POSITIVE_INT
+from fusion_depth.utils.schema import POSITIVE_INT, PROBABILITY
 
 BACKBONES = ("resnet18",)  # the reference's encoders are ResNet-18 style (fusionnet18, radarnetv1)
 FUSIONS = ("concat",)  # image + quasi-dense radar depth
@@ -82,6 +84,13 @@ MAX_DISTANCE_CORRESPONDENCE = 0.4  # m, --max_distance_correspondence
 POSITIVE_CLASS_WEIGHT = 2.0  # --w_positive_class
 RESPONSE_THRESHOLD = 0.5  # radarnet_main.forward: responses < 0.5 set to 0
 POINTS_PER_IMAGE = 4  # --total_points_sampled
+# Fake radar points from the ground truth (src/datasets.py, RadarNetTrainingDataset): a frame's
+# points are replaced, with probability --sample_probability_lidar (0.10 in
+# bash/train_radarnet_nuscenes.sh), by ground-truth pixels deeper than 1 m, their column moved
+# by N(0, 25) pixels at 1600 columns and their depth by U(0, 0.4) m; rows stay the radar's.
+FAKE_COLUMN_NOISE = 25.0  # pixels at PAPER_IMAGE_SIZE's width
+FAKE_DEPTH_NOISE = 0.4  # m, the upper end of the uniform depth noise
+FAKE_MIN_DEPTH = 1.0  # m: ground-truth pixels a fake point may start from are deeper
 POINT_NEURONS = (32, 64, 128, 128, 128)  # --n_neurons_encoder_depth
 ASSOCIATION_DECODER = (256, 128, 64, 32, 16)  # --n_filters_decoder
 DEPTH_ENCODER = (16, 32, 64, 128, 128)  # --n_filters_encoder_depth (five of its six levels)
@@ -380,6 +389,10 @@ class RadarNet(DepthModel):
         threshold: the confidence a point needs to claim a pixel of the quasi-dense map.
         train_points: points sampled per image for the association loss.
         max_points: points taken from a sparse map when the batch carries none.
+        fake_point_probability: ``stage=association`` training: the probability that an
+            image's sampled points are replaced by fake ones from its ground truth
+            (:meth:`_fake_points`; the reference's ``--sample_probability_lidar``, 0.10 in its
+            nuScenes script and in ``conf/experiment/nuscenes_radarnet.yaml``). 0: none.
         pretrained: ImageNet weights for the encoders, as for the other models.
         weights: a local file of those weights, as for the other models.
         min_depth: see :class:`~fusion_depth.models.base.DepthModel`.
@@ -411,6 +424,7 @@ class RadarNet(DepthModel):
         threshold: float = RESPONSE_THRESHOLD,
         train_points: int = POINTS_PER_IMAGE,
         max_points: int = 64,
+        fake_point_probability: float = 0.0,
         pretrained: bool = False,
         weights: str | None = None,
         min_depth: float = 0.5,
@@ -432,6 +446,12 @@ class RadarNet(DepthModel):
             ("threshold", threshold, 0 < threshold < 1, "a number in (0, 1)"),
             ("train_points", train_points, POSITIVE_INT.ok(train_points), "an integer >= 1"),
             ("max_points", max_points, POSITIVE_INT.ok(max_points), "an integer >= 1"),
+            (
+                "fake_point_probability",
+                fake_point_probability,
+                PROBABILITY.ok(fake_point_probability),
+                "a probability in [0, 1]",
+            ),
         )
         for argument, value, ok, expected in checks:
             if not ok:
@@ -443,6 +463,7 @@ class RadarNet(DepthModel):
         self.window_width = window_width
         self.max_distance, self.positive_weight = max_distance, positive_weight
         self.threshold, self.train_points, self.max_points = threshold, train_points, max_points
+        self.fake_point_probability = float(fake_point_probability)
         self.association = AssociationNet(backbone, pretrained, weights)
         self.fusion_net = (
             FusionNet(backbone, pretrained, weights) if stage != "association" else None
@@ -618,6 +639,42 @@ class RadarNet(DepthModel):
         index = score.topk(k, dim=1).indices
         return torch.gather(points, 1, index[..., None].expand(-1, -1, points.shape[-1]))
 
+    def _fake_points(self, sampled: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """``sampled`` with each image's rows replaced, with probability
+        ``fake_point_probability``, by fake radar points from its ground truth (RadarNet's
+        ``RadarNetTrainingDataset``): ground-truth pixels deeper than 1 m drawn at random, the
+        column moved by N(0, σ) with σ = 25 pixels at 1600 columns (scaled to the input's
+        width), clipped to [0, W] and truncated to whole pixels, the depth raised by U(0, 0.4) m;
+        each row keeps its radar row (truncated), as the reference does. An image without such
+        a pixel keeps its points.
+
+        Shape:
+            - sampled: (B, P, K); depth: (B, 1, H, W) metres. Out: (B, P, K).
+        """
+        if self.fake_point_probability <= 0:
+            return sampled
+        n, p = sampled.shape[:2]
+        width = depth.shape[-1]
+        deep = (depth[:, 0] > FAKE_MIN_DEPTH).flatten(1)  # (B, HW)
+        chosen = (torch.rand(n, device=depth.device) < self.fake_point_probability) & deep.any(1)
+        if not bool(chosen.any()):
+            return sampled
+        # p pixels per image among the deep ones, uniformly (random scores, the deep first)
+        score = torch.rand(deep.shape, device=depth.device) + deep.float()
+        pixel = score.topk(p, dim=1).indices  # (B, P); an image with fewer repeats none
+        cols = pixel % width
+        z = torch.gather(depth[:, 0].flatten(1), 1, pixel)
+        sigma = FAKE_COLUMN_NOISE * width / PAPER_IMAGE_SIZE[1]
+        u = (cols.float() + sigma * torch.randn(n, p, device=depth.device)).clamp(0, width)
+        fake = sampled.clone()
+        fake[..., U] = u.trunc().to(sampled.dtype)
+        fake[..., V] = sampled[..., V].trunc()
+        fake[..., DEPTH] = (z + FAKE_DEPTH_NOISE * torch.rand(n, p, device=depth.device)).to(
+            sampled.dtype
+        )
+        fake[..., VALID] = torch.gather(deep, 1, pixel).to(sampled.dtype)
+        return torch.where(chosen[:, None, None], fake, sampled)
+
     def association_loss(
         self, logits: torch.Tensor, points: torch.Tensor, ground_truth: torch.Tensor
     ) -> torch.Tensor:
@@ -659,7 +716,7 @@ class RadarNet(DepthModel):
         self.check_input_size(image)
         points = self._points(batch.get("sparse"), batch.get("radar_points"))
         if self.stage == "association":
-            sampled = self._sample_points(points)
+            sampled = self._fake_points(self._sample_points(points), depth)
             logits = self.association_logits(image, sampled)
             bce = self.association_loss(logits, sampled, depth)
             return {"loss": bce, "association": bce.detach()}

@@ -194,6 +194,7 @@ _ADDED_KEYS: dict[str, Any] = {
         for block in ("prior", "model.net.prior")
         for key, value in _NO_PRIOR.items()
     },
+    "model.net.fake_point_probability": 0.0,  # RadarNet's fake points in its association stage
     # the augmentation's saturation and geometry (each model's own augmentation), all off
     **{
         f"{block}.{key}": value
