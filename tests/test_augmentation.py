@@ -131,6 +131,8 @@ def test_a_zoom_divides_depth_and_keeps_each_point_on_its_pixel() -> None:
     assert point[DEPTH].item() == pytest.approx(10.0)
     row, col = round(point[V].item()), round(point[U].item())
     assert out["sparse"][0, 0, row, col].item() == pytest.approx(10.0)
+    # the return is moved, not resampled: one pixel still (nearest sampling would draw ~1.5²)
+    assert int((out["sparse"][0] > 0).sum()) == 1
     # nearest-neighbour: every depth is one of the frame's, divided by the zoom
     values = set((batch["depth"][0] / 1.5).flatten().tolist())
     assert set(out["depth"][0].flatten().tolist()) <= values
@@ -233,6 +235,14 @@ def test_radarnets_nuscenes_recipe_trains_at_its_resolution(tmp_path) -> None:
     cfg = compose_config(["dataset=nuscenes", "dataset.root=DATA", "model=radarnet"], tmp_path)
     assert (cfg.dataset.height, cfg.dataset.width) == (896, 1600)
     assert cfg.model.net.window_width == 288  # the reference's windows on a 448-wide crop
+    # its training target: 12 keyframes each way merged, boxes cleared, interpolated inside the
+    # hull, outliers filtered at each step; its association stage's fake points
+    assert cfg.dataset.reader.lidar_keyframes == 12
+    assert list(cfg.dataset.reader.lidar_removed) == ["vehicle", "human"]
+    assert cfg.dataset.reader.fill == "linear_hull"
+    assert list(cfg.model.augmentation.outlier_filter) == [7, 1.5]
+    assert cfg.model.net.fake_point_probability == 0.1
+    assert cfg.callbacks.model_checkpoint.at_least == 3
 
 
 @pytest.mark.parametrize(
@@ -272,3 +282,77 @@ def test_a_run_trains_on_its_recipes_crops_and_scores_whole_frames(
     results = train(cfg)
     assert seen == {"train": {(32, 64)}, "test": {(cfg.dataset.height, cfg.dataset.width)}}
     assert results["test"]["num_images"] == cfg.dataset.reader.num_test
+
+
+def _radarnets_outlier_removal(depth: torch.Tensor, kernel: int, threshold: float):
+    """RadarNet's OutlierRemoval.remove_outliers (src/net_utils.py), rewritten with loops: a
+    valid pixel goes when the smallest valid depth in its window (the border and invalid pixels
+    count as 10 × the largest depth) is below its own minus the threshold."""
+    out = depth.clone()
+    big = 10 * depth.max().item()
+    _, _, h, w = depth.shape
+    r = kernel // 2
+    for b in range(depth.shape[0]):
+        for y in range(h):
+            for x in range(w):
+                window = [
+                    depth[b, 0, j, i].item()
+                    if 0 <= j < h and 0 <= i < w and depth[b, 0, j, i] > 0
+                    else big
+                    for j in range(y - r, y + r + 1)
+                    for i in range(x - r, x + r + 1)
+                ]
+                if min(window) < depth[b, 0, y, x].item() - threshold:
+                    out[b, 0, y, x] = 0
+    return out
+
+
+def test_the_outlier_filter_is_radarnets() -> None:
+    from fusion_depth.data.transforms import remove_outliers
+
+    torch.manual_seed(0)
+    depth = torch.rand(2, 1, 12, 16) * 30 + 1
+    depth[torch.rand_like(depth) < 0.4] = 0  # missing pixels
+    depth[0, 0, 5, 5] = 40.0  # a background point between nearer ones
+    expected = _radarnets_outlier_removal(depth, 7, 1.5)
+    torch.testing.assert_close(remove_outliers(depth, 7, 1.5), expected, rtol=0, atol=0)
+    assert expected[0, 0, 5, 5] == 0 and (expected > 0).sum() < (depth > 0).sum()
+    # in the augmentation, after the geometry, on the target only
+    batch = {"image": torch.rand(2, 3, 12, 16), "sparse": depth.clone(), "depth": depth}
+    out = TrainAugmentation(flip_p=0.0, color_p=0.0, outlier_filter=(7, 1.5))(batch)
+    torch.testing.assert_close(out["depth"], expected, rtol=0, atol=0)
+    torch.testing.assert_close(out["sparse"], depth, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("factor", [0.8, 1.2])
+def test_radarnets_integer_colour_pipeline_differs_by_at_most_three_levels(factor) -> None:
+    """RadarNet jitters uint8 frames as int tensors (torchvision 0.11: each result truncated to
+    a whole level and clipped to 0..255; grey truncated too). The float pipeline here differs
+    from it by at most 3 of 255 levels, about 1-1.5 darker there on average (the figure the
+    models guide quotes)."""
+    torch.manual_seed(0)
+    levels = torch.randint(0, 256, (4, 3, 48, 64)).float()
+    levels[:, :, :24] = levels[:, :, :24] // 4 + 120  # a smooth half, as images have
+
+    def grey(t):
+        return (0.2989 * t[:, 0] + 0.587 * t[:, 1] + 0.114 * t[:, 2]).trunc()[:, None]
+
+    def blend(a, b):
+        return (factor * a + (1 - factor) * b).clamp(0, 255).trunc()
+
+    theirs = blend(levels, torch.zeros_like(levels))
+    theirs = blend(theirs, grey(theirs).mean(dim=(-3, -2, -1), keepdim=True))
+    theirs = blend(theirs, grey(theirs))
+    augment = TrainAugmentation(
+        flip_p=0.0,
+        color_p=1.0,
+        brightness=(factor, factor),
+        contrast=(factor, factor),
+        saturation=(factor, factor),
+        color_each=True,
+    )
+    batch = {"image": levels / 255, "sparse": torch.zeros(4, 1, 48, 64)}
+    ours = augment({**batch, "depth": torch.ones(4, 1, 48, 64)})["image"] * 255
+    difference = theirs - ours
+    assert difference.abs().max() <= 3.0
+    assert -2.0 < difference.mean() < -0.5

@@ -42,6 +42,7 @@ NO_GEOMETRY = {
     "scale": None,
     "rotation": 0.0,
     "resample": "bilinear",
+    "outlier_filter": None,
 }
 ADDED_IF_PRESENT = {
     ("model", "net", "prior"): NO_PRIOR,

@@ -31,9 +31,9 @@ def test_every_method_keeps_every_measured_value_exactly(method) -> None:
     np.testing.assert_array_equal(filled[measured], depth[measured])
     if method == "none":
         np.testing.assert_array_equal(filled, depth)
-    else:  # every hole filled, within the measured range (both methods average measurements)
-        assert (filled > 0).all()
-        assert depth[measured].min() - 1e-4 <= filled.min()
+    else:  # every hole filled (linear_hull: inside the hull), within the measured range
+        assert (filled > 0).all() or method == "linear_hull"
+        assert depth[measured].min() - 1e-4 <= filled[filled > 0].min()
         assert filled.max() <= depth[measured].max() + 1e-4
 
 
@@ -95,7 +95,9 @@ def test_a_map_without_measurements_stays_empty() -> None:
 
 def test_a_bad_method_names_the_value_and_the_choices() -> None:
     depth, image = _random_sparse(2)
-    with pytest.raises(ValueError, match=r"'cubic'.*\['none', 'linear', 'colorization'\]"):
+    with pytest.raises(
+        ValueError, match=r"'cubic'.*\['none', 'linear', 'colorization', 'linear_hull'\]"
+    ):
         fill_depth(depth, image, "cubic")
 
 
@@ -221,3 +223,19 @@ def test_refinement_reaches_the_float64_solve_of_the_system() -> None:
     transposed, rhs, _, _ = colorization_system(sparse, sparse > 0, _intensity(image))
     exact = spsolve(transposed.T.tocsc(), rhs)
     assert np.abs(_solve_refined(transposed, rhs) - exact).max() < 2e-9
+
+
+def test_linear_hull_is_radarnets_interpolation() -> None:
+    """RadarNet's interpolate_depth (setup/data_utils.py): scipy's LinearNDInterpolator over the
+    measured pixels' (row, column), 0 outside their convex hull."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    depth, image = _random_sparse(3)
+    rows, cols = np.nonzero(depth)
+    reference = LinearNDInterpolator(np.stack([rows, cols], 1), depth[rows, cols], fill_value=0)
+    grid = np.stack(np.meshgrid(np.arange(H), np.arange(W), indexing="ij"), -1).reshape(-1, 2)
+    expected = reference(grid).reshape(H, W).astype(np.float32)
+    filled = fill_depth(depth, image, "linear_hull")
+    np.testing.assert_allclose(filled, expected, rtol=1e-6, atol=1e-6)
+    assert (filled == 0).any()  # outside the hull: still missing, unlike linear
+    assert (fill_depth(depth, image, "linear") > 0).all()

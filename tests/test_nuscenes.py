@@ -27,7 +27,8 @@ pytest.importorskip("nuscenes")
 
 from nuscenes.nuscenes import NuScenes, NuScenesExplorer  # noqa: E402
 from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud  # noqa: E402
-from nuscenes.utils.geometry_utils import view_points  # noqa: E402
+from nuscenes.utils.geometry_utils import BoxVisibility, view_points  # noqa: E402
+from pyquaternion import Quaternion  # noqa: E402
 
 import fusion_depth.data.nuscenes as nus  # noqa: E402
 from fusion_depth.data import RADAR_POINT_FIELDS  # noqa: E402
@@ -147,6 +148,19 @@ LIDAR_POINTS = {
     "LIDAR_TOP/prev": [camera_point(28, 60, 40.0)],
 }
 LIDAR_EXPECTED = {(10, 10): 15.0, (16, 32): 10.0, (16, 33): 9.0}
+# Annotated 1 m boxes, (scene, keyframe) -> [(category, where)]: ``where`` is the lidar point of
+# LIDAR_POINTS (camera_point's row, col, depth) as keyframe ``seen_in`` recorded it, so a box
+# covers that point in the world. RadarNet's merged target clears vehicle and human boxes.
+ANNOTATIONS = {
+    ("scene-0061", 1): [
+        ("vehicle.car", 1, (10, 10, 15.0)),  # keyframe 1's point: not merged into keyframe 0
+        ("static_object.bicycle_rack", 1, (16, 33, 9.0)),  # not a moving category: kept
+    ],
+    ("scene-0061", 0): [
+        # where keyframe 1's nearer point at (16, 32) lands in keyframe 0: not merged there
+        ("human.pedestrian.adult", 1, (16, 32, 10.0)),
+    ],
+}
 RADAR_DEFAULT = {(20, 10): 12.0}
 
 # --- the database ---------------------------------------------------------------------------
@@ -337,6 +351,49 @@ def _add_sweeps(
         tables["sample_data"].append(record)
 
 
+def _add_annotations(tables: dict[str, list], version: str, samples: dict[str, list]) -> None:
+    """The :data:`ANNOTATIONS` boxes as sample_annotation records, one instance each."""
+    categories = {row["name"]: row["token"] for row in tables["category"]}
+    for (scene, i), boxes in ANNOTATIONS.items():
+        if scene not in samples:
+            continue
+        for category, seen_in, (row, col, depth) in boxes:
+            if category not in categories:
+                categories[category] = token("cat", category)
+                tables["category"].append(
+                    {"token": categories[category], "name": category, "description": category}
+                )
+            centre = ego_poses(seen_in)["CAM_FRONT"].to_parent(
+                CAMERA.to_parent(camera_point(row, col, depth)[:, None])
+            )[:, 0]
+            ann, instance = token(version, scene, i, category), token(version, scene, category)
+            tables["instance"].append(
+                {
+                    "token": instance,
+                    "category_token": categories[category],
+                    "nbr_annotations": 1,
+                    "first_annotation_token": ann,
+                    "last_annotation_token": ann,
+                }
+            )
+            tables["sample_annotation"].append(
+                {
+                    "token": ann,
+                    "sample_token": samples[scene][i],
+                    "instance_token": instance,
+                    "visibility_token": "4",
+                    "attribute_tokens": [],
+                    "translation": centre.tolist(),
+                    "size": [1.0, 1.0, 1.0],
+                    "rotation": [1.0, 0.0, 0.0, 0.0],
+                    "prev": "",
+                    "next": "",
+                    "num_lidar_pts": 1,
+                    "num_radar_pts": 0,
+                }
+            )
+
+
 def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]]) -> dict:
     """Writes ``<root>/<version>/`` (the 13 tables), ``maps/`` and the sensor files of
     ``scenes`` = [(name, description, number of keyframes)]; returns scene -> sample tokens."""
@@ -373,6 +430,7 @@ def write_nuscenes(root: Path, version: str, scenes: list[tuple[str, str, int]])
                 }
             )
             _add_sweeps(root, version, tables, name, i, sample_token, clock, last_sd)
+    _add_annotations(tables, version, samples)
     (root / version).mkdir(parents=True, exist_ok=True)
     for name, rows in tables.items():
         (root / version / f"{name}.json").write_text(json.dumps(rows, indent=0))
@@ -628,6 +686,144 @@ def test_full_resolution_ground_truth_is_radarnets(nusc_root, tmp_path, size) ->
             assert not ours[:cut].any()
             checked += 1
     assert checked == 8
+
+
+def _pixels_last_wins(points: np.ndarray, depth: np.ndarray, shape) -> np.ndarray:
+    """RadarNet's drawing loop: each point on pixel np.round of (v, u), the last one wins."""
+    image = np.zeros(shape)
+    for k in range(points.shape[1]):
+        x, y = np.round(points[:2, k]).astype(int)
+        image[y, x] = depth[k]
+    return image
+
+
+def _clear_moving_boxes(nusc, camera_token: str, image: np.ndarray, removed) -> None:
+    _, boxes, k = nusc.get_sample_data(camera_token, box_vis_level=BoxVisibility.ANY)
+    for box in boxes:
+        if box.name.split(".")[0] in removed:
+            corners = view_points(box.corners(), view=k, normalize=True)[:2]
+            x0, y0 = int(corners[0].min()), int(corners[1].min())
+            x1, y1 = int(corners[0].max()), int(corners[1].max())
+            image[y0:y1, x0:x1] = 0
+
+
+def _radarnets_merged_target(nusc, token_: str, keyframes: int, removed) -> np.ndarray:
+    """RadarNet's merge_lidar_point_clouds (setup/setup_dataset_nuscenes.py), rewritten here
+    with the devkit's own point-cloud transforms and pixel loops: the keyframe's lidar image,
+    then each keyframe after it and before it lifted from its camera, carried through its lidar
+    and the ego poses into this camera, its moving boxes and this frame's cleared, merged
+    nearer-first into empty or farther pixels."""
+    explorer = NuScenesExplorer(nusc)
+    main = nusc.get("sample", token_)
+    main_cam = nusc.get("sample_data", main["data"]["CAM_FRONT"])
+    shape = (main_cam["height"], main_cam["width"])
+    points, depth, _ = explorer.map_pointcloud_to_image(
+        main["data"]["LIDAR_TOP"], main["data"]["CAM_FRONT"]
+    )
+    merged = _pixels_last_wins(points, depth, shape)
+    main_calib = nusc.get("calibrated_sensor", main_cam["calibrated_sensor_token"])
+
+    def pose(record):
+        return Quaternion(record["rotation"]).rotation_matrix, np.array(record["translation"])
+
+    for step in ("next", "prev"):
+        other = main
+        for _ in range(keyframes):
+            if not other[step]:
+                break
+            other = nusc.get("sample", other[step])
+            cam = nusc.get("sample_data", other["data"]["CAM_FRONT"])
+            lidar = nusc.get("sample_data", other["data"]["LIDAR_TOP"])
+            points, depth, _ = explorer.map_pointcloud_to_image(lidar["token"], cam["token"])
+            image = _pixels_last_wins(points, depth, shape)
+            _clear_moving_boxes(nusc, cam["token"], image, removed)
+            ys, xs = np.nonzero(image)
+            k = np.array(
+                nusc.get("calibrated_sensor", cam["calibrated_sensor_token"])["camera_intrinsic"]
+            )
+            lifted = np.linalg.inv(k) @ np.stack([xs, ys, np.ones_like(xs)]) * image[ys, xs]
+            cloud = LidarPointCloud(np.vstack([lifted, np.ones(len(xs))]))
+            for record, forward in (
+                (nusc.get("calibrated_sensor", cam["calibrated_sensor_token"]), True),
+                (nusc.get("ego_pose", cam["ego_pose_token"]), True),
+                (nusc.get("ego_pose", lidar["ego_pose_token"]), False),
+                (nusc.get("calibrated_sensor", lidar["calibrated_sensor_token"]), False),
+                (nusc.get("calibrated_sensor", lidar["calibrated_sensor_token"]), True),
+                (nusc.get("ego_pose", lidar["ego_pose_token"]), True),
+                (nusc.get("ego_pose", main_cam["ego_pose_token"]), False),
+                (main_calib, False),
+            ):
+                rotation, translation = pose(record)
+                if forward:
+                    cloud.rotate(rotation)
+                    cloud.translate(translation)
+                else:
+                    cloud.translate(-translation)
+                    cloud.rotate(rotation.T)
+            z = cloud.points[2]
+            uv = view_points(cloud.points[:3], np.array(main_calib["camera_intrinsic"]), True)
+            inside = (z > 1) & (uv[0] > 1) & (uv[0] < shape[1] - 1)
+            inside &= (uv[1] > 1) & (uv[1] < shape[0] - 1)
+            moved = _pixels_last_wins(uv[:, inside], z[inside], shape)
+            _clear_moving_boxes(nusc, main_cam["token"], moved, removed)
+            for y, x in zip(*np.nonzero(moved), strict=True):
+                if merged[y, x] == 0 or moved[y, x] < merged[y, x]:
+                    merged[y, x] = moved[y, x]
+    return merged
+
+
+@pytest.mark.parametrize("keyframes", [1, 3])
+def test_the_merged_target_is_radarnets(nusc_root, keyframes) -> None:
+    """RadarNet's merged, moving-objects-removed training target, rebuilt by its rule from the
+    fixture's keyframes and boxes, pixel for pixel; and what the boxes do."""
+    root, samples = nusc_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    devkit = nus.require_devkit()
+    for scene, tokens in samples.items():
+        if scene not in dict((s[0], 0) for s in MINI_SCENES):
+            continue
+        for token_ in tokens:
+            sample = nusc.get("sample", token_)
+            for removed in ((), ("vehicle", "human")):
+                rows, cols, depth = nus.merged_lidar_ground_truth(
+                    devkit, nusc, sample, keyframes, removed
+                )
+                ours = np.zeros((CAM_H, CAM_W))
+                ours[rows, cols] = depth
+                expected = _radarnets_merged_target(nusc, token_, keyframes, removed)
+                np.testing.assert_allclose(ours, expected, rtol=1e-12, atol=0)
+    first = nusc.get("sample", samples["scene-0061"][0])
+    single = nus.merged_lidar_ground_truth(devkit, nusc, first, 0)
+    kept = nus.merged_lidar_ground_truth(devkit, nusc, first, keyframes, ())
+    cleared = nus.merged_lidar_ground_truth(devkit, nusc, first, keyframes)
+    assert len(single[0]) < len(cleared[0]) < len(kept[0])  # merged; boxes clear some
+    # the keyframe's own points are never cleared, even inside its own pedestrian's box
+    assert set(zip(single[0], single[1], strict=True)) <= set(
+        zip(cleared[0], cleared[1], strict=True)
+    )
+
+
+def test_the_merged_target_trains_and_the_scored_splits_keep_the_single_scan(
+    nusc_root, tmp_path
+) -> None:
+    root, samples = nusc_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    devkit = nus.require_devkit()
+    reader = make_reader(root, tmp_path, lidar_keyframes=1)
+    plain = make_reader(root, tmp_path)
+    assert reader.cache != plain.cache  # its own cache; the default's folder unchanged
+    for index in range(len(reader)):
+        sample = nusc.get("sample", reader.frames[index]["id"])
+        rows, cols, depth = nus.merged_lidar_ground_truth(devkit, nusc, sample, 1)
+        stored = np.floor(depth * 256) / 256  # RadarNet's PNG
+        y, x, z = nus.full_resolution_points(rows, cols, stored, (CAM_H, CAM_W), (HEIGHT, WIDTH)).T
+        expected = nus.splat_nearest(x, y, z, HEIGHT, WIDTH)
+        np.testing.assert_array_equal(reader[index]["depth"].numpy()[0], expected)
+    val = make_reader(root, tmp_path, "val", lidar_keyframes=1)
+    val_plain = make_reader(root, tmp_path, "val")
+    assert val.cache == val_plain.cache  # scored against the single scan, as RadarNet
+    with pytest.raises(ValueError, match=r"lidar_keyframes=1 with lidar_nsweeps=3"):
+        make_reader(root, tmp_path, lidar_keyframes=1, lidar_nsweeps=3)
 
 
 def test_resize_and_crop_scales_the_intrinsics() -> None:

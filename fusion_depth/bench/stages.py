@@ -50,7 +50,7 @@ from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data.cache import PreparedSplit, usable_cores
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 from fusion_depth.data.encoding import decode_sample
-from fusion_depth.data.filling import FILL_METHODS, fill_depth
+from fusion_depth.data.filling import fill_depth
 from fusion_depth.data.procedural import render_frame
 from fusion_depth.export import (
     BACKENDS,
@@ -553,7 +553,7 @@ def bench_prepare(
     height: int,
     width: int,
     cores: int,
-    methods: Sequence[str] = FILL_METHODS,
+    methods: Sequence[str] = ("none", "linear", "colorization"),  # linear_hull costs as linear
     runs: int = 1,
     prepared: str | Path | None = None,
     frames: int = 3,

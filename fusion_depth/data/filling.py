@@ -11,7 +11,9 @@ KITTI-sized frame 4.3-4.6x faster and with 60 % less memory than SciPy's default
 ``spsolve`` of the same system (``python -m fusion_depth.bench --only prepare`` times it on your
 frames). ``linear`` is the cheap
 alternative (piecewise-linear over a Delaunay triangulation of the measured points, nearest
-measurement outside their convex hull); ``none`` leaves the map as it is.
+measurement outside their convex hull); ``linear_hull`` the same inside the hull and nothing
+outside it (RadarNet's ``interpolate_depth``, ``setup/data_utils.py``: ``LinearNDInterpolator``
+with ``fill_value=0``); ``none`` leaves the map as it is.
 
 Every method returns every measured value exactly, so evaluation against the measured points of a
 filled map is the same as against the unfilled one.
@@ -28,7 +30,7 @@ if TYPE_CHECKING:
     from scipy.sparse import csc_matrix
     from scipy.sparse.linalg import SuperLU
 
-FILL_METHODS: tuple[str, ...] = ("none", "linear", "colorization")
+FILL_METHODS: tuple[str, ...] = ("none", "linear", "colorization", "linear_hull")
 
 # Levin et al.'s weight bandwidth as the NYU toolbox sets it: 0.6 x the window's intensity
 # variance, at least enough for the most similar neighbour to weigh exp(log 0.01) = 1 %
@@ -65,8 +67,8 @@ def fill_depth(depth: np.ndarray, image: np.ndarray, method: str) -> np.ndarray:
     known = depth > 0
     if method == "none" or known.all() or not known.any():
         return depth.copy()
-    if method == "linear":
-        filled = _fill_linear(depth, known)
+    if method in ("linear", "linear_hull"):
+        filled = _fill_linear(depth, known, outside=method == "linear")
     else:
         filled = _fill_colorization(depth, known, _intensity(image))
     filled = filled.astype(np.float32)
@@ -82,8 +84,9 @@ def _intensity(image: np.ndarray) -> np.ndarray:
     return rgb @ np.array([0.2989, 0.5870, 0.1140])
 
 
-def _fill_linear(depth: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Barycentric interpolation inside the measured points' convex hull, nearest outside."""
+def _fill_linear(depth: np.ndarray, known: np.ndarray, outside: bool = True) -> np.ndarray:
+    """Barycentric interpolation inside the measured points' convex hull; outside it the
+    nearest measurement, or 0 (missing) without ``outside``."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
     from scipy.spatial import QhullError
 
@@ -97,9 +100,9 @@ def _fill_linear(depth: np.ndarray, known: np.ndarray) -> np.ndarray:
             guess = LinearNDInterpolator(points, values)(missing)
         except QhullError:  # all points on one line: no triangle to interpolate in
             pass
-    outside = np.isnan(guess)
-    if outside.any():
-        guess[outside] = NearestNDInterpolator(points, values)(missing[outside])
+    beyond = np.isnan(guess)
+    if beyond.any():
+        guess[beyond] = NearestNDInterpolator(points, values)(missing[beyond]) if outside else 0.0
     filled[~known] = guess
     return filled
 

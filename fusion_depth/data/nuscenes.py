@@ -191,6 +191,8 @@ class Devkit:
     view_points: Callable[..., np.ndarray]
     create_splits_scenes: Callable[..., dict]
     NuScenesExplorer: type
+    BoxVisibility: Any
+    Quaternion: type
 
 
 def require_devkit() -> Devkit:
@@ -198,8 +200,9 @@ def require_devkit() -> Devkit:
     try:
         from nuscenes.nuscenes import NuScenes, NuScenesExplorer
         from nuscenes.utils.data_classes import LidarPointCloud, RadarPointCloud
-        from nuscenes.utils.geometry_utils import view_points
+        from nuscenes.utils.geometry_utils import BoxVisibility, view_points
         from nuscenes.utils.splits import create_splits_scenes
+        from pyquaternion import Quaternion  # the devkit's own dependency
     except ImportError as err:
         raise ImportError(
             "dataset=nuscenes reads nuScenes with the official nuscenes-devkit, which could not "
@@ -214,6 +217,8 @@ def require_devkit() -> Devkit:
         view_points,
         create_splits_scenes,
         NuScenesExplorer,
+        BoxVisibility,
+        Quaternion,
     )
 
 
@@ -355,6 +360,144 @@ def radarnet_ground_truth(
     return rows[last], cols[last], stored[last] / 256.0
 
 
+# RadarNet's merged training target (setup/setup_dataset_nuscenes.py, merge_lidar_point_clouds):
+# the annotation categories whose boxes' image rectangles are cleared ("moving objects").
+RADARNET_REMOVED_CATEGORIES = ("vehicle", "human")
+
+
+def _last_wins(rows: np.ndarray, cols: np.ndarray, depth: np.ndarray, shape: tuple[int, int]):
+    """A float64 ``shape`` map with each point on its pixel, the last point written winning (as
+    a Python loop of ``map[y, x] = z`` does)."""
+    image = np.zeros(shape, dtype=np.float64)
+    flat = rows * shape[1] + cols
+    _, last_reversed = np.unique(flat[::-1], return_index=True)
+    last = len(flat) - 1 - last_reversed
+    image.flat[flat[last]] = depth[last]
+    return image
+
+
+def _keyframe_lidar_image(explorer: Any, sample: dict, shape: tuple[int, int]) -> np.ndarray:
+    """A keyframe's lidar sweep on its own camera's pixels at full resolution, RadarNet's way:
+    ``map_pointcloud_to_image``, ``np.round``, the last point written wins."""
+    points, depth, _ = explorer.map_pointcloud_to_image(
+        _channel_token(sample, LIDAR), _channel_token(sample, CAMERA)
+    )
+    cols, rows = np.round(points[0]).astype(np.int64), np.round(points[1]).astype(np.int64)
+    return _last_wins(rows, cols, np.asarray(depth, dtype=np.float64), shape)
+
+
+def _clear_boxes(
+    devkit: Devkit, nusc: Any, sample: dict, image: np.ndarray, removed: Sequence[str]
+) -> None:
+    """Zeroes, in place, the image rectangle of each of the keyframe's annotated boxes whose
+    category starts with one of ``removed``: ``int`` of the projected corners' extremes, as
+    RadarNet slices (numpy's negative-index semantics included)."""
+    _, boxes, intrinsic = nusc.get_sample_data(
+        _channel_token(sample, CAMERA),
+        box_vis_level=devkit.BoxVisibility.ANY,
+        use_flat_vehicle_coordinates=False,
+    )
+    for box in boxes:
+        if any(box.name.startswith(prefix) for prefix in removed):
+            corners = devkit.view_points(box.corners(), view=intrinsic, normalize=True)[:2, :]
+            min_x, min_y = int(np.min(corners[0])), int(np.min(corners[1]))
+            max_x, max_y = int(np.max(corners[0])), int(np.max(corners[1]))
+            image[min_y:max_y, min_x:max_x] = 0
+
+
+def _pose(record: dict, quaternion: type) -> tuple[np.ndarray, np.ndarray]:
+    return quaternion(record["rotation"]).rotation_matrix, np.asarray(record["translation"])
+
+
+def _into_keyframe(
+    devkit: Devkit, nusc: Any, other: dict, main: dict, image: np.ndarray, intrinsic: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of ``other``'s lidar image lifted to 3-D with its camera, carried through its
+    lidar's frame into ``main``'s camera and projected there (RadarNet's
+    ``camera_to_lidar_frame`` then ``point_cloud_to_image``): float ``(u, v)`` and depth of the
+    points deeper than 1 m strictly inside the 1-pixel margin."""
+    q = devkit.Quaternion
+    ys, xs = np.nonzero(image)
+    z = image[ys, xs]
+    xyz = np.linalg.inv(intrinsic) @ np.stack([xs, ys, np.ones_like(xs)]).astype(np.float64) * z
+    camera = nusc.get("sample_data", _channel_token(other, CAMERA))
+    lidar = nusc.get("sample_data", _channel_token(other, LIDAR))
+    main_camera = nusc.get("sample_data", _channel_token(main, CAMERA))
+    steps = [  # (rotation, translation, inverse?) in RadarNet's order
+        (nusc.get("calibrated_sensor", camera["calibrated_sensor_token"]), False),
+        (nusc.get("ego_pose", camera["ego_pose_token"]), False),
+        (nusc.get("ego_pose", lidar["ego_pose_token"]), True),
+        (nusc.get("calibrated_sensor", lidar["calibrated_sensor_token"]), True),
+        (nusc.get("calibrated_sensor", lidar["calibrated_sensor_token"]), False),
+        (nusc.get("ego_pose", lidar["ego_pose_token"]), False),
+        (nusc.get("ego_pose", main_camera["ego_pose_token"]), True),
+        (nusc.get("calibrated_sensor", main_camera["calibrated_sensor_token"]), True),
+    ]
+    for record, inverse in steps:
+        rotation, translation = _pose(record, q)
+        if inverse:
+            xyz = rotation.T @ (xyz - translation[:, None])
+        else:
+            xyz = rotation @ xyz + translation[:, None]
+    main_calibration = nusc.get("calibrated_sensor", main_camera["calibrated_sensor_token"])
+    points = devkit.view_points(xyz, np.asarray(main_calibration["camera_intrinsic"]), True)
+    height, width = image.shape
+    keep = (
+        (xyz[2] > 1.0)
+        & (points[0] > 1)
+        & (points[0] < width - 1)
+        & (points[1] > 1)
+        & (points[1] < height - 1)
+    )
+    return points[0, keep], points[1, keep], xyz[2, keep]
+
+
+def merged_lidar_ground_truth(
+    devkit: Devkit,
+    nusc: Any,
+    sample: dict,
+    keyframes: int,
+    removed: Sequence[str] = RADARNET_REMOVED_CATEGORIES,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RadarNet's merged training target of one keyframe at the camera's full resolution:
+    int64 ``(N,)`` pixel ``rows`` and ``cols`` and float64 ``depth`` in metres, one per pixel.
+
+    Its rule (``merge_lidar_point_clouds`` in ``setup/setup_dataset_nuscenes.py`` of
+    github.com/nesl/radar-camera-fusion-depth, ``--n_forward/backward_frames_to_reproject``, 12
+    by default): the keyframe's own lidar image (:func:`radarnet_ground_truth`'s, untruncated);
+    then each of up to ``keyframes`` keyframes after it, then before it: its lidar image on its
+    own camera with its annotated ``removed`` boxes' rectangles cleared, lifted to 3-D, carried
+    into this keyframe's camera (depth > 1 m, inside the 1-pixel margin), placed with
+    ``np.round`` (last wins), this keyframe's ``removed`` rectangles cleared, and merged: a pixel
+    without depth takes it, one with depth takes a nearer one. Stored by RadarNet as a uint16
+    PNG (truncated to 1/256 m), which the caller does.
+
+    Its published setup (``setup_dataset_nuscenes_with_denseGT.py``, ±80 keyframes) clears
+    moving objects with panoptic segmentation masks instead of boxes; that one is not built here.
+
+    Shape:
+        - out: three ``(N,)`` arrays, rows then columns then depth.
+    """
+    explorer = devkit.NuScenesExplorer(nusc)
+    camera = nusc.get("sample_data", _channel_token(sample, CAMERA))
+    shape = (int(camera["height"]), int(camera["width"]))
+    main = _keyframe_lidar_image(explorer, sample, shape)
+    for other in _neighbour_keyframes(nusc, sample, keyframes):
+        image = _keyframe_lidar_image(explorer, other, shape)
+        _clear_boxes(devkit, nusc, other, image, removed)
+        other_camera = nusc.get("sample_data", _channel_token(other, CAMERA))
+        calibration = nusc.get("calibrated_sensor", other_camera["calibrated_sensor_token"])
+        intrinsic = np.asarray(calibration["camera_intrinsic"], dtype=np.float64)
+        u, v, z = _into_keyframe(devkit, nusc, other, sample, image, intrinsic)
+        cols, rows = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
+        moved = _last_wins(rows, cols, z, shape)
+        _clear_boxes(devkit, nusc, sample, moved, removed)
+        take = (moved > 0) & ((main == 0) | (moved < main))
+        main[take] = moved[take]
+    rows, cols = np.nonzero(main)
+    return rows, cols, main[rows, cols]
+
+
 def full_resolution_points(
     rows: np.ndarray,
     cols: np.ndarray,
@@ -468,6 +611,8 @@ class FrameSettings:
     min_distance: float
     fill: str  # "none" for val/test
     full_ground_truth: bool = False  # val/test: RadarNet's full-resolution ground truth too
+    lidar_keyframes: int = 0  # train: RadarNet's merged target from this many keyframes each way
+    lidar_removed: tuple[str, ...] = RADARNET_REMOVED_CATEGORIES
 
 
 def _channel_token(sample: dict, channel: str) -> str:
@@ -500,7 +645,24 @@ def frame_files(nusc: Any, sample: dict, settings: FrameSettings) -> list[tuple[
             files.append((root / record["filename"], f"{channel} radar point cloud"))
     for record in _sweep_chain(nusc, sample, LIDAR, settings.lidar_nsweeps):
         files.append((root / record["filename"], f"{LIDAR} lidar point cloud"))
+    for other in _neighbour_keyframes(nusc, sample, settings.lidar_keyframes):
+        for channel, what in ((LIDAR, "lidar point cloud"), (CAMERA, "image")):
+            record = nusc.get("sample_data", _channel_token(other, channel))
+            files.append((root / record["filename"], f"{channel} {what} of a merged keyframe"))
     return files
+
+
+def _neighbour_keyframes(nusc: Any, sample: dict, keyframes: int) -> list[dict]:
+    """Up to ``keyframes`` keyframes after ``sample``, then up to as many before it."""
+    found = []
+    for direction in ("next", "prev"):
+        other = sample
+        for _ in range(keyframes):
+            if not other[direction]:
+                break
+            other = nusc.get("sample", other[direction])
+            found.append(other)
+    return found
 
 
 def check_files(nusc: Any, tokens: Sequence[str], settings: FrameSettings) -> None:
@@ -615,6 +777,14 @@ def load_frame(devkit: Devkit, nusc: Any, token: str, settings: FrameSettings) -
         "lidar",
     )
     depth = project_points(lidar[:3], intrinsic, *size, settings.min_distance)
+    if settings.lidar_keyframes:  # RadarNet's merged target, stored as its PNG (1/256 m)
+        rows, cols, merged = merged_lidar_ground_truth(
+            devkit, nusc, sample, settings.lidar_keyframes, settings.lidar_removed
+        )
+        merged = np.floor(merged * 256.0) / 256.0
+        y, x, merged = full_resolution_points(rows, cols, merged, (h0, w0), size).T
+        kept = merged <= CACHE_MAX_DEPTH
+        depth = splat_nearest(x[kept], y[kept], merged[kept], *size)
     full_points = None
     if settings.full_ground_truth:
         full_points = full_resolution_points(
@@ -751,6 +921,8 @@ class NuScenesDepth(PreparedDataset):
         radar_dynprop_states: Sequence[int] = tuple(range(7)),
         radar_ambig_states: Sequence[int] = (3,),
         lidar_nsweeps: int = 1,
+        lidar_keyframes: int = 0,
+        lidar_removed: Sequence[str] = RADARNET_REMOVED_CATEGORIES,
         min_distance: float = 1.0,
         stride: int = 1,
         test_split: str = "val",
@@ -773,6 +945,25 @@ class NuScenesDepth(PreparedDataset):
         ):
             if int(value) != value or value < 1:
                 raise _reader_error(f"{{{name}}}={value}: expected an integer >= 1", name)
+        if int(lidar_keyframes) != lidar_keyframes or lidar_keyframes < 0:
+            raise _reader_error(
+                f"{{lidar_keyframes}}={lidar_keyframes}: expected an integer >= 0",
+                "lidar_keyframes",
+            )
+        if lidar_keyframes and lidar_nsweeps != 1:
+            raise ArgumentError(
+                f"{{lidar_keyframes}}={lidar_keyframes} with {{lidar_nsweeps}}={lidar_nsweeps}: "
+                "the merged target starts from the keyframe's single sweep; use lidar_nsweeps=1",
+                "lidar_keyframes",
+                "lidar_nsweeps",
+                owner=NuScenesDepth,
+            )
+        if isinstance(lidar_removed, str) or not all(isinstance(c, str) for c in lidar_removed):
+            raise _reader_error(
+                f"{{lidar_removed}}={lidar_removed!r}: expected a list of category prefixes "
+                "(vehicle, human)",
+                "lidar_removed",
+            )
         if not (math.isfinite(min_distance) and min_distance > 0):
             raise _reader_error(
                 f"{{min_distance}}={min_distance}: expected metres > 0", "min_distance"
@@ -784,6 +975,8 @@ class NuScenesDepth(PreparedDataset):
         self.fill = fill
         self.radar_nsweeps = int(radar_nsweeps)
         self.lidar_nsweeps = int(lidar_nsweeps)
+        self.lidar_keyframes = int(lidar_keyframes)
+        self.lidar_removed = tuple(lidar_removed)
         self.min_distance = float(min_distance)
         self.stride = int(stride)
         self.test_split = test_split
@@ -815,8 +1008,13 @@ class NuScenesDepth(PreparedDataset):
         }
         train_key, val_key = VERSIONS[self.version]
         # split -> (cache params, table version, the devkit's split name, fill)
+        merged = (  # only when asked for: earlier caches keep their folders
+            {"lidar_keyframes": self.lidar_keyframes, "lidar_removed": list(self.lidar_removed)}
+            if self.lidar_keyframes
+            else {}
+        )
         sources = {
-            "train": ({**base, "fill": self.fill}, self.version, train_key, self.fill),
+            "train": ({**base, "fill": self.fill, **merged}, self.version, train_key, self.fill),
             "val": (base, self.version, val_key, "none"),
             "test": (base, self.version, val_key, "none"),  # test_split=val: the same frames
         }
@@ -850,6 +1048,8 @@ class NuScenesDepth(PreparedDataset):
                 lidar_nsweeps=self.lidar_nsweeps,
                 min_distance=self.min_distance,
                 fill="none",
+                lidar_keyframes=self.lidar_keyframes,
+                lidar_removed=self.lidar_removed,
             )
             _prepare(
                 require_devkit(),
@@ -890,7 +1090,12 @@ def _prepare(
         tokens = split_frames(
             nusc, scene_splits[key], conditions, stride, f"the {key} split of {version}"
         )
-        split_settings = replace(settings, fill=fill, full_ground_truth=name != "train")
+        split_settings = replace(
+            settings,
+            fill=fill,
+            full_ground_truth=name != "train",
+            lidar_keyframes=settings.lidar_keyframes if name == "train" else 0,
+        )
         check_files(nusc, tokens, split_settings)
         plans.append((name, params, nusc, tokens, split_settings))
     jobs = []

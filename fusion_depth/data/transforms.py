@@ -37,8 +37,10 @@ from fusion_depth.utils.schema import (
     one_of,
 )
 
-# Batch keys that hold metres (divided by the zoom) and are resampled nearest-neighbour: a mean
-# of two depths across an edge is a depth that is nowhere.
+# Batch keys that hold metres, divided by the zoom. The target is resampled nearest-neighbour (a
+# mean of two depths across an edge is a depth that is nowhere), as Sparse-to-Dense resamples
+# its; the sparse input's returns are moved, each to one pixel, so a zoom neither duplicates nor
+# drops measurements (Sparse-to-Dense samples its input after the transform, at a fixed count).
 _DEPTH_MAPS = ("sparse", "depth")
 
 
@@ -71,6 +73,10 @@ class TrainAugmentation(nn.Module):
         rotation: the largest rotation in degrees (uniform in ±``rotation``); 0: none.
         resample: how the image is resampled under zoom or rotation, ``bilinear`` or ``nearest``
             (Sparse-to-Dense's; depth maps are always nearest).
+        outlier_filter: ``[kernel, threshold]``: the target's pixels more than ``threshold``
+            metres deeper than the nearest in their ``kernel``×``kernel`` neighbourhood are
+            dropped after the geometry (:func:`remove_outliers`; RadarNet's ``[7, 1.5]``); None:
+            none.
 
     Shape:
         - batch["image"]: (B, 3, H, W); "sparse", "depth": (B, 1, H, W) metres; "prior":
@@ -94,6 +100,7 @@ class TrainAugmentation(nn.Module):
         scale: Sequence[float] | None = None,
         rotation: float = 0.0,
         resample: str = "bilinear",
+        outlier_filter: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         self.flip = K.RandomHorizontalFlip(p=flip_p)
@@ -111,10 +118,14 @@ class TrainAugmentation(nn.Module):
         self.scale = tuple(scale) if scale is not None else None
         self.rotation = float(rotation)
         self.resample = resample
+        self.outlier_filter = tuple(outlier_filter) if outlier_filter is not None else None
 
     @torch.no_grad()
     def forward(self, batch: dict) -> dict:
         out = self._geometry(dict(batch))
+        if self.outlier_filter is not None:
+            kernel, threshold = self.outlier_filter
+            out["depth"] = remove_outliers(out["depth"], int(kernel), float(threshold))
         image, sparse, depth = out["image"], out["sparse"], out["depth"]
         maps = [image, sparse, depth]
         prior = out.get("prior")
@@ -220,11 +231,7 @@ class TrainAugmentation(nn.Module):
             [2 * source[..., 1] / (width - 1) - 1, 2 * source[..., 0] / (height - 1) - 1], -1
         )
         grid = grid.reshape(len(image), out_h, out_w, 2).to(image.device, torch.float32)
-        modes = {
-            "image": self.resample,
-            "prior": "bilinear",
-            **dict.fromkeys(_DEPTH_MAPS, "nearest"),
-        }
+        modes = {"image": self.resample, "prior": "bilinear", "depth": "nearest"}
         divide = zoom.to(image.device, torch.float32)[:, None, None, None]
         for key, mode in modes.items():
             maps = batch.get(key)
@@ -234,7 +241,61 @@ class TrainAugmentation(nn.Module):
                 maps.float(), grid, mode=mode, padding_mode="zeros", align_corners=True
             ).to(maps.dtype)
             batch[key] = warped / divide if key in _DEPTH_MAPS else warped
+        if batch.get("sparse") is not None:
+            batch["sparse"] = _move_sparse(
+                batch["sparse"], to_input, centre, out_centre, zoom, out_h, out_w
+            )
         return batch
+
+
+def remove_outliers(depth: torch.Tensor, kernel: int, threshold: float) -> torch.Tensor:
+    """``depth`` with each valid pixel set to 0 (invalid) where the nearest valid depth in its
+    ``kernel``×``kernel`` neighbourhood is more than ``threshold`` metres nearer: a background
+    point seen through a foreground object (RadarNet's ``OutlierRemoval.remove_outliers``,
+    ``src/net_utils.py``, which its fusion network applies to its target at each step).
+
+    Args:
+        depth: (B, 1, H, W) metres, 0 = invalid.
+        kernel: the neighbourhood's side, odd.
+        threshold: metres.
+
+    Returns:
+        (B, 1, H, W) the same depths, the outliers 0.
+    """
+    far = 10 * depth.max()  # invalid pixels and the border never count as nearer
+    filled = torch.where(depth > 0, depth, far)
+    pad = kernel // 2
+    nearest = -F.max_pool2d(-F.pad(filled, (pad, pad, pad, pad), value=float(far)), kernel, 1)
+    return torch.where(nearest < depth - threshold, torch.zeros_like(depth), depth)
+
+
+def _move_sparse(
+    sparse: torch.Tensor,
+    to_input: torch.Tensor,
+    centre: torch.Tensor,
+    out_centre: torch.Tensor,
+    zoom: torch.Tensor,
+    out_h: int,
+    out_w: int,
+) -> torch.Tensor:
+    """Each return of a sparse map moved to the output pixel its centre maps to (the inverse of
+    ``to_input``), depth ÷ zoom; the nearest wins a shared pixel, one that leaves is dropped."""
+    out = torch.zeros(*sparse.shape[:2], out_h, out_w, dtype=sparse.dtype, device=sparse.device)
+    to_output = torch.linalg.inv(to_input)
+    for i in range(len(sparse)):
+        rows, cols = torch.nonzero(sparse[i, 0] > 0, as_tuple=True)
+        if not len(rows):
+            continue
+        place = torch.stack([rows, cols], 1).double().cpu() - centre[i]
+        moved = (out_centre + place @ to_output[i].T).round().long().to(sparse.device)
+        depth = sparse[i, 0, rows, cols] / float(zoom[i])
+        inside = (moved[:, 0] >= 0) & (moved[:, 0] < out_h) & (moved[:, 1] >= 0)
+        inside &= moved[:, 1] < out_w
+        index = moved[inside, 0] * out_w + moved[inside, 1]
+        nearest = torch.full((out_h * out_w,), math.inf, dtype=depth.dtype, device=depth.device)
+        nearest = nearest.scatter_reduce(0, index, depth[inside], reduce="amin")
+        out[i, 0] = torch.where(nearest.isinf(), 0.0, nearest).view(out_h, out_w)
+    return out
 
 
 def _move_points(
@@ -296,4 +357,15 @@ ARGUMENT_RULES: Schema = {
     "scale": _FACTOR_RANGE.or_null("no zoom"),
     "rotation": NON_NEGATIVE,
     "resample": one_of("bilinear", "nearest"),
+    "outlier_filter": Rule(
+        lambda v: (
+            isinstance(v, list)
+            and len(v) == 2
+            and is_int(v[0])
+            and v[0] % 2 == 1
+            and is_number(v[1])
+            and v[1] > 0
+        ),
+        "[kernel, threshold]: an odd side in pixels and metres > 0",
+    ).or_null("no filter"),
 }

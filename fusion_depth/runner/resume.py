@@ -182,6 +182,7 @@ _NO_GEOMETRY = {
     "scale": None,
     "rotation": 0.0,
     "resample": "bilinear",
+    "outlier_filter": None,
 }
 _ADDED_KEYS: dict[str, Any] = {
     **{
@@ -195,6 +196,8 @@ _ADDED_KEYS: dict[str, Any] = {
         for key, value in _NO_PRIOR.items()
     },
     "model.net.fake_point_probability": 0.0,  # RadarNet's fake points in its association stage
+    "dataset.reader.lidar_keyframes": 0,  # nuScenes: RadarNet's merged target, not asked for
+    "dataset.reader.lidar_removed": ["vehicle", "human"],
     # the augmentation's saturation and geometry (each model's own augmentation), all off
     **{
         f"{block}.{key}": value
