@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from helpers import command_message
 from PIL import Image
 
@@ -1072,6 +1073,62 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
     assert all(math.isfinite(v) for v in results["test"].values())
     assert Path(cfg.paths.output_dir, "metrics.json").is_file()
     assert list(Path(os.environ["FUSION_DEPTH_CACHE"]).glob("nuscenes/*/train/index.json"))
+
+
+def test_a_merged_keyframes_missing_lidar_fails_before_anything_is_prepared(
+    fresh_root, tmp_path
+) -> None:
+    root, samples = fresh_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    second = nusc.get("sample", samples["scene-0061"][1])
+    lidar = root / nusc.get("sample_data", second["data"]["LIDAR_TOP"])["filename"]
+    lidar.unlink()  # keyframe 1: with stride 2 not a training frame, only keyframe 0's neighbour
+    with pytest.raises(FileNotFoundError, match=r"LIDAR_TOP lidar point cloud of a merged key"):
+        make_reader(root, tmp_path / "cache", lidar_keyframes=1, stride=2)
+    assert not list((tmp_path / "cache").rglob("*.npy"))
+    assert len(make_reader(root, tmp_path / "cache", stride=2)) == 2  # unmerged: not needed
+
+
+def test_radarnets_nuscenes_recipe_trains_on_its_own_data(nusc_root, make_config) -> None:
+    """model=radarnet on nuScenes: its merged target, crops, outlier filter, fake points and
+    checkpoint rule, end to end (at the fixture's size, with a crop that fits it)."""
+    from fusion_depth.runner.callbacks import MajorityCheckpoint
+    from fusion_depth.train.fit import train
+
+    root, _ = nusc_root
+    cfg = make_config(
+        "dataset=nuscenes",
+        f"dataset.root={root}",
+        "dataset.version=v1.0-mini",
+        "model=radarnet",
+        "fusion=concat",
+        "dataset.height=64",  # the recipe's 896x1600 is the camera's; the fixture's is 72x128
+        "dataset.width=128",
+        "augment.crop=[64,96]",
+        "model.net.window_width=64",
+        "dataset.reader.lidar_keyframes=1",
+        "data.batch_size=2",  # the recipe's 16 is more than the fixture's 4 frames
+        "backbone.pretrained=false",
+        "logger=none",
+        "trainer.max_epochs=2",
+        "trainer.num_sanity_val_steps=0",
+        "trainer.enable_model_summary=false",
+        "model.num_val_panels=1",
+        "eval=radarnet",
+    )
+    assert cfg.dataset.fill == "linear_hull" and list(cfg.augment.outlier_filter) == [7, 1.5]
+    results = train(cfg)
+    assert results["test"]["num_images"] == 4
+    assert all(math.isfinite(v) for v in results["test"].values())
+    state = torch.load(
+        Path(cfg.paths.output_dir, "checkpoints", "last.ckpt"),
+        map_location="cpu",
+        weights_only=False,
+    )
+    (rule,) = [v for k, v in state["callbacks"].items() if k.startswith("MajorityCheckpoint")]
+    assert set(rule["kept_metrics"]) == {"val/mae", "val/rmse", "val/imae", "val/irmse"}
+    assert isinstance(rule["kept_metrics"]["val/rmse"], float)
+    assert MajorityCheckpoint.__name__ in cfg.callbacks.model_checkpoint._target_
 
 
 def test_the_nuscenes_sweep_runs_under_the_smoke_experiment(nusc_root, tmp_path) -> None:
