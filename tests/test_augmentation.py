@@ -319,9 +319,15 @@ def test_the_outlier_filter_is_radarnets() -> None:
     assert expected[0, 0, 5, 5] == 0 and (expected > 0).sum() < (depth > 0).sum()
     # in the augmentation, after the geometry, on the target only
     batch = {"image": torch.rand(2, 3, 12, 16), "sparse": depth.clone(), "depth": depth}
+    batch["depth_measured"] = depth.clone()  # RadarNet's lidar map: not filtered
     out = TrainAugmentation(flip_p=0.0, color_p=0.0, outlier_filter=(7, 1.5))(batch)
     torch.testing.assert_close(out["depth"], expected, rtol=0, atol=0)
     torch.testing.assert_close(out["sparse"], depth, rtol=0, atol=0)
+    torch.testing.assert_close(out["depth_measured"], depth, rtol=0, atol=0)
+    # but moved with the frame, as the target is
+    torch.manual_seed(2)
+    out = TrainAugmentation(flip_p=1.0, color_p=0.0, crop=(8, 8))(batch)
+    torch.testing.assert_close(out["depth_measured"], out["depth"], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("factor", [0.8, 1.2])

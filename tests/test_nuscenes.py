@@ -1075,6 +1075,31 @@ def test_train_and_test_through_the_real_configs(nusc_root, make_config) -> None
     assert list(Path(os.environ["FUSION_DEPTH_CACHE"]).glob("nuscenes/*/train/index.json"))
 
 
+def test_a_filled_training_split_serves_its_measured_map_when_the_loss_reads_it(
+    nusc_root, tmp_path
+) -> None:
+    """RadarNet's fusion loss reads the measured pixels beside the filled target: the datamodule
+    of a model that wants them serves depth_measured in training batches only."""
+    from functools import partial
+
+    from fusion_depth.data.encoding import decode_sample
+    from fusion_depth.runner.datamodule import DepthDataModule
+
+    root, _ = nusc_root
+    options = {"version": "v1.0-mini", "height": HEIGHT, "width": WIDTH, "fill": "linear_hull"}
+    reader = partial(NuScenesDepth, root=root, cache_root=tmp_path, **options)
+    plain = DepthDataModule(reader=reader)
+    assert "depth_measured" not in plain.dataset("train")[0]
+    module = DepthDataModule(reader=reader)
+    module.measured_depth = True
+    measured = make_reader(root, tmp_path)  # fill=none: the measured map
+    for index in range(len(measured)):
+        sample = decode_sample(module.dataset("train")[index])  # the loaders' encoded form
+        torch.testing.assert_close(sample["depth_measured"], measured[index]["depth"])
+        assert (sample["depth"] > 0).sum() > (sample["depth_measured"] > 0).sum()  # filled
+    assert "depth_measured" not in module.dataset("val")[0]
+
+
 def test_a_merged_keyframes_missing_lidar_fails_before_anything_is_prepared(
     fresh_root, tmp_path
 ) -> None:

@@ -357,3 +357,37 @@ def test_fake_points_come_from_the_ground_truth_as_radarnets_training_draws_them
     assert torch.equal(net._fake_points(radar, torch.zeros_like(depth)), radar)
     net.fake_point_probability = 0.0
     assert net._fake_points(radar, depth) is radar
+
+
+def test_the_fusion_loss_weighs_the_measured_pixels_as_fusionnet_does() -> None:
+    """FusionNet's compute_loss with --w_lidar_loss: L1 over the filled target's pixels that
+    were not measured, plus the weight times L1 over the measured ones; without a measured
+    map in the batch, L1 over the target."""
+    torch.manual_seed(0)
+    net = RadarNet(stage="fusion", lidar_loss_weight=2.0, window_width=32).train()
+    net.association_trained.fill_(True)
+    assert net.wants_measured_depth
+    image, depth = torch.rand(2, 3, 64, 96), torch.rand(2, 1, 64, 96) * 30 + 1
+    measured = torch.where(torch.rand_like(depth) < 0.1, depth, torch.zeros_like(depth))
+    sparse = torch.zeros_like(depth)
+    sparse[:, :, 40, 50] = 12.0
+    batch = {"image": image, "sparse": sparse, "depth": depth, "depth_measured": measured}
+
+    def l1(output, target):
+        mask = target > 0
+        return {"loss": (output - target).abs()[mask].mean()}
+
+    torch.manual_seed(1)
+    losses = net.training_loss(batch, l1)
+    torch.manual_seed(1)
+    output = net(image, sparse)
+    unmeasured = measured == 0
+    expected = (output - depth).abs()[unmeasured].mean() + 2.0 * (output - measured).abs()[
+        ~unmeasured
+    ].mean()
+    torch.testing.assert_close(losses["loss"], expected)
+    torch.testing.assert_close(losses["lidar"], (output - measured).abs()[~unmeasured].mean())
+    del batch["depth_measured"]
+    torch.manual_seed(1)
+    torch.testing.assert_close(net.training_loss(batch, l1)["loss"], (output - depth).abs().mean())
+    assert not RadarNet(stage="association", lidar_loss_weight=2.0).wants_measured_depth

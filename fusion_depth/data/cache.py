@@ -1460,6 +1460,9 @@ class PreparedSplit:
         # Full-resolution points pad to the split's largest count, so a split's samples batch.
         self.max_full_points = max(frame.get("full_points") or 0 for frame in frames)
         self.use_filled = use_filled
+        # Set by the datamodule for a model whose loss reads the measured ground truth beside
+        # the filled one (RadarNet's): served as depth_measured where depth is the filled map.
+        self.serve_measured = False
         self.conditions = [frame["condition"] for frame in self.frames]
 
     def __len__(self) -> int:
@@ -1475,7 +1478,9 @@ class PreparedSplit:
     def encoded_sample(self, index: int) -> EncodedSample:
         """Frame ``index`` as stored: image uint8 (3, H, W), ``sparse`` and ``depth`` (the
         filled map with ``use_filled``) uint16 (1, H, W) in 1/256 m, plus ``frame_box`` and
-        ``radar_points`` where prepared. What the datamodule's loaders pass to the device.
+        ``radar_points`` where prepared, and the measured map as ``depth_measured`` beside a
+        filled ``depth`` with :attr:`serve_measured`. What the datamodule's loaders pass to the
+        device.
 
         Raises:
             FileNotFoundError: a file of the frame is missing.
@@ -1498,6 +1503,9 @@ class PreparedSplit:
             for key, name in (("sparse", "sparse"), ("depth", depth_file))
         }
         sample = encode_sample(image, maps["sparse"], maps["depth"], frame["condition"])
+        if self.serve_measured and depth_file == "filled":
+            measured = read_npy(f"{stem}.depth.npy", np.uint16, (h, w), "prepared depth map", size)
+            sample["depth_measured"] = torch.from_numpy(measured)[None]
         if "frame_box" in frame:
             sample["frame_box"] = torch.tensor(frame["frame_box"], dtype=torch.long)
         if frame.get("radar_points"):

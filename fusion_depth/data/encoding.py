@@ -32,7 +32,9 @@ from fusion_depth.data import EncodedSample
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 
 IMAGE_SCALE = 255.0  # float image = uint8 image / IMAGE_SCALE, in [0, 1]
-DEPTH_KEYS: tuple[str, ...] = ("sparse", "depth")  # the depth maps of a sample, in metres
+# The depth maps of a sample, in metres (depth_measured: a training split's measured ground
+# truth beside its filled depth, for a loss that reads both; see IndexedDataset's serve_measured).
+DEPTH_KEYS: tuple[str, ...] = ("sparse", "depth", "depth_measured")
 
 
 def encode_sample(

@@ -41,7 +41,10 @@ from fusion_depth.utils.schema import (
 # mean of two depths across an edge is a depth that is nowhere), as Sparse-to-Dense resamples
 # its; the sparse input's returns are moved, each to one pixel, so a zoom neither duplicates nor
 # drops measurements (Sparse-to-Dense samples its input after the transform, at a fixed count).
-_DEPTH_MAPS = ("sparse", "depth")
+_DEPTH_MAPS = ("sparse", "depth", "depth_measured")
+# The training targets: moved and resampled alike (depth_measured: a filled target's measured
+# pixels, which the outlier filter leaves as they are, as RadarNet's lidar map).
+_TARGETS = ("depth", "depth_measured")
 
 
 class TrainAugmentation(nn.Module):
@@ -126,15 +129,15 @@ class TrainAugmentation(nn.Module):
         if self.outlier_filter is not None:
             kernel, threshold = self.outlier_filter
             out["depth"] = remove_outliers(out["depth"], int(kernel), float(threshold))
-        image, sparse, depth = out["image"], out["sparse"], out["depth"]
-        maps = [image, sparse, depth]
-        prior = out.get("prior")
-        if prior is not None:
-            maps.append(prior.to(image.dtype))
+        image = out["image"]
+        keys = ["image", "sparse", "depth", *(k for k in ("prior", "depth_measured") if k in out)]
+        keys = [k for k in keys if out.get(k) is not None]
+        maps = [out[k].to(image.dtype) for k in keys]
         stacked = self.flip(torch.cat(maps, dim=1))
-        image, sparse, depth, *flipped_prior = stacked.split([m.shape[1] for m in maps], dim=1)
-        if prior is not None:
-            out["prior"] = flipped_prior[0].contiguous()
+        moved = dict(zip(keys, stacked.split([m.shape[1] for m in maps], dim=1), strict=True))
+        for key in keys[3:]:
+            out[key] = moved[key].contiguous()
+        image, sparse, depth = moved["image"], moved["sparse"], moved["depth"]
         points = out.get("radar_points")
         if points is not None:  # the flipped images' returns mirror too: u → W - 1 - u
             flipped = self.flip._params["batch_prob"].to(points.device) > 0.5
@@ -231,7 +234,7 @@ class TrainAugmentation(nn.Module):
             [2 * source[..., 1] / (width - 1) - 1, 2 * source[..., 0] / (height - 1) - 1], -1
         )
         grid = grid.reshape(len(image), out_h, out_w, 2).to(image.device, torch.float32)
-        modes = {"image": self.resample, "prior": "bilinear", "depth": "nearest"}
+        modes = {"image": self.resample, "prior": "bilinear", **dict.fromkeys(_TARGETS, "nearest")}
         divide = zoom.to(image.device, torch.float32)[:, None, None, None]
         for key, mode in modes.items():
             maps = batch.get(key)

@@ -45,8 +45,9 @@ Training (``training_loss``):
   ground truth).
 * ``stage=fusion``: the association network is loaded from ``association_weights`` (a stage-1
   checkpoint of this platform) and frozen; L1 on depth in metres over the ground truth
-  (``--loss_func l1``; the reference's extra ``--w_lidar_loss`` term needs a second,
-  raw-lidar target that the platform's batches do not carry), i.e. ``loss=l1_only``.
+  (``--loss_func l1``), i.e. ``loss=l1_only``. With a filled target and
+  ``lidar_loss_weight`` (``--w_lidar_loss``), that loss over the filled pixels only, plus the
+  weight times it over the measured ones.
 * ``stage=end_to_end``: both networks trained together with the sum of the two losses (the
   paper trains the stages apart; the quasi-dense map is built from the confidences without a
   gradient through its arg-max, so the association learns from its own loss only).
@@ -73,7 +74,7 @@ from fusion_depth.models._registry import Recipe, check_model_takes, register_mo
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.encoder import create_timm_model
 from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
-from fusion_depth.utils.schema import POSITIVE_INT, PROBABILITY
+from fusion_depth.utils.schema import NON_NEGATIVE, POSITIVE_INT, PROBABILITY
 
 BACKBONES = ("resnet18",)  # the reference's encoders are ResNet-18 style (fusionnet18, radarnetv1)
 FUSIONS = ("concat",)  # image + quasi-dense radar depth
@@ -393,6 +394,10 @@ class RadarNet(DepthModel):
             image's sampled points are replaced by fake ones from its ground truth
             (:meth:`_fake_points`; the reference's ``--sample_probability_lidar``, 0.10 in its
             nuScenes script and in ``conf/experiment/nuscenes_radarnet.yaml``). 0: none.
+        lidar_loss_weight: the fusion network's loss on a filled target (FusionNet's
+            ``compute_loss``, ``--w_lidar_loss 2.0``): the depth loss over the filled pixels
+            only, plus this weight times it over the measured ones (the batch's
+            ``depth_measured``); 0, or a batch without that map: the depth loss over the target.
         pretrained: ImageNet weights for the encoders, as for the other models.
         weights: a local file of those weights, as for the other models.
         min_depth: see :class:`~fusion_depth.models.base.DepthModel`.
@@ -425,6 +430,7 @@ class RadarNet(DepthModel):
         train_points: int = POINTS_PER_IMAGE,
         max_points: int = 64,
         fake_point_probability: float = 0.0,
+        lidar_loss_weight: float = 0.0,
         pretrained: bool = False,
         weights: str | None = None,
         min_depth: float = 0.5,
@@ -452,6 +458,12 @@ class RadarNet(DepthModel):
                 PROBABILITY.ok(fake_point_probability),
                 "a probability in [0, 1]",
             ),
+            (
+                "lidar_loss_weight",
+                lidar_loss_weight,
+                NON_NEGATIVE.ok(lidar_loss_weight),
+                "a number >= 0",
+            ),
         )
         for argument, value, ok, expected in checks:
             if not ok:
@@ -464,6 +476,7 @@ class RadarNet(DepthModel):
         self.max_distance, self.positive_weight = max_distance, positive_weight
         self.threshold, self.train_points, self.max_points = threshold, train_points, max_points
         self.fake_point_probability = float(fake_point_probability)
+        self.lidar_loss_weight = float(lidar_loss_weight)
         self.association = AssociationNet(backbone, pretrained, weights)
         self.fusion_net = (
             FusionNet(backbone, pretrained, weights) if stage != "association" else None
@@ -475,6 +488,12 @@ class RadarNet(DepthModel):
             self.load_association(association_weights)
         if stage == "fusion":
             self.association.requires_grad_(False)
+
+    @property
+    def wants_measured_depth(self) -> bool:
+        """Whether training batches should carry the measured ground truth beside a filled
+        target (``depth_measured``): for :attr:`lidar_loss_weight`."""
+        return self.lidar_loss_weight > 0 and self.stage != "association"
 
     @property
     def partial_output(self) -> bool:
@@ -730,7 +749,18 @@ class RadarNet(DepthModel):
             )
         end_to_end = self.stage == "end_to_end"
         logits, quasi, best = self.quasi_dense(image, points, grad=end_to_end)
-        losses = dict(depth_loss(self._dense(image, quasi, best), depth))
+        output = self._dense(image, quasi, best)
+        measured = batch.get("depth_measured")
+        if self.lidar_loss_weight > 0 and measured is not None:
+            # FusionNet: the filled pixels where nothing was measured, and the measured ones
+            # weighted, "to avoid double counting"
+            filled_only = torch.where(measured > 0, torch.zeros_like(depth), depth)
+            losses = dict(depth_loss(output, filled_only))
+            lidar = depth_loss(output, measured)["loss"]
+            losses["lidar"] = lidar.detach()
+            losses["loss"] = losses["loss"] + self.lidar_loss_weight * lidar
+        else:
+            losses = dict(depth_loss(output, depth))
         if end_to_end:
             bce = self.association_loss(logits, points, depth)
             losses["association"] = bce.detach()

@@ -184,13 +184,19 @@ class DepthDataModule(L.LightningDataModule):
         # Set by train: the frames' cached prior, added to the training and validation batches
         # (the test stage runs the prior itself, as the deployed model does).
         self.prior_cache: PriorCache | None = None
+        # Set by train for a network whose loss reads the measured ground truth beside the
+        # filled one (``wants_measured_depth``): the training split serves it as depth_measured.
+        self.measured_depth = False
 
     def dataset(self, split: str) -> Dataset:
         """The dataset of one split, built on first use."""
         if split not in SPLITS:
             raise ValueError(f"split={split!r}: expected one of {list(SPLITS)}")
         if split not in self.datasets:
-            self.datasets[split] = IndexedDataset(self.reader(split=split))
+            dataset = self.reader(split=split)
+            if split == "train" and self.measured_depth and hasattr(dataset, "serve_measured"):
+                dataset.serve_measured = True
+            self.datasets[split] = IndexedDataset(dataset)
         return self.datasets[split]
 
     def setup(self, stage: str | None = None) -> None:

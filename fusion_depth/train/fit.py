@@ -271,6 +271,7 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
     L.seed_everything(cfg.seed, workers=True)
     datamodule = DepthDataModule(reader=instantiate(cfg.dataset.reader), seed=cfg.seed, **cfg.data)
     model = module_from_config(cfg)
+    datamodule.measured_depth = bool(getattr(model.net, "wants_measured_depth", False))
     check_output_dir(output_dir, checkpoint_room(cfg.callbacks, model))
     prior = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
     attach_prior_cache(model.net, prior, datamodule, accelerator_device(cfg.trainer.accelerator))
