@@ -169,6 +169,7 @@ def test_a_crop_larger_than_the_frames_is_refused() -> None:
             "augment.crop=[48, 64]: expected [height, width], positive multiples of 32",
         ),
         ("augment.resample=cubic", "augment.resample=cubic: expected one of"),
+        ("augment.crop_placement=top", "augment.crop_placement=top: expected one of"),
         (
             "augment.crop=[96,64]",
             "augment.crop=[96, 64]: larger than the frames (dataset.height=64, dataset.width=192)",
@@ -362,3 +363,52 @@ def test_radarnets_integer_colour_pipeline_differs_by_at_most_three_levels(facto
     difference = theirs - ours
     assert difference.abs().max() <= 3.0
     assert -2.0 < difference.mean() < -0.5
+
+
+def test_radarnets_crop_placement_follows_its_random_crop() -> None:
+    """RadarNet's random_crop with 'horizontal vertical': any column offset but the last; the
+    row offset random 30 % of the time, else centred."""
+    torch.manual_seed(0)
+    n, height, width = 4000, 64, 96
+    frame = torch.arange(height * width, dtype=torch.float32).view(1, 1, height, width)
+    batch = {
+        "image": torch.rand(n, 3, height, width),
+        "sparse": torch.zeros(n, 1, height, width),
+        "depth": frame.expand(n, 1, height, width) + 1,
+    }
+    out = TrainAugmentation(flip_p=0.0, color_p=0.0, crop=(32, 64), crop_placement="radarnet")(
+        batch
+    )
+    corner = out["depth"][:, 0, 0, 0] - 1
+    top, left = corner // width, corner % width
+    assert set(left.long().tolist()) == set(range(32))  # 0..d-1, never d = 32
+    centred = (top == 16).float().mean().item()  # (64 - 32) // 2
+    assert centred == pytest.approx(0.70 + 0.30 / 32, abs=0.03)
+    assert set(top.long().tolist()) == set(range(32))
+
+
+def test_a_crop_centre_near_the_border_reads_an_empty_frame_outside() -> None:
+    batch = _with_point(_batch(2), row=3, col=4, depth=9.0)
+    out = TrainAugmentation(flip_p=0.0, color_p=0.0, crop=(32, 32), crop_center=(5.5, 5.5))(batch)
+    assert out["depth"].shape == (2, 1, 32, 32)
+    assert (out["depth"][:, :, :10, :10] == 0).all()  # above and left of the frame
+    torch.testing.assert_close(out["depth"][:, :, 10:, 10:], batch["depth"][:, :, :22, :22])
+    point = out["radar_points"][0, 0]
+    assert (point[V].item(), point[U].item()) == (13.0, 14.0)
+    assert out["sparse"][0, 0, 13, 14] == 9.0
+
+
+def test_a_rotated_point_stays_on_what_the_image_shows_there() -> None:
+    """The image and the points turn the same way: a bright pixel drawn where a return is
+    ends up where the moved return is."""
+    torch.manual_seed(0)
+    batch = _with_point(_batch(64, 64, 64), row=10, col=50, depth=8.0)
+    batch["image"] = torch.zeros(64, 3, 64, 64)
+    batch["image"][:, :, 9:12, 49:52] = 1.0  # a 3×3 bright patch around the return
+    out = TrainAugmentation(
+        flip_p=0.0, color_p=0.0, crop_center=(31.5, 31.5), rotation=5.0, resample="nearest"
+    )(batch)
+    for i in range(64):
+        point = out["radar_points"][i, 0]
+        row, col = round(point[V].item()), round(point[U].item())
+        assert out["image"][i, 0, row, col] == 1.0, i

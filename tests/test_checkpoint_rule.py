@@ -134,3 +134,33 @@ def test_the_rule_state_survives_a_resume_and_a_hostile_one_is_refused(tmp_path)
     state = {"callbacks": {"MajorityCheckpoint": {**rule.state_dict(), "kept_metrics": "rm -rf"}}}
     with pytest.raises(CheckpointError, match=r"kept_metrics is not metric values"):
         check_resume_state(state, tmp_path / "last.ckpt")
+
+
+def test_a_moved_run_folder_keeps_its_kept_checkpoint(tmp_path) -> None:
+    """Lightning restores only the best path when the folder moved; the rule restores the kept
+    file's place in the new folder and its score, so the next kept one replaces it."""
+    old, new = tmp_path / "old" / "checkpoints", tmp_path / "new" / "checkpoints"
+    rule = MajorityCheckpoint(metrics=RADARNET, at_least=3, monitor="val/rmse", dirpath=old)
+    state = {
+        **rule.state_dict(),
+        "best_model_path": str(old / "epoch003-rmse4.0000.ckpt"),
+        "best_model_score": torch.tensor(4.0),
+        "kept_metrics": {"val/mae": 2.0, "val/rmse": 4.0, "val/imae": 9.0, "val/irmse": 16.0},
+    }
+    moved = MajorityCheckpoint(metrics=RADARNET, at_least=3, monitor="val/rmse", dirpath=new)
+    with pytest.warns(UserWarning, match="dirpath has changed"):
+        moved.load_state_dict(state)
+    here = str(new / "epoch003-rmse4.0000.ckpt")
+    assert moved.best_model_path == here and moved.best_k_models == {here: torch.tensor(4.0)}
+    assert moved.kept_metrics["val/rmse"] == 4.0
+
+
+def test_without_metrics_it_is_lightnings_rule() -> None:
+    """metrics=null (callbacks.model_checkpoint.metrics=null): by the monitor alone."""
+    rule = MajorityCheckpoint(metrics=None, at_least=3, monitor="val/rmse")
+    assert rule.check_monitor_top_k(_trainer({}), torch.tensor(4.0))  # the first: kept
+    rule.best_k_models = {"a.ckpt": torch.tensor(4.0)}
+    rule.kth_best_model_path = "a.ckpt"
+    assert not rule.check_monitor_top_k(_trainer({}), torch.tensor(4.5))
+    assert rule.check_monitor_top_k(_trainer({}), torch.tensor(3.5))
+    assert rule.kept_metrics == {}

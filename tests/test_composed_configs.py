@@ -39,6 +39,7 @@ NO_GEOMETRY = {
     "color_each": False,
     "crop": None,
     "crop_center": None,
+    "crop_placement": "uniform",
     "scale": None,
     "rotation": 0.0,
     "resample": "bilinear",
@@ -47,7 +48,8 @@ NO_GEOMETRY = {
 ADDED_IF_PRESENT = {
     ("model", "net", "prior"): NO_PRIOR,
     ("model", "net", "fake_point_probability"): 0.0,  # RadarNet's fake points: none
-    ("model", "net", "lidar_loss_weight"): 0.0,  # RadarNet's second loss term: none
+    ("model", "net", "lidar_loss_weight"): 0.0,
+    ("model", "net", "fake_column_noise"): None,  # RadarNet's second loss term: none
     **{("augment", key): value for key, value in NO_GEOMETRY.items()},
     **{("model", "augmentation", key): value for key, value in NO_GEOMETRY.items()},
 }

@@ -1115,8 +1115,9 @@ def test_a_merged_keyframes_missing_lidar_fails_before_anything_is_prepared(
 
 
 def test_radarnets_nuscenes_recipe_trains_on_its_own_data(nusc_root, make_config) -> None:
-    """model=radarnet on nuScenes: its merged target, crops, outlier filter, fake points and
-    checkpoint rule, end to end (at the fixture's size, with a crop that fits it)."""
+    """model=radarnet on nuScenes: its merged target, crops, outlier filter, fusion loss on the
+    measured pixels and checkpoint rule, end to end (stage=end_to_end; at the fixture's size,
+    with a crop that fits it)."""
     from fusion_depth.runner.callbacks import MajorityCheckpoint
     from fusion_depth.train.fit import train
 

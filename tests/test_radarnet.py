@@ -357,6 +357,11 @@ def test_fake_points_come_from_the_ground_truth_as_radarnets_training_draws_them
     assert torch.equal(net._fake_points(radar, torch.zeros_like(depth)), radar)
     net.fake_point_probability = 0.0
     assert net._fake_points(radar, depth) is radar
+    # validation draws none; a crop keeps the frame's noise when it is given in pixels
+    net.fake_point_probability = 1.0
+    assert net.eval()._fake_points(radar, depth) is radar
+    net.train().fake_column_noise = 25.0
+    assert net._fake_points(radar, depth)[..., 0].std().item() == pytest.approx(25.0, rel=0.05)
 
 
 def test_the_fusion_loss_weighs_the_measured_pixels_as_fusionnet_does() -> None:

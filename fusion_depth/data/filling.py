@@ -12,8 +12,8 @@ KITTI-sized frame 4.3-4.6x faster and with 60 % less memory than SciPy's default
 frames). ``linear`` is the cheap
 alternative (piecewise-linear over a Delaunay triangulation of the measured points, nearest
 measurement outside their convex hull); ``linear_hull`` the same inside the hull and nothing
-outside it (RadarNet's ``interpolate_depth``, ``setup/data_utils.py``: ``LinearNDInterpolator``
-with ``fill_value=0``); ``none`` leaves the map as it is.
+outside it (the rule of RadarNet's ``interpolate_depth``, ``setup/data_utils.py``:
+``LinearNDInterpolator`` with ``fill_value=0``); ``none`` leaves the map as it is.
 
 Every method returns every measured value exactly, so evaluation against the measured points of a
 filled map is the same as against the unfilled one.

@@ -68,8 +68,13 @@ class TrainAugmentation(nn.Module):
         crop: ``[height, width]`` in pixels of the served frame, multiples of 32; None: the
             whole frame.
         crop_center: ``[row, column]`` of the crop's centre in the frame (pixel centres at
-            integers), about which zoom and rotation turn; None: a random position with the
-            crop inside the frame (whole pixels, so a crop alone resamples nothing).
+            integers), about which zoom and rotation turn; the frame reads as empty outside.
+            None: a random position with the crop inside the frame (whole pixels, so a crop
+            alone resamples nothing), placed by ``crop_placement``.
+        crop_placement: how a random crop is placed: ``uniform`` (every offset alike) or
+            ``radarnet`` (its ``random_crop`` with ``horizontal vertical``: the column offset
+            uniform in ``[0, W - w)``; the row offset uniform in ``[0, H - h)`` with
+            probability 0.3, else ``(H - h) // 2``).
         scale: ``[low, high]`` zoom factors ``s`` (≥ 1 magnifies); depth and sparse depth are
             divided by ``s``, as an object ``s`` times nearer looks ``s`` times larger. None: no
             zoom.
@@ -100,6 +105,7 @@ class TrainAugmentation(nn.Module):
         color_each: bool = False,
         crop: Sequence[int] | None = None,
         crop_center: Sequence[float] | None = None,
+        crop_placement: str = "uniform",
         scale: Sequence[float] | None = None,
         rotation: float = 0.0,
         resample: str = "bilinear",
@@ -118,6 +124,7 @@ class TrainAugmentation(nn.Module):
             self.color = K.ColorJitter(**{k: tuple(f) for k, f in factors.items()}, p=color_p)
         self.crop = tuple(crop) if crop is not None else None
         self.crop_center = tuple(crop_center) if crop_center is not None else None
+        self.crop_placement = crop_placement
         self.scale = tuple(scale) if scale is not None else None
         self.rotation = float(rotation)
         self.resample = resample
@@ -170,8 +177,7 @@ class TrainAugmentation(nn.Module):
         if self.crop_center is not None:
             centre = torch.tensor(self.crop_center, dtype=torch.float64).expand(n, 2)
         else:  # whole-pixel offsets: a crop alone moves pixels, it does not resample them
-            top = torch.randint(0, height - out_h + 1, (n,))
-            left = torch.randint(0, width - out_w + 1, (n,))
+            top, left = _crop_offsets(n, height - out_h, width - out_w, self.crop_placement)
             centre = torch.stack([top + (out_h - 1) / 2, left + (out_w - 1) / 2], 1).double()
         zoom = torch.ones(n, dtype=torch.float64)
         if self.scale is not None:
@@ -184,8 +190,7 @@ class TrainAugmentation(nn.Module):
         cos, sin = torch.cos(angle) / zoom, torch.sin(angle) / zoom
         to_input = torch.stack([torch.stack([cos, -sin], 1), torch.stack([sin, cos], 1)], 1)
         out_centre = torch.tensor([(out_h - 1) / 2, (out_w - 1) / 2], dtype=torch.float64)
-        if self.scale is None and self.rotation == 0:
-            centre = (centre - out_centre).round() + out_centre  # whole pixels for points too
+        if self.scale is None and self.rotation == 0 and self.crop_center is None:
             batch = self._slice(batch, centre - out_centre, out_h, out_w)
         else:
             batch = self._warp(batch, to_input, centre, out_centre, out_h, out_w, zoom)
@@ -251,6 +256,18 @@ class TrainAugmentation(nn.Module):
         return batch
 
 
+def _crop_offsets(n: int, rows: int, cols: int, placement: str) -> tuple[torch.Tensor, ...]:
+    """``n`` random (top, left) offsets of a crop ``rows`` and ``cols`` pixels smaller than the
+    frame (:class:`TrainAugmentation`'s ``crop_placement``)."""
+    if placement == "uniform":
+        return torch.randint(0, rows + 1, (n,)), torch.randint(0, cols + 1, (n,))
+    # RadarNet's random_crop: np.random.randint(0, d) excludes d itself (0 when d is 0)
+    left = torch.randint(0, max(cols, 1), (n,))
+    random_row = torch.rand(n) <= 0.30
+    top = torch.where(random_row, torch.randint(0, max(rows, 1), (n,)), rows // 2)
+    return top, left
+
+
 def remove_outliers(depth: torch.Tensor, kernel: int, threshold: float) -> torch.Tensor:
     """``depth`` with each valid pixel set to 0 (invalid) where the nearest valid depth in its
     ``kernel``×``kernel`` neighbourhood is more than ``threshold`` metres nearer: a background
@@ -289,7 +306,7 @@ def _move_sparse(
         rows, cols = torch.nonzero(sparse[i, 0] > 0, as_tuple=True)
         if not len(rows):
             continue
-        place = torch.stack([rows, cols], 1).double().cpu() - centre[i]
+        place = torch.stack([rows, cols], 1).cpu().double() - centre[i]
         moved = (out_centre + place @ to_output[i].T).round().long().to(sparse.device)
         depth = sparse[i, 0, rows, cols] / float(zoom[i])
         inside = (moved[:, 0] >= 0) & (moved[:, 0] < out_h) & (moved[:, 1] >= 0)
@@ -312,9 +329,10 @@ def _move_points(
 ) -> torch.Tensor:
     """Radar rows at their place in the output (the inverse of ``to_input``), depth ÷ zoom; a
     row whose point leaves the output's pixels becomes a zero row."""
-    place = points[..., [V, U]].double() - centre[:, None, :].to(points.device)
-    to_output = torch.linalg.inv(to_input).to(points.device)
-    moved = out_centre.to(points.device) + torch.einsum("nij,npj->npi", to_output, place)
+    # in float64 on the CPU (a GPU may have no float64), the result back in the points' dtype
+    place = points[..., [V, U]].cpu().double() - centre[:, None, :]
+    moved = out_centre + torch.einsum("nij,npj->npi", torch.linalg.inv(to_input), place)
+    moved = moved.to(points.device, torch.float32)
     inside = (
         (moved[..., 0] >= -0.5)
         & (moved[..., 0] < out_h - 0.5)
@@ -360,6 +378,7 @@ ARGUMENT_RULES: Schema = {
     "scale": _FACTOR_RANGE.or_null("no zoom"),
     "rotation": NON_NEGATIVE,
     "resample": one_of("bilinear", "nearest"),
+    "crop_placement": one_of("uniform", "radarnet"),
     "outlier_filter": Rule(
         lambda v: (
             isinstance(v, list)

@@ -394,6 +394,8 @@ class RadarNet(DepthModel):
             image's sampled points are replaced by fake ones from its ground truth
             (:meth:`_fake_points`; the reference's ``--sample_probability_lidar``, 0.10 in its
             nuScenes script and in ``conf/experiment/nuscenes_radarnet.yaml``). 0: none.
+        fake_column_noise: the fake points' column noise σ in pixels; None: the reference's 25
+            at 1600 columns, scaled to the input's width (set it when training on crops).
         lidar_loss_weight: the fusion network's loss on a filled target (FusionNet's
             ``compute_loss``, ``--w_lidar_loss 2.0``): the depth loss over the filled pixels
             only, plus this weight times it over the measured ones (the batch's
@@ -430,6 +432,7 @@ class RadarNet(DepthModel):
         train_points: int = POINTS_PER_IMAGE,
         max_points: int = 64,
         fake_point_probability: float = 0.0,
+        fake_column_noise: float | None = None,
         lidar_loss_weight: float = 0.0,
         pretrained: bool = False,
         weights: str | None = None,
@@ -459,6 +462,12 @@ class RadarNet(DepthModel):
                 "a probability in [0, 1]",
             ),
             (
+                "fake_column_noise",
+                fake_column_noise,
+                fake_column_noise is None or NON_NEGATIVE.ok(fake_column_noise),
+                "null or pixels >= 0",
+            ),
+            (
                 "lidar_loss_weight",
                 lidar_loss_weight,
                 NON_NEGATIVE.ok(lidar_loss_weight),
@@ -476,6 +485,7 @@ class RadarNet(DepthModel):
         self.max_distance, self.positive_weight = max_distance, positive_weight
         self.threshold, self.train_points, self.max_points = threshold, train_points, max_points
         self.fake_point_probability = float(fake_point_probability)
+        self.fake_column_noise = fake_column_noise
         self.lidar_loss_weight = float(lidar_loss_weight)
         self.association = AssociationNet(backbone, pretrained, weights)
         self.fusion_net = (
@@ -662,15 +672,15 @@ class RadarNet(DepthModel):
         """``sampled`` with each image's rows replaced, with probability
         ``fake_point_probability``, by fake radar points from its ground truth (RadarNet's
         ``RadarNetTrainingDataset``): ground-truth pixels deeper than 1 m drawn at random, the
-        column moved by N(0, σ) with σ = 25 pixels at 1600 columns (scaled to the input's
-        width), clipped to [0, W] and truncated to whole pixels, the depth raised by U(0, 0.4) m;
-        each row keeps its radar row (truncated), as the reference does. An image without such
-        a pixel keeps its points.
+        column moved by N(0, σ) with σ = ``fake_column_noise`` (None: 25 pixels at 1600
+        columns, scaled to the input's width), clipped to [0, W] and truncated to whole
+        pixels, the depth raised by U(0, 0.4) m; each row keeps its radar row (truncated), as
+        the reference does. An image without such a pixel keeps its points. In training only.
 
         Shape:
             - sampled: (B, P, K); depth: (B, 1, H, W) metres. Out: (B, P, K).
         """
-        if self.fake_point_probability <= 0:
+        if self.fake_point_probability <= 0 or not self.training:  # a validation loss is fixed
             return sampled
         n, p = sampled.shape[:2]
         width = depth.shape[-1]
@@ -683,7 +693,9 @@ class RadarNet(DepthModel):
         pixel = score.topk(p, dim=1).indices  # (B, P); an image with fewer repeats none
         cols = pixel % width
         z = torch.gather(depth[:, 0].flatten(1), 1, pixel)
-        sigma = FAKE_COLUMN_NOISE * width / PAPER_IMAGE_SIZE[1]
+        sigma = self.fake_column_noise
+        if sigma is None:
+            sigma = FAKE_COLUMN_NOISE * width / PAPER_IMAGE_SIZE[1]
         u = (cols.float() + sigma * torch.randn(n, p, device=depth.device)).clamp(0, width)
         fake = sampled.clone()
         fake[..., U] = u.trunc().to(sampled.dtype)

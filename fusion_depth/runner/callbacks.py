@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -281,6 +282,8 @@ class MajorityCheckpoint(ModelCheckpoint):
     Args:
         metrics: logged validation metric (``val/<key>``) → the resolution its value is rounded
             to before comparing, in its logged unit (metres, 1/km); lower is better for each.
+            None: by ``monitor`` alone, as ``ModelCheckpoint`` (to switch the rule off from the
+            command line: ``callbacks.model_checkpoint.metrics=null``).
         at_least: how many of them must be no worse.
         **kwargs: :class:`~lightning.pytorch.callbacks.ModelCheckpoint`'s arguments.
 
@@ -289,12 +292,12 @@ class MajorityCheckpoint(ModelCheckpoint):
             1..len(metrics).
     """
 
-    def __init__(self, metrics: Mapping[str, float], at_least: int, **kwargs: Any) -> None:
+    def __init__(self, metrics: Mapping[str, float] | None, at_least: int, **kwargs: Any) -> None:
         super().__init__(**{**kwargs, "save_top_k": 1})
-        self.resolutions = {str(k): float(v) for k, v in dict(metrics).items()}
-        if not self.resolutions or min(self.resolutions.values()) <= 0:
+        self.resolutions = {str(k): float(v) for k, v in dict(metrics or {}).items()}
+        if metrics is not None and (not self.resolutions or min(self.resolutions.values()) <= 0):
             raise ValueError(f"metrics={dict(metrics)}: expected metric → resolution > 0")
-        if not 1 <= at_least <= len(self.resolutions):
+        if metrics is not None and not 1 <= at_least <= len(self.resolutions):
             raise ValueError(f"at_least={at_least}: expected 1..{len(self.resolutions)}")
         self.at_least = at_least
         self.kept_metrics: dict[str, float] = {}
@@ -313,6 +316,8 @@ class MajorityCheckpoint(ModelCheckpoint):
         return no_worse >= self.at_least
 
     def check_monitor_top_k(self, trainer: L.Trainer, current: Tensor | None = None) -> bool:
+        if not self.resolutions:
+            return super().check_monitor_top_k(trainer, current)
         if current is None:
             return False
         logged = trainer.callback_metrics
@@ -335,3 +340,13 @@ class MajorityCheckpoint(ModelCheckpoint):
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         super().load_state_dict(state_dict)
         self.kept_metrics = dict(state_dict.get("kept_metrics") or {})
+        moved_from, best = state_dict.get("dirpath"), state_dict.get("best_model_path")
+        if self.dirpath and moved_from and moved_from != self.dirpath and best:
+            # A moved run folder (Lightning restores only the path then): the kept file is in
+            # this folder now, with its score, so the next kept one replaces it.
+            here = os.path.join(self.dirpath, os.path.basename(best))
+            score = state_dict.get("best_model_score")
+            self.best_model_path, self.best_model_score = here, score
+            if score is not None:
+                self.best_k_models = {here: score}
+                self.kth_best_model_path, self.kth_value = here, score

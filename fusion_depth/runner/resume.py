@@ -179,6 +179,7 @@ _NO_GEOMETRY = {
     "color_each": False,
     "crop": None,
     "crop_center": None,
+    "crop_placement": "uniform",
     "scale": None,
     "rotation": 0.0,
     "resample": "bilinear",
@@ -196,7 +197,8 @@ _ADDED_KEYS: dict[str, Any] = {
         for key, value in _NO_PRIOR.items()
     },
     "model.net.fake_point_probability": 0.0,  # RadarNet's fake points in its association stage
-    "model.net.lidar_loss_weight": 0.0,  # RadarNet's fusion loss on the measured pixels
+    "model.net.lidar_loss_weight": 0.0,
+    "model.net.fake_column_noise": None,  # RadarNet's fusion loss on the measured pixels
     "dataset.reader.lidar_keyframes": 0,  # nuScenes: RadarNet's merged target, not asked for
     "dataset.reader.lidar_removed": ["vehicle", "human"],
     # the augmentation's saturation and geometry (each model's own augmentation), all off
