@@ -211,3 +211,32 @@ def test_the_evaluation_range_comes_from_the_config_not_the_network(make_config)
     assert (module.protocol.min_depth, module.protocol.max_depth) == (1.0, (50.0,))
     capped = module_from_config(make_config("experiment=smoke", "eval.max_depth=[40,50]"))
     assert capped.protocol.max_depth == (40.0, 50.0)
+
+
+def test_the_model_summary_has_no_flops_column_and_no_precision_warning(caplog) -> None:
+    """Lightning's summary shows a FLOPs column of zeros (no example input) and warns that
+    bf16-mixed "is not supported by the model summary"; the platform's leaves both out."""
+    import warnings
+
+    from fusion_depth.runner.callbacks import ParameterSummary
+
+    module = DepthModule(DepthNet("resnet18", "concat", pretrained=False), loss=DepthLoss())
+    trainer = L.Trainer(precision="bf16-mixed", accelerator="cpu", logger=False)
+    module.trainer = trainer
+    summary = ParameterSummary()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model_summary = summary._summary(trainer, module)
+    assert not [w for w in caught if "model summary" in str(w.message)]
+    with caplog.at_level("INFO", logger="fusion_depth.runner.callbacks"):
+        ParameterSummary.summarize(
+            model_summary._get_summary_data(),
+            model_summary.total_parameters,
+            model_summary.trainable_parameters,
+            model_summary.model_size,
+            model_summary.total_training_modes,
+            model_summary.total_flops,
+        )
+    text = caplog.text
+    assert "Total params" in text and "Params" in text
+    assert "FLOPs" not in text and "Flops" not in text

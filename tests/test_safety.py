@@ -392,6 +392,18 @@ def test_wandb_stays_offline_with_a_key_when_wandb_mode_is_offline(monkeypatch, 
     assert wandb_logger(save_dir=str(tmp_path))._offline is True
 
 
+def test_wandb_starts_without_a_warning_nobody_can_act_on(monkeypatch, tmp_path, capfd):
+    """Lightning hands wandb.init anonymous=None, which W&B answers on every run with "The
+    anonymous setting has no effect and will be removed"; the logger leaves it out."""
+    from fusion_depth.runner.loggers import wandb_logger
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    logger = wandb_logger(save_dir=str(tmp_path))
+    assert "anonymous" not in logger._wandb_init
+    logger.experiment.finish()
+    assert "anonymous" not in capfd.readouterr().err.lower()
+
+
 @pytest.mark.slow
 def test_a_training_run_writes_no_secret_anywhere(tmp_path) -> None:
     """A real (one-epoch smoke) run with a W&B key in the environment and another one passed

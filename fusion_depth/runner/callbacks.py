@@ -6,14 +6,16 @@ import logging
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import lightning as L
-from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
+from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint, ModelSummary
 from lightning.pytorch.loggers import WandbLogger
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
+from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 from torch import Tensor
 
 from fusion_depth.data.visualize import PANEL_CAPTION, panel_figure, write_panel_figure
@@ -350,3 +352,37 @@ class MajorityCheckpoint(ModelCheckpoint):
             if score is not None:
                 self.best_k_models = {here: score}
                 self.kth_best_model_path, self.kth_value = here, score
+
+
+class ParameterSummary(ModelSummary):
+    """Lightning's model summary without what it cannot know here: its FLOPs column and total
+    (0 for every layer: the module has no example input), and its warning that bf16-mixed "is
+    not supported by the model summary" (the weights stay fp32 under mixed precision, so the
+    size it gives is right)."""
+
+    def _summary(self, trainer: L.Trainer, pl_module: L.LightningModule) -> Any:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r".*not supported by the model summary")
+            return super()._summary(trainer, pl_module)
+
+    @staticmethod
+    def summarize(
+        summary_data: list[tuple[str, list[str]]],
+        total_parameters: int,
+        trainable_parameters: int,
+        model_size: float,
+        total_training_modes: dict[str, int],
+        total_flops: int,
+        **summarize_kwargs: Any,
+    ) -> None:
+        columns = [column for column in summary_data if column[0] != "FLOPs"]
+        table = _format_summary_table(
+            total_parameters,
+            trainable_parameters,
+            model_size,
+            total_training_modes,
+            total_flops,
+            *columns,
+        )
+        lines = [line for line in table.splitlines() if not line.endswith("Total Flops")]
+        log.info("\n" + "\n".join(lines))

@@ -43,6 +43,13 @@ def _argv_redacted() -> Iterator[None]:
 class RedactingWandbLogger(WandbLogger):
     """A WandbLogger whose run records the command line with secrets redacted."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # Lightning passes anonymous=None to wandb.init, which then warns on every run that the
+        # setting "has no effect and will be removed": a warning no user can act on.
+        if self._wandb_init.get("anonymous") is None:
+            self._wandb_init.pop("anonymous", None)
+
     @property
     def experiment(self) -> Any:
         with _argv_redacted():

@@ -25,6 +25,7 @@ from fusion_depth.config.arguments import argument_error, config_message
 from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
 from fusion_depth.errors import CommandError, UserError
 from fusion_depth.models.alignment import FallbackCount
+from fusion_depth.runner.callbacks import ParameterSummary
 from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO
 from fusion_depth.runner.datamodule import DepthDataModule, check_batches, check_scorable
 from fusion_depth.runner.distributed import launch_local_ranks, local_world_size
@@ -280,11 +281,16 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
     logger = _logger(cfg, start)
     with closing(logger):
         callbacks = [instantiate(c) for c in cfg.callbacks.values() if c]
+        if cfg.trainer.get("enable_model_summary") is not False:
+            callbacks.append(ParameterSummary())
         if logger:
             logger.log_hyperparams(run_config)
         else:  # Lightning refuses a learning-rate monitor with nothing to log to
             callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
         settings = _trainer_settings(cfg, logger, run_config["trainer"]["precision"])
+        # ParameterSummary stands in for Lightning's summary (which would also print that it
+        # skips its own): the trainer adds none.
+        settings["enable_model_summary"] = False
         trainer = instantiate(cfg.trainer, callbacks=callbacks, **settings)
         # Zero work is a failure: refused here, not reported as a run that trained nothing.
         check_batches(datamodule, cfg.trainer, cfg.dataset.name, trainer.world_size)
