@@ -15,7 +15,6 @@ import lightning as L
 from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint, ModelSummary
 from lightning.pytorch.loggers import WandbLogger
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 from torch import Tensor
 
 from fusion_depth.data.visualize import PANEL_CAPTION, panel_figure, write_panel_figure
@@ -375,6 +374,21 @@ class ParameterSummary(ModelSummary):
         total_flops: int,
         **summarize_kwargs: Any,
     ) -> None:
+        try:  # Lightning's own table maker (private): without it, Lightning's summary as is
+            from lightning.pytorch.utilities.model_summary.model_summary import (
+                _format_summary_table,
+            )
+        except ImportError:
+            ModelSummary.summarize(
+                summary_data,
+                total_parameters,
+                trainable_parameters,
+                model_size,
+                total_training_modes,
+                total_flops,
+                **summarize_kwargs,
+            )
+            return
         columns = [column for column in summary_data if column[0] != "FLOPs"]
         table = _format_summary_table(
             total_parameters,
