@@ -334,6 +334,28 @@ def project_points(
     return splat_nearest(u, v, z, height, width)
 
 
+def _keyframe_lidar_pixels(
+    explorer: Any, sample: dict
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A keyframe's single lidar sweep on its own camera's full-resolution pixels, RadarNet's
+    way: the devkit's ``NuScenesExplorer.map_pointcloud_to_image`` (depth > 1 m,
+    ``1 < u < W - 1``, ``1 < v < H - 1``), each point on pixel ``np.round`` of its ``(v, u)``.
+    int64 ``rows`` and ``cols`` and float64 ``depth``, one per point, in the devkit's order."""
+    points, depth, _ = explorer.map_pointcloud_to_image(
+        _channel_token(sample, LIDAR), _channel_token(sample, CAMERA)
+    )
+    cols, rows = np.round(points[0]).astype(np.int64), np.round(points[1]).astype(np.int64)
+    return rows, cols, np.asarray(depth, dtype=np.float64)
+
+
+def _last_written(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The index of each pixel's last point, in writing order: the point a Python loop of
+    ``map[y, x] = z`` leaves on the pixel."""
+    flat = rows * (int(cols.max(initial=0)) + 1) + cols
+    _, last_reversed = np.unique(flat[::-1], return_index=True)
+    return np.sort(len(flat) - 1 - last_reversed)
+
+
 def radarnet_ground_truth(
     devkit: Devkit, nusc: Any, sample: dict
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -347,16 +369,9 @@ def radarnet_ground_truth(
     written winning a shared pixel, stored as a PNG of ``uint32(256 z)``, so the depth is
     truncated to 1/256 m.
     """
-    explorer = devkit.NuScenesExplorer(nusc)
-    points, depth, _ = explorer.map_pointcloud_to_image(
-        _channel_token(sample, LIDAR), _channel_token(sample, CAMERA)
-    )
-    cols, rows = np.round(points[0]).astype(np.int64), np.round(points[1]).astype(np.int64)
-    stored = np.floor(np.asarray(depth, dtype=np.float64) * 256.0)  # uint32(z * 256), z > 1
-    # The last point written wins a pixel: keep each pixel's last occurrence.
-    flat = rows * (int(cols.max(initial=0)) + 1) + cols
-    _, last_reversed = np.unique(flat[::-1], return_index=True)
-    last = np.sort(len(flat) - 1 - last_reversed)
+    rows, cols, depth = _keyframe_lidar_pixels(devkit.NuScenesExplorer(nusc), sample)
+    stored = np.floor(depth * 256.0)  # uint32(z * 256), z > 1
+    last = _last_written(rows, cols)
     return rows[last], cols[last], stored[last] / 256.0
 
 
@@ -366,24 +381,11 @@ RADARNET_REMOVED_CATEGORIES = ("vehicle", "human")
 
 
 def _last_wins(rows: np.ndarray, cols: np.ndarray, depth: np.ndarray, shape: tuple[int, int]):
-    """A float64 ``shape`` map with each point on its pixel, the last point written winning (as
-    a Python loop of ``map[y, x] = z`` does)."""
+    """A float64 ``shape`` map with each point on its pixel, the last point written winning."""
     image = np.zeros(shape, dtype=np.float64)
-    flat = rows * shape[1] + cols
-    _, last_reversed = np.unique(flat[::-1], return_index=True)
-    last = len(flat) - 1 - last_reversed
-    image.flat[flat[last]] = depth[last]
+    last = _last_written(rows, cols)
+    image[rows[last], cols[last]] = depth[last]
     return image
-
-
-def _keyframe_lidar_image(explorer: Any, sample: dict, shape: tuple[int, int]) -> np.ndarray:
-    """A keyframe's lidar sweep on its own camera's pixels at full resolution, RadarNet's way:
-    ``map_pointcloud_to_image``, ``np.round``, the last point written wins."""
-    points, depth, _ = explorer.map_pointcloud_to_image(
-        _channel_token(sample, LIDAR), _channel_token(sample, CAMERA)
-    )
-    cols, rows = np.round(points[0]).astype(np.int64), np.round(points[1]).astype(np.int64)
-    return _last_wins(rows, cols, np.asarray(depth, dtype=np.float64), shape)
 
 
 def _clear_boxes(
@@ -423,7 +425,9 @@ def _into_keyframe(
     camera = nusc.get("sample_data", _channel_token(other, CAMERA))
     lidar = nusc.get("sample_data", _channel_token(other, LIDAR))
     main_camera = nusc.get("sample_data", _channel_token(main, CAMERA))
-    steps = [  # (rotation, translation, inverse?) in RadarNet's order
+    # (pose record, inverse?) in RadarNet's order; the lidar's four steps cancel out, but are
+    # kept so that the float arithmetic is RadarNet's
+    steps = [
         (nusc.get("calibrated_sensor", camera["calibrated_sensor_token"]), False),
         (nusc.get("ego_pose", camera["ego_pose_token"]), False),
         (nusc.get("ego_pose", lidar["ego_pose_token"]), True),
@@ -481,9 +485,9 @@ def merged_lidar_ground_truth(
     explorer = devkit.NuScenesExplorer(nusc)
     camera = nusc.get("sample_data", _channel_token(sample, CAMERA))
     shape = (int(camera["height"]), int(camera["width"]))
-    main = _keyframe_lidar_image(explorer, sample, shape)
+    main = _last_wins(*_keyframe_lidar_pixels(explorer, sample), shape)
     for other in _neighbour_keyframes(nusc, sample, keyframes):
-        image = _keyframe_lidar_image(explorer, other, shape)
+        image = _last_wins(*_keyframe_lidar_pixels(explorer, other), shape)
         _clear_boxes(devkit, nusc, other, image, removed)
         other_camera = nusc.get("sample_data", _channel_token(other, CAMERA))
         calibration = nusc.get("calibrated_sensor", other_camera["calibrated_sensor_token"])

@@ -289,6 +289,19 @@ def remove_outliers(depth: torch.Tensor, kernel: int, threshold: float) -> torch
     return torch.where(nearest < depth - threshold, torch.zeros_like(depth), depth)
 
 
+def _output_place(
+    rows_cols: torch.Tensor, to_input: torch.Tensor, centre: torch.Tensor, out_centre: torch.Tensor
+) -> torch.Tensor:
+    """Where input positions (row, column) land in the output: the inverse of ``to_input``
+    about ``centre``, in float64 on the CPU (a GPU may have no float64).
+
+    Shape:
+        - rows_cols: (B, M, 2); to_input: (B, 2, 2); centre: (B, 2). Out: (B, M, 2) float64.
+    """
+    place = rows_cols.cpu().double() - centre[:, None, :]
+    return out_centre + torch.einsum("nij,npj->npi", torch.linalg.inv(to_input), place)
+
+
 def _move_sparse(
     sparse: torch.Tensor,
     to_input: torch.Tensor,
@@ -301,13 +314,13 @@ def _move_sparse(
     """Each return of a sparse map moved to the output pixel its centre maps to (the inverse of
     ``to_input``), depth ÷ zoom; the nearest wins a shared pixel, one that leaves is dropped."""
     out = torch.zeros(*sparse.shape[:2], out_h, out_w, dtype=sparse.dtype, device=sparse.device)
-    to_output = torch.linalg.inv(to_input)
     for i in range(len(sparse)):
         rows, cols = torch.nonzero(sparse[i, 0] > 0, as_tuple=True)
         if not len(rows):
             continue
-        place = torch.stack([rows, cols], 1).cpu().double() - centre[i]
-        moved = (out_centre + place @ to_output[i].T).round().long().to(sparse.device)
+        where = torch.stack([rows, cols], 1)[None]
+        moved = _output_place(where, to_input[i : i + 1], centre[i : i + 1], out_centre)[0]
+        moved = moved.round().long().to(sparse.device)
         depth = sparse[i, 0, rows, cols] / float(zoom[i])
         inside = (moved[:, 0] >= 0) & (moved[:, 0] < out_h) & (moved[:, 1] >= 0)
         inside &= moved[:, 1] < out_w
@@ -329,9 +342,7 @@ def _move_points(
 ) -> torch.Tensor:
     """Radar rows at their place in the output (the inverse of ``to_input``), depth ÷ zoom; a
     row whose point leaves the output's pixels becomes a zero row."""
-    # in float64 on the CPU (a GPU may have no float64), the result back in the points' dtype
-    place = points[..., [V, U]].cpu().double() - centre[:, None, :]
-    moved = out_centre + torch.einsum("nij,npj->npi", torch.linalg.inv(to_input), place)
+    moved = _output_place(points[..., [V, U]], to_input, centre, out_centre)
     moved = moved.to(points.device, torch.float32)
     inside = (
         (moved[..., 0] >= -0.5)
