@@ -164,3 +164,53 @@ def test_no_committed_file_holds_an_absolute_machine_path() -> None:
         if _MACHINE_PATH.search(data) or any(root in data for root in own):
             found.append(name)
     assert not found, f"absolute machine paths in: {found[:10]}"
+
+
+def test_the_repository_address_is_one_address() -> None:
+    """pyproject.toml's Repository, the site's repo_url and CITATION.cff's repository-code name
+    the same repository (the site's header links it)."""
+    import tomllib
+
+    urls = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["urls"]
+    site = yaml.safe_load((REPO / "mkdocs.yml").read_text())
+    citation = yaml.safe_load((REPO / "CITATION.cff").read_text())
+    assert urls["Repository"].startswith("https://github.com/")
+    assert site["repo_url"] == urls["Repository"] == citation["repository-code"]
+
+
+def test_every_generated_picture_is_what_its_command_draws(tmp_path, monkeypatch) -> None:
+    """Each panel picture of the docs (``report RECORD --panels``) names its command and the
+    committed record it was drawn from; drawn again from that record it is the same picture
+    (pixel for pixel on the Matplotlib that drew its labels, the same size elsewhere). The home
+    page and the quick start show one."""
+    import json
+
+    import numpy as np
+    from matplotlib import __version__ as matplotlib_version
+    from PIL import Image
+
+    from fusion_depth.report import main
+
+    pictures = sorted(GENERATED.glob("*.png"))
+    assert pictures, "the docs show generated pictures"
+    monkeypatch.chdir(REPO)
+    for picture in pictures:
+        with Image.open(picture) as image:
+            described = json.loads(image.info["Description"])
+            ours = np.asarray(image.convert("RGB"))
+        argv = shlex.split(described["command"])[3:]
+        assert argv[0].startswith("results/records/"), f"{picture}: drawn from committed records"
+        assert (REPO / described["frames"]).is_file()
+        named = _redirect(argv, "--panels", tmp_path / picture.name)
+        assert named == str(picture.relative_to(REPO)), f"{picture}: its command draws another file"
+        assert main(argv) == 0, described["command"]
+        with Image.open(tmp_path / picture.name) as image:
+            again = np.asarray(image.convert("RGB"))
+            assert json.loads(image.info["Description"])["frames"] == described["frames"]
+        if described["matplotlib"] == matplotlib_version:
+            assert np.array_equal(again, ours), picture
+        else:
+            assert again.shape == ours.shape, picture
+    for page in (DOCS / "index.md", DOCS / "get-started" / "quickstart.md"):
+        shown = re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", page.read_text())
+        assert any((page.parent / path).resolve().parent == GENERATED for path in shown), page

@@ -9,7 +9,9 @@ import os
 import stat
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 from test_report import _write_run
 
 from fusion_depth.report import main
@@ -145,3 +147,57 @@ def test_a_full_disk_names_the_file_and_leaves_the_old_one(
     assert "the disk is full" in err
     assert table.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+# --- report RECORD --panels OUT.png ------------------------------------------------------------
+
+
+def _record_with_panels(folder: Path, seed: int = 0) -> Path:
+    from fusion_depth.data.visualize import PanelFrame, write_panel_frames
+
+    gen = torch.Generator().manual_seed(seed)
+    frames = [
+        PanelFrame(
+            image=torch.rand(3, 16, 32, generator=gen),
+            sparse=torch.zeros(16, 32),
+            prediction=torch.rand(8, 16, generator=gen) * 40 + 1,
+            target=torch.rand(16, 32, generator=gen) * 40 + 1,
+            label=label,
+        )
+        for label in ("day", "night")
+    ]
+    return write_panel_frames(folder / "test_panels.npz", frames, 0.5, 80.0)
+
+
+def test_panels_draws_a_recorded_run_and_names_its_command(tmp_path, monkeypatch) -> None:
+    import json
+
+    from PIL import Image
+
+    from fusion_depth.data.visualize import panel_figure, read_panel_frames
+
+    monkeypatch.chdir(tmp_path)
+    frames_file = _record_with_panels(tmp_path / "records" / "run")
+    assert main(["records", "--panels", "panels.png"]) == 0
+    with Image.open(tmp_path / "panels.png") as image:
+        described = json.loads(image.info["Description"])
+        drawn = np.asarray(image.convert("RGB"))
+    assert described["command"] == "python -m fusion_depth.report records --panels panels.png"
+    assert described["frames"] == "records/run/test_panels.npz"
+    assert np.array_equal(drawn, panel_figure(*read_panel_frames(frames_file)))
+
+
+def test_panels_refuses_no_record_several_records_and_table_options(tmp_path, capsys) -> None:
+    (tmp_path / "empty").mkdir()
+    assert main([str(tmp_path / "empty"), "--panels", str(tmp_path / "p.png")]) == 2
+    assert "no test_panels.npz found below it" in capsys.readouterr().err
+    _record_with_panels(tmp_path / "two" / "a")
+    _record_with_panels(tmp_path / "two" / "b", seed=1)
+    assert main([str(tmp_path / "two"), "--panels", str(tmp_path / "p.png")]) == 2
+    assert "2 runs recorded panels" in capsys.readouterr().err
+    assert main([str(tmp_path / "two" / "a"), "--panels", str(tmp_path / "p.jpg")]) == 2
+    assert "expected a file name ending in .png" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "two" / "a"), "--panels", "p.png", "--format", "csv"])
+    assert "--format is for tables" in capsys.readouterr().err
+    assert not (tmp_path / "p.png").exists()

@@ -13,7 +13,7 @@ from helpers import compose_config, run_module, run_sweep
 from omegaconf import OmegaConf
 from PIL import Image
 
-from fusion_depth.data.visualize import MIN_TILE_HEIGHT
+from fusion_depth.data.visualize import MIN_TILE_HEIGHT, panel_figure, read_panel_frames
 from fusion_depth.metrics.depth import METRIC_KEYS
 from fusion_depth.train.fit import train
 
@@ -34,6 +34,11 @@ def test_one_training_run_writes_metrics_checkpoint_and_wandb(
         < panel.shape[0]
         < (len(cfg.dataset.conditions) + 1) * tile
     )
+    # The same frames as arrays draw the same figure again, with no checkpoint (the docs'
+    # pictures are drawn so from a record).
+    frames, low, high = read_panel_frames(out / "test_panels.npz")
+    assert [f.label for f in frames] == list(cfg.dataset.conditions)
+    assert np.array_equal(panel_figure(frames, low, high), panel[..., :3])
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["test"] == results["test"]
     assert set(saved["test"]) == set(METRIC_KEYS) | {"num_images", "num_pixels"}

@@ -17,6 +17,8 @@ from fusion_depth.data.visualize import (
     error_colorbar,
     error_scale,
     panel_figure,
+    read_panel_frames,
+    write_panel_frames,
 )
 
 MIN_DEPTH, MAX_DEPTH = 0.5, 80.0
@@ -124,3 +126,60 @@ def test_a_dataset_with_one_condition_shows_its_first_test_frames(make_config) -
     cfg = make_config("experiment=smoke", "dataset.conditions=[day]", "model.num_test_panels=3")
     module = instantiate(cfg.model, _convert_="all")
     assert _test_stage(module, [["day", "day"]] * 3) == ["day"] * 3
+
+
+# --- panel frames as a record: test_panels.npz ------------------------------------------------
+
+
+def test_panel_frames_read_back_draw_the_same_figure(tmp_path) -> None:
+    frames = [_frame(10.0, 12.0, "day"), _frame(30.0, 25.0, "fog"), _frame(5.0, 5.5, "night")]
+    frames[1] = PanelFrame(  # a frame with radar returns and a non-grey image
+        image=torch.rand(3, H, W, generator=torch.Generator().manual_seed(0)),
+        sparse=torch.where(torch.rand(1, H, W) > 0.9, 20.0, 0.0),
+        prediction=frames[1].prediction,
+        target=frames[1].target,
+        label="fog",
+    )
+    path = write_panel_frames(tmp_path / "test_panels.npz", frames, MIN_DEPTH, MAX_DEPTH)
+    read, low, high = read_panel_frames(path)
+    assert (low, high) == (MIN_DEPTH, MAX_DEPTH)
+    assert [f.label for f in read] == ["day", "fog", "night"]
+    assert np.array_equal(panel_figure(read, low, high), panel_figure(frames, MIN_DEPTH, MAX_DEPTH))
+    # Without ground truth a frame reads back as having none, and the figure has no error column.
+    bare = [_frame(10.0, 12.0, "a", target=False)]
+    again, *_ = read_panel_frames(write_panel_frames(tmp_path / "b.npz", bare, 1.0, 80.0))
+    assert again[0].target is None
+
+
+@pytest.mark.parametrize(
+    "hostile,message",
+    [
+        (b"not a zip at all", "not a panel-frames file"),
+        ("missing", "no array 'target'"),
+        ("pickled", "not a panel-frames file"),
+        ("mismatched", "arrays of mismatched shapes"),
+    ],
+)
+def test_a_hostile_panel_frames_file_is_refused_naming_it(tmp_path, hostile, message) -> None:
+    path = tmp_path / "test_panels.npz"
+    good = dict(
+        image=np.zeros((2, 3, H, W), np.uint8),
+        sparse=np.zeros((2, H, W), np.float32),
+        prediction=np.zeros((2, H // 2, W // 2), np.float32),
+        target=np.zeros((2, H, W), np.float32),
+        label=np.array(["a", "b"]),
+        depth_range=np.array([0.5, 80.0]),
+    )
+    if isinstance(hostile, bytes):
+        path.write_bytes(hostile)
+    else:
+        if hostile == "missing":
+            del good["target"]
+        elif hostile == "pickled":  # an object array would need pickle: it is never loaded
+            good["label"] = np.array([{"a": 1}, None], dtype=object)
+        else:
+            good["sparse"] = np.zeros((2, H, W + 1), np.float32)
+        np.savez(path, **good)
+    with pytest.raises(ValueError, match=message) as err:
+        read_panel_frames(path)
+    assert str(path) in str(err.value)

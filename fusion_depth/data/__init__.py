@@ -10,24 +10,28 @@ from typing import TYPE_CHECKING, Any, NotRequired, TypedDict
 if TYPE_CHECKING:
     from torch import Tensor
 
-# The split names every dataset reader accepts (their order also keys the procedural seed streams).
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+"""The split names every dataset reader accepts (their order also keys the procedural seed
+streams)."""
 
-# The capture conditions a frame can have; metrics are broken down by them (the paper, Sec. 4:
-# day, night, rain on nuScenes; the synthetic sets add fog and cloud). A dataset may use a subset.
 CONDITIONS: tuple[str, ...] = ("day", "night", "fog", "rain", "cloudy")
+"""The capture conditions a frame can have; metrics are broken down by them (the paper, Sec. 4:
+day, night, rain on nuScenes; the synthetic sets add fog and cloud). A dataset may use a
+subset."""
 
-# The columns of a sample's ``radar_points`` (see :class:`Sample`), in order:
-# - u, v: the return's continuous pixel position in the sample's image (column, row), pixel
-#   centres at integers (pixel i spans [i - 0.5, i + 0.5], the OpenCV and nuScenes devkit
-#   convention), so it lies in pixel (round(v), round(u)) of ``image`` and ``sparse``, as
-#   RadarNet places its points (radar_points.pixel_index);
-# - depth: metres, camera-frame z (the forward distance), the quantity ``sparse`` holds;
-# - rcs: radar cross-section in dBsm, where the dataset records it (nuScenes), else 0;
-# - velocity: radial velocity in m/s, as the dataset's radar reports it (nuScenes: ego-motion
-#   compensated, positive moving away; CARLA: RadarDetection.velocity), else 0;
-# - valid: 1 for a return, 0 for a padding row (all of whose columns are 0).
 RADAR_POINT_FIELDS: tuple[str, ...] = ("u", "v", "depth", "rcs", "velocity", "valid")
+"""The columns of a sample's ``radar_points`` (see :class:`Sample`), in order:
+
+- u, v: the return's continuous pixel position in the sample's image (column, row), pixel
+  centres at integers (pixel i spans [i - 0.5, i + 0.5], the OpenCV and nuScenes devkit
+  convention), so it lies in pixel (round(v), round(u)) of ``image`` and ``sparse``, as
+  RadarNet places its points (radar_points.pixel_index);
+- depth: metres, camera-frame z (the forward distance), the quantity ``sparse`` holds;
+- rcs: radar cross-section in dBsm, where the dataset records it (nuScenes), else 0;
+- velocity: radial velocity in m/s, as the dataset's radar reports it (nuScenes: ego-motion
+  compensated, positive moving away; CARLA: RadarDetection.velocity), else 0;
+- valid: 1 for a return, 0 for a padding row (all of whose columns are 0).
+"""
 
 
 class _SampleKeys(TypedDict):
@@ -93,10 +97,6 @@ class EncodedSample(_SampleKeys):
     """
 
 
-# The package's own table of dataset readers, by the name a dataset config and a checkpoint
-# record (``dataset.name``): module and class. A checkpoint names its dataset; its reader is
-# looked up here, never imported from a path stored in the file. Modules are imported on first
-# use, since some need optional packages (nuScenes: the devkit).
 READERS: dict[str, tuple[str, str]] = {
     "procedural": ("fusion_depth.data.procedural", "ProceduralDepth"),
     "kitti": ("fusion_depth.data.kitti", "KittiDepth"),
@@ -104,6 +104,10 @@ READERS: dict[str, tuple[str, str]] = {
     "topview": ("fusion_depth.data.topview", "TopViewDepth"),
     "nuscenes": ("fusion_depth.data.nuscenes", "NuScenesDepth"),
 }
+"""The package's own table of dataset readers, by the name a dataset config and a checkpoint
+record (``dataset.name``): module and class. A checkpoint names its dataset; its reader is looked
+up here, never imported from a path stored in the file. Modules are imported on first use, since
+some need optional packages (nuScenes: the devkit)."""
 
 
 def cache_dir() -> str:

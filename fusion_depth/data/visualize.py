@@ -4,6 +4,7 @@ matplotlib's Agg canvas draws only the labels of colour bars and figures."""
 from __future__ import annotations
 
 import os
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,6 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from fusion_depth.data.depth_io import write_rgb_png
+from fusion_depth.utils.atomic import write_atomic
 
 # Anchor colours of the Turbo colour map; near (high inverse depth) is red, far is dark blue.
 _TURBO_ANCHORS = np.array(
@@ -45,9 +47,8 @@ def colorize_depth(depth: np.ndarray, min_depth: float, max_depth: float) -> np.
 
 def _image_rgb(image: torch.Tensor) -> np.ndarray:
     """(3, H, W) RGB in [0, 1] → uint8 (H, W, 3)."""
-    return (image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).astype(
-        np.uint8
-    )
+    rgb = image.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255
+    return rgb.round().astype(np.uint8)  # rounded: an image read back from uint8 is unchanged
 
 
 def depth_panel(
@@ -423,3 +424,113 @@ def write_panel_figure(
     """
     write_rgb_png(path, panel_figure(frames, min_depth, max_depth))
     return Path(path)
+
+
+# The arrays of a panel-frames file (:func:`write_panel_frames`), each stacked over frames.
+_PANEL_ARRAYS = ("image", "sparse", "prediction", "target", "label")
+
+
+def write_panel_frames(
+    path: str | os.PathLike, frames: Sequence[PanelFrame], min_depth: float, max_depth: float
+) -> Path:
+    """``frames`` and their depth range as a compressed ``.npz`` of plain arrays (no pickle),
+    written atomically: the record from which :func:`read_panel_frames` and
+    :func:`panel_figure` draw the same figure again, without the checkpoint.
+
+    Arrays: ``image`` uint8 (N, 3, H, W); ``sparse``, ``target`` float32 (N, H, W) in metres
+    (``target`` all zero where a frame has none); ``prediction`` float32 (N, h, w);
+    ``label`` str (N,); ``depth_range`` float64 (2,) = (min_depth, max_depth).
+
+    Raises:
+        ValueError: no frames, or frames of different sizes.
+        OSError: writing failed.
+    """
+    if not frames:
+        raise ValueError(f"{path}: no panel frames to write")
+    sizes = {(tuple(f.image.shape[-2:]), tuple(f.prediction.shape[-2:])) for f in frames}
+    if len(sizes) != 1:
+        raise ValueError(f"{path}: panel frames of different sizes {sorted(sizes)}")
+
+    def plain(tensor: torch.Tensor) -> np.ndarray:
+        return tensor.detach().float().cpu().numpy()
+
+    height, width = frames[0].image.shape[-2:]
+    arrays = {
+        "image": np.stack([_image_rgb(f.image).transpose(2, 0, 1) for f in frames]),
+        "sparse": np.stack([plain(f.sparse).reshape(height, width) for f in frames]),
+        "prediction": np.stack(
+            [plain(f.prediction).reshape(f.prediction.shape[-2:]) for f in frames]
+        ),
+        "target": np.stack(
+            [
+                plain(f.target).reshape(height, width)
+                if f.target is not None
+                else np.zeros((height, width), np.float32)
+                for f in frames
+            ]
+        ),
+        "label": np.array([f.label for f in frames], dtype=str),
+        "depth_range": np.array([min_depth, max_depth], dtype=np.float64),
+    }
+
+    def save(tmp: Path) -> None:
+        with tmp.open("wb") as f:
+            np.savez_compressed(f, **arrays)
+
+    write_atomic(path, save, suffix=".npz")
+    return Path(path)
+
+
+def read_panel_frames(path: str | os.PathLike) -> tuple[list[PanelFrame], float, float]:
+    """The frames and depth range :func:`write_panel_frames` wrote at ``path``, read as plain
+    arrays (``allow_pickle=False``: nothing in the file becomes code). A frame whose ``target``
+    is all zero gets ``target=None``.
+
+    Returns:
+        (frames, min_depth, max_depth), depths in metres.
+
+    Raises:
+        ValueError: ``path`` is not such a file (a missing array, mismatched shapes, or not an
+            ``.npz`` at all), naming the file.
+        OSError: reading failed.
+    """
+    names = (*_PANEL_ARRAYS, "depth_range")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [name for name in names if name not in data.files]
+            if missing:
+                raise ValueError(f"{path}: not a panel-frames file (no array {missing[0]!r})")
+            arrays = {name: data[name] for name in names}
+    except (ValueError, zipfile.BadZipFile) as err:
+        if str(err).startswith(f"{path}:"):
+            raise
+        raise ValueError(f"{path}: not a panel-frames file ({type(err).__name__})") from None
+    count = len(arrays["label"])
+    image = arrays["image"]
+    if (
+        image.dtype != np.uint8
+        or image.ndim != 4
+        or image.shape[1] != 3
+        or any(len(arrays[n]) != count for n in _PANEL_ARRAYS)
+        or arrays["sparse"].shape[1:] != image.shape[2:]
+        or arrays["target"].shape[1:] != image.shape[2:]
+        or arrays["prediction"].ndim != 3
+        or arrays["depth_range"].shape != (2,)
+    ):
+        raise ValueError(f"{path}: not a panel-frames file (arrays of mismatched shapes)")
+    frames = [
+        PanelFrame(
+            image=torch.from_numpy(image[i].astype(np.float32) / 255),
+            sparse=torch.from_numpy(arrays["sparse"][i].astype(np.float32)),
+            prediction=torch.from_numpy(arrays["prediction"][i].astype(np.float32)),
+            target=(
+                torch.from_numpy(arrays["target"][i].astype(np.float32))
+                if arrays["target"][i].any()
+                else None
+            ),
+            label=str(arrays["label"][i]),
+        )
+        for i in range(count)
+    ]
+    min_depth, max_depth = (float(v) for v in arrays["depth_range"])
+    return frames, min_depth, max_depth

@@ -64,6 +64,11 @@ Options:
                                  draws latency and samples/s (speed) or latency per engine,
                                  median to p95 (engines); prepare has no figure. Not with --by,
                                  --compare, --metric, --first or --wandb.
+  --panels OUT.png               instead of a table, draw the test panels of the one run recorded
+                                 below the directory (its ``test_panels.npz``: image, sparse
+                                 input, prediction, ground truth and error per test frame) as a
+                                 PNG that carries the command in its metadata: the docs'
+                                 pictures. Alone, with no other option.
   --wandb                        also log the table as a W&B Table (project fusion-depth, job
                                  type report, named after the directory, written below it);
                                  offline unless you are logged in (``wandb sync`` uploads it).
@@ -113,6 +118,7 @@ from fusion_depth.report.output import (
     generated_table_file,
     write_output,
 )
+from fusion_depth.report.panels import draw_recorded_panels
 from fusion_depth.report.plots import (
     PLOT_METRICS,
     plot_by,
@@ -285,6 +291,11 @@ def _parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="also write the table to FILE, headed by the command that made it",
     )
+    parser.add_argument(
+        "--panels",
+        metavar="OUT.png",
+        help="instead of a table, draw the recorded test panels of the run below the directory",
+    )
     parser.add_argument("--wandb", action="store_true", help="also log the table to W&B")
     return parser
 
@@ -363,6 +374,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     args = parser.parse_args(argv)
+    if args.panels:
+        others = [a for a in argv if a.startswith("--") and a.split("=")[0] != "--panels"]
+        if others:
+            parser.error(f"--panels draws a recorded figure; {others[0]} is for tables")
+        try:
+            print(draw_recorded_panels(args.directory, args.panels, command_line(argv)))
+        except (OSError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
     if args.bench:
         metrics_only = ("by", "compare", "where", "metric", "first", "wandb")
         given = [f"--{k}" for k in metrics_only if getattr(args, k)]

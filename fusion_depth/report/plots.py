@@ -118,24 +118,92 @@ def _save_figure_atomic(
     return out
 
 
+# Bars whose positive heights span more than this factor get a log axis (a ResNet-10-T beside a
+# DenseNet-169: the small bars would otherwise vanish).
+LOG_AXIS_SPAN = 20.0
+# Category labels are wrapped to lines of this many characters, so that neighbours never overlap.
+LABEL_WIDTH = 18
+
+
+def axis_label(metric: str, preset: Preset) -> str:
+    """The y-axis label of ``metric`` with its unit: ``RMSE (m)``, ``ARD (fraction of depth)``,
+    ``δ1 (share of pixels)``, ``iRMSE (1/km)``."""
+    label = preset.label(metric)
+    if "(" in label:
+        return label
+    if metric in ("rmse", "mae", "sq_rel"):
+        return f"{label} ({preset.units})"
+    if metric.startswith("delta"):
+        return f"{label} (share of pixels)"
+    if metric == "abs_rel":
+        return f"{label} (fraction of depth)"
+    return label
+
+
+def _wrapped(label: str) -> str:
+    import textwrap
+
+    lines = textwrap.wrap(label, LABEL_WIDTH, break_on_hyphens=False, break_long_words=False)
+    return "\n".join(lines) or label
+
+
 def _grouped_bars(
     ax: Axes,
     title: str,
     categories: Sequence[str],
     series: Sequence[tuple[str, Sequence[float], Any]],
+    ylabel: str,
+    xlabel: str | None = None,
+    legend: bool = True,
+    log_axis: bool = True,
 ) -> dict:
     """Bars of each series side by side over each category; ``yerr`` None draws no error bar.
-    Returns the panel as :func:`figure_description` stores it."""
+    The y axis is labelled ``ylabel`` (with its unit) and, with ``log_axis``, turns logarithmic
+    where every bar and error bar is positive and the bars span more than
+    :data:`LOG_AXIS_SPAN`. With ``legend``, a legend of several series sits beside the axes
+    (below them when its labels are long), never over the bars. Returns the panel as
+    :func:`figure_description` stores it."""
     width = 0.8 / max(len(series), 1)
     x = np.arange(len(categories))
     for k, (name, heights, yerr) in enumerate(series):
         offset = (k - (len(series) - 1) / 2) * width
         ax.bar(x + offset, heights, width, yerr=yerr, capsize=3, label=name)
-    ax.set_xticks(x, categories, rotation=30 if len(categories) > 4 else 0)
-    ax.grid(axis="y", alpha=0.3)
+    ax.set_xticks(x, [_wrapped(c) for c in categories], fontsize="small")
+    heights = np.asarray([h for _, hs, _ in series for h in hs], dtype=float)
+    # Where each bar's error bar reaches down to (a (2, n) yerr: its first row).
+    lowest = np.concatenate(
+        [
+            np.asarray(hs, dtype=float)
+            - (0.0 if yerr is None else np.atleast_2d(np.asarray(yerr, dtype=float))[0])
+            for _, hs, yerr in series
+        ]
+    )
+    shown = np.isfinite(heights)
+    positive = heights[shown & (heights > 0)]
+    log = (
+        log_axis
+        and len(positive) == shown.sum() > 1
+        and bool((lowest[shown] > 0).all())
+        and positive.max() / positive.min() > LOG_AXIS_SPAN
+    )
+    if log:
+        ax.set_yscale("log")
+    ax.grid(axis="y", alpha=0.3, which="both" if log else "major")
     ax.set_title(title)
+    ax.set_ylabel(ylabel + (", log scale" if log else ""))
+    if xlabel:
+        ax.set_xlabel(xlabel)
+    if legend and len(series) > 1:
+        if max(len(name) for name, _, _ in series) > 30:
+            ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(0.0, -0.22))
+        else:
+            ax.legend(
+                fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0
+            )
     return {
         "title": title,
+        "ylabel": ylabel,
+        "log_scale": bool(log),
         "categories": list(categories),
         "series": [
             {
@@ -196,9 +264,17 @@ def plot_groups(
             heights = [np.nan if c is None else c[0] for c in cells]
             series.append((key_label("fusion", fusion), heights, _std_errors(cells)))
         title = f"{preset.label(metric)} ({_direction(metric)})"
-        panels.append(_grouped_bars(ax, title, categories, series))
-        if n == 0:
-            ax.legend(fontsize="small")
+        panels.append(
+            _grouped_bars(
+                ax,
+                title,
+                categories,
+                series,
+                axis_label(metric, preset),
+                " / ".join([*extra, "loss"]),
+                legend=n == len(metrics) - 1,  # one legend, right of the last panel
+            )
+        )
     return _save_figure_atomic(fig, out, panels, command)
 
 
@@ -226,8 +302,8 @@ def plot_by(
         heights = [np.nan if c is None else c[0] for c in row]
         series.append((" / ".join(identity_cells(g, extra)), heights, _std_errors(row)))
     title = f"{preset.label(metric)} by {by} ({_direction(metric)})"
-    panel = _grouped_bars(ax, title, columns, series)
-    ax.legend(fontsize="small")
+    xlabel = {"distance": "ground-truth distance (m)", "cap": "depth cap (m)"}.get(by, by)
+    panel = _grouped_bars(ax, title, columns, series, axis_label(metric, preset), xlabel)
     fig.set_layout_engine("constrained")
     return _save_figure_atomic(fig, out, [panel], command)
 
@@ -263,9 +339,10 @@ def plot_comparisons(
     title = (
         f"Δ{preset.label(c0.metric)} vs baseline, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
     )
-    panel = _grouped_bars(ax, title, columns, series)
+    ylabel = f"Δ{axis_label(c0.metric, preset)}, other − baseline"
+    # A difference is read against 0: a linear axis always.
+    panel = _grouped_bars(ax, title, columns, series, ylabel, log_axis=False)
     ax.axhline(0.0, color="black", linewidth=0.8)
-    ax.legend(fontsize="small")
     fig.set_layout_engine("constrained")
     return _save_figure_atomic(fig, out, [panel], command)
 
@@ -296,9 +373,8 @@ def plot_engine_latency(
         medians = [np.nan if c is None else c["latency_s_median"] for c in cells]
         above = [0.0 if c is None else c["latency_s_p95"] - c["latency_s_median"] for c in cells]
         series.append((name, medians, np.array([np.zeros(len(cells)), np.maximum(above, 0.0)])))
-    title = "batch-1 latency (s), median to p95 (lower is better)"
-    panel = _grouped_bars(ax, title, engines, series)
-    ax.legend(fontsize="small")
+    title = "batch-1 latency, median to p95 (lower is better)"
+    panel = _grouped_bars(ax, title, engines, series, "latency per frame (s)", "engine")
     fig.set_layout_engine("constrained")
     return _save_figure_atomic(fig, out, [panel], command)
 
@@ -316,12 +392,14 @@ def plot_speed(
 
     categories = [f"{name}: {run_label(result['settings'])}" for name, result in records]
     panels_spec = [
-        ("batch-1 latency, median (s, lower is better)", "infer", "latency_s_median"),
-        ("training samples/s (higher is better)", "train", "samples_per_s"),
-    ]
+        ("batch-1 latency, median (lower is better)", "latency per frame (s)", "infer",
+         "latency_s_median"),
+        ("training throughput (higher is better)", "training samples/s", "train",
+         "samples_per_s"),
+    ]  # fmt: skip
     fig = Figure(figsize=(min(16.0, 3.0 + 1.2 * len(records)) * 2, 3.8), layout="constrained")
     panels = []
-    for n, (title, stage, key) in enumerate(panels_spec):
+    for n, (title, ylabel, stage, key) in enumerate(panels_spec):
         ax = fig.add_subplot(1, 2, n + 1)
         series = []
         for label, prefix in (("run", ""), ("eager fp32 baseline", "baseline_")):
@@ -330,8 +408,9 @@ def plot_speed(
                 series.append((label, heights, None))
         if not series:
             continue
-        panels.append(_grouped_bars(ax, title, categories, series))
-        ax.legend(fontsize="small")
+        panels.append(
+            _grouped_bars(ax, title, categories, series, ylabel, legend=n == len(panels_spec) - 1)
+        )
     if not panels:
         raise ValueError("--plot: no record timed inference or training")
     return _save_figure_atomic(fig, out, panels, command)

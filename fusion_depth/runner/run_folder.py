@@ -22,6 +22,10 @@ RESOLVED_CONFIG_FILE = "config_resolved.yaml"
 
 PER_IMAGE_FILE = "per_image.csv"
 
+# The test panels' frames as arrays (data.visualize.write_panel_frames): `report RUN --panels
+# OUT.png` draws the run's figure again without its checkpoint.
+TEST_PANEL_FRAMES_FILE = "test_panels.npz"
+
 
 TRACEBACK_FILE = "traceback.txt"
 

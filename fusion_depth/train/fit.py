@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config import check_output_dir, checkpoint_bytes, validate_config
 from fusion_depth.config.arguments import argument_error, config_message
-from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure
+from fusion_depth.data.visualize import PANEL_CAPTION, write_panel_figure, write_panel_frames
 from fusion_depth.errors import CommandError, UserError
 from fusion_depth.models.alignment import FallbackCount
 from fusion_depth.runner.callbacks import ParameterSummary
@@ -50,7 +50,7 @@ from fusion_depth.runner.resume import (
     plan_start,
     recorded_precision,
 )
-from fusion_depth.runner.run_folder import RESOLVED_CONFIG_FILE
+from fusion_depth.runner.run_folder import RESOLVED_CONFIG_FILE, TEST_PANEL_FRAMES_FILE
 from fusion_depth.runner.speed import accelerator_device, resolve_precision
 from fusion_depth.utils.atomic import write_text_atomic
 from fusion_depth.utils.checkpoint_file import plain_config
@@ -246,6 +246,9 @@ def _publish(
         net = model.net
         panel = write_panel_figure(
             output_dir / TEST_PANELS_FILE, model.test_panels, net.min_depth, net.max_depth
+        )
+        write_panel_frames(
+            output_dir / TEST_PANEL_FRAMES_FILE, model.test_panels, net.min_depth, net.max_depth
         )
     publish_results(output_dir, record, result, trainer.loggers, title)
     if panel is not None:
