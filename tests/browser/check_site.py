@@ -227,9 +227,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     chromium = browser()
-    faults = check(args.site, chromium)
+    site = args.site.resolve()  # Chromium opens file:// URIs, which must be absolute
+    faults = check(site, chromium)
     if args.self_test:
-        faults += self_test(args.site, chromium)
+        faults += self_test(site, chromium)
     print(f"check_site: {'ok' if faults == 0 else f'{faults} problem(s)'}")
     return 0 if faults == 0 else 1
 
