@@ -91,6 +91,78 @@ def test_each_worker_runs_its_blas_on_its_share_of_the_cores(tmp_path, monkeypat
     assert threads_seen.read_text().split() == ["1"] * len(FRAMES)
 
 
+@pytest.mark.slow
+def test_a_fresh_process_limits_the_blas_its_fills_load_after_the_fork(tmp_path) -> None:
+    """In a fresh ``prepare`` SciPy, and the OpenBLAS it links, is first loaded by a fill. A
+    worker's thread limit covers only the libraries loaded when it is set, so SciPy's is
+    loaded before it: two workers on 2 cores then run one BLAS thread each through every fill,
+    not two each (which made a light fill 2-15x slower, docs/results/prepare.md)."""
+    script = textwrap.dedent(
+        f"""
+        import sys
+        from pathlib import Path
+        import numpy as np
+        from threadpoolctl import threadpool_info
+        from fusion_depth.data import cache
+        from fusion_depth.data.filling import fill_depth
+        assert "scipy.spatial" not in sys.modules, "a fresh process: SciPy not loaded yet"
+        cache.usable_cores = lambda: 2
+        seen = open({str(tmp_path / "threads.txt")!r}, "a")
+
+        def make(frame_id):
+            rng = np.random.default_rng(int(frame_id))
+            depth = np.where(rng.random((24, 40)) < 0.2, rng.uniform(1, 80, (24, 40)), 0.0)
+            image = rng.integers(0, 256, (24, 40, 3), dtype=np.uint8)
+            filled = fill_depth(depth, image, "colorization")
+            fill_depth(depth, image, "linear")
+            blas = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+            seen.write(f"{{len(blas)}} {{max(blas)}}\\n")
+            seen.flush()
+            return cache.PreparedFrame(image, depth, depth, "day", filled=filled)
+
+        with cache.prepare_options(cache.PrepareOptions(workers=2)):
+            cache.prepare_split(
+                Path({str(tmp_path / "cache")!r}), "train", [f"{{k}}" for k in range(6)], make,
+                {{"dataset": "toy"}},
+            )
+        """
+    )
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2"}  # a thread per core, on any machine
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = [line.split() for line in (tmp_path / "threads.txt").read_text().splitlines()]
+    assert len(rows) == 6
+    # NumPy's and SciPy's OpenBLAS are both loaded by then, and both run one thread.
+    assert all(int(count) >= 2 and int(most) == 1 for count, most in rows), rows
+
+
+def test_a_linear_fill_runs_one_blas_thread(monkeypatch) -> None:
+    """The triangulation's LAPACK calls are 2x2 solves: a second BLAS thread only slows them,
+    so a linear fill runs one whatever the process allows."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from fusion_depth.data import filling
+
+    seen = []
+    fill_linear = filling._fill_linear
+
+    def counting(*args, **kwargs):
+        seen.append(max(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"))
+        return fill_linear(*args, **kwargs)
+
+    monkeypatch.setattr(filling, "_fill_linear", counting)
+    rng = np.random.default_rng(0)
+    depth = np.where(rng.random((16, 20)) < 0.3, rng.uniform(1, 80, (16, 20)), 0.0)
+    image = rng.integers(0, 256, (16, 20, 3), dtype=np.uint8)
+    with threadpool_limits(limits=2, user_api="blas"):
+        for method in ("linear", "linear_hull"):
+            filling.fill_depth(depth, image, method)
+        after = max(p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas")
+    assert seen == [1, 1] and after == 2  # the process's own setting is back afterwards
+
+
 @pytest.mark.parametrize("workers", [1, 3])
 def test_progress_counts_each_frame_once_whatever_the_workers(tmp_path, caplog, workers) -> None:
     """Off a terminal the last progress line says 12/12, not a count per worker (each worker

@@ -103,6 +103,7 @@ from fusion_depth.data.depth_io import (
     read_npy,
     write_npy,
 )
+from fusion_depth.data.filling import load_solvers
 from fusion_depth.data.radar_points import (
     DEFAULT_MAX_RADAR_POINTS,
     VALID,
@@ -633,6 +634,9 @@ def _prepare_frames(
             finally:  # an interrupt between a temporary file's creation and its write's guard
                 with _interrupts_deferred():
                     _remove_orphans(job.split_dir)
+        # The fills' SciPy (0.8 s of imports) is loaded once here, not once per worker after
+        # the fork, where it would add to every worker's time.
+        load_solvers()
         context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
         counter = context.Value("i", 0)
         results = context.SimpleQueue()
@@ -746,9 +750,11 @@ def _worker_main(
 
     offset = start * len(todo) // workers
     # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS starts
-    # a thread per core in every process, N × N threads on N cores.
+    # a thread per core in every process, N × N threads on N cores. The limit covers only the
+    # libraries already loaded, so the fills' SciPy (and its OpenBLAS) is loaded first.
     threads = max(1, usable_cores() // workers)
     try:
+        load_solvers()
         with threadpool_limits(limits=threads):
             results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
     except SystemExit:

@@ -6,10 +6,11 @@ every missing pixel's depth is a weighted average of its 3x3 neighbours, with we
 large where the image intensity is similar, so depth spreads along surfaces and stops at image
 edges. The measured pixels are fixed, and the resulting sparse linear system is solved once per
 frame, exactly, by a sparse LU factorisation in geometric nested-dissection order
-(:func:`nested_dissection_order`), factorised in float32 and refined in float64: on a
-KITTI-sized frame 4.3-4.6x faster and with 60 % less memory than SciPy's default
-``spsolve`` of the same system (``python -m fusion_depth.bench --only prepare`` times it on your
-frames). ``linear`` is the cheap
+(:func:`nested_dissection_order`), factorised in float32 and refined in float64. On a
+KITTI-sized frame, one thread, against SciPy's default ``spsolve`` of the same system: 4.3-4.6x
+faster with 60 % less memory on 2 cores of an AMD EPYC with AVX2, 2.4-2.5x on an Intel Xeon with
+AMX (``docs/results/prepare.md``; ``python -m fusion_depth.bench --only prepare`` times the
+fill on your frames). ``linear`` is the cheap
 alternative (piecewise-linear over a Delaunay triangulation of the measured points, nearest
 measurement outside their convex hull); ``linear_hull`` the same inside the hull and nothing
 outside it (the rule of RadarNet's ``interpolate_depth``, ``setup/data_utils.py``:
@@ -25,6 +26,7 @@ import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 if TYPE_CHECKING:
     from scipy.sparse import csc_matrix
@@ -45,6 +47,26 @@ _LEAF_PIXELS = 16
 # done when a step changes no unknown by more than this (< 3e-7 m), in at most this many steps.
 _REFINED = 1e-9
 _MAX_REFINEMENTS = 8
+
+
+def load_solvers() -> None:
+    """Imports the SciPy modules the fills call, and with them the BLAS library SciPy links
+    (OpenBLAS, loaded on first use). A thread limit (``threadpoolctl``) covers only the
+    libraries loaded when it is set: a prepare worker calls this first, so that its limit holds
+    for the fills too. Unlimited, each of two workers ran two OpenBLAS threads on two cores, and
+    the linear fill's per-triangle LAPACK calls (``Delaunay.transform``) took 2-15x as long
+    (``docs/results/prepare.md``)."""
+    import scipy.interpolate  # noqa: F401
+    import scipy.sparse.linalg  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
+
+@functools.cache
+def _blas() -> ThreadpoolController:
+    """The BLAS libraries of this process once the fills' SciPy is loaded (a controller's
+    ``limit`` costs 15 µs, ``threadpool_limits`` 0.7 ms: it looks the libraries up each time)."""
+    load_solvers()
+    return ThreadpoolController()
 
 
 def fill_depth(depth: np.ndarray, image: np.ndarray, method: str) -> np.ndarray:
@@ -68,7 +90,10 @@ def fill_depth(depth: np.ndarray, image: np.ndarray, method: str) -> np.ndarray:
     if method == "none" or known.all() or not known.any():
         return depth.copy()
     if method in ("linear", "linear_hull"):
-        filled = _fill_linear(depth, known, outside=method == "linear")
+        # One BLAS thread: the triangulation's LAPACK calls are 2×2 solves, which a second
+        # thread only slows (13 % of the wall time, 40 % of the CPU time on a 2-core Xeon).
+        with _blas().limit(limits=1, user_api="blas"):
+            filled = _fill_linear(depth, known, outside=method == "linear")
     else:
         filled = _fill_colorization(depth, known, _intensity(image))
     filled = filled.astype(np.float32)
