@@ -93,10 +93,11 @@ def test_each_worker_runs_its_blas_on_its_share_of_the_cores(tmp_path, monkeypat
 
 @pytest.mark.slow
 def test_a_fresh_process_limits_the_blas_its_fills_load_after_the_fork(tmp_path) -> None:
-    """In a fresh ``prepare`` SciPy, and the OpenBLAS it links, is first loaded by a fill. A
-    worker's thread limit covers only the libraries loaded when it is set, so SciPy's is
-    loaded before it: two workers on 2 cores then run one BLAS thread each through every fill,
-    not two each (which made a light fill 2-15x slower, docs/results/prepare.md)."""
+    """In a fresh ``prepare`` SciPy, and the OpenBLAS it links, is first loaded by a fill, in
+    the worker. threadpoolctl's limit covers only the libraries loaded when it is set, so the
+    worker also sets the thread count such a library reads when it starts: two workers on 2
+    cores run one BLAS thread each through every fill, not two each (which made a light fill
+    2-15x slower, docs/results/prepare.md)."""
     script = textwrap.dedent(
         f"""
         import sys

@@ -103,7 +103,6 @@ from fusion_depth.data.depth_io import (
     read_npy,
     write_npy,
 )
-from fusion_depth.data.filling import load_solvers
 from fusion_depth.data.radar_points import (
     DEFAULT_MAX_RADAR_POINTS,
     VALID,
@@ -634,9 +633,6 @@ def _prepare_frames(
             finally:  # an interrupt between a temporary file's creation and its write's guard
                 with _interrupts_deferred():
                     _remove_orphans(job.split_dir)
-        # The fills' SciPy (0.8 s of imports) is loaded once here, not once per worker after
-        # the fork, where it would add to every worker's time.
-        load_solvers()
         context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
         counter = context.Value("i", 0)
         results = context.SimpleQueue()
@@ -722,6 +718,10 @@ def _stop(processes: Sequence[Any], grace: float = STOP_GRACE_S) -> None:
             process.join()
 
 
+# What the BLAS and OpenMP libraries a worker loads after it started read for their thread count.
+_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def _worker_main(
     job: _FrameJob,
     todo: Sequence[int],
@@ -750,11 +750,14 @@ def _worker_main(
 
     offset = start * len(todo) // workers
     # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS starts
-    # a thread per core in every process, N × N threads on N cores. The limit covers only the
-    # libraries already loaded, so the fills' SciPy (and its OpenBLAS) is loaded first.
+    # a thread per core in every process, N × N threads on N cores. threadpoolctl limits the
+    # libraries loaded now; one a fill loads later (SciPy's own OpenBLAS) reads the environment
+    # when it starts. Unlimited, two workers' linear fills ran 2-15x slower on 2 cores
+    # (docs/results/prepare.md, "Two workers against one, light fills").
     threads = max(1, usable_cores() // workers)
+    for variable in _THREAD_VARIABLES:
+        os.environ[variable] = str(threads)
     try:
-        load_solvers()
         with threadpool_limits(limits=threads):
             results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
     except SystemExit:

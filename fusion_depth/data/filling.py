@@ -49,23 +49,14 @@ _REFINED = 1e-9
 _MAX_REFINEMENTS = 8
 
 
-def load_solvers() -> None:
-    """Imports the SciPy modules the fills call, and with them the BLAS library SciPy links
-    (OpenBLAS, loaded on first use). A thread limit (``threadpoolctl``) covers only the
-    libraries loaded when it is set: a prepare worker calls this first, so that its limit holds
-    for the fills too. Unlimited, each of two workers ran two OpenBLAS threads on two cores, and
-    the linear fill's per-triangle LAPACK calls (``Delaunay.transform``) took 2-15x as long
-    (``docs/results/prepare.md``)."""
-    import scipy.interpolate  # noqa: F401
-    import scipy.sparse.linalg  # noqa: F401
-    import scipy.spatial  # noqa: F401
-
-
 @functools.cache
 def _blas() -> ThreadpoolController:
-    """The BLAS libraries of this process once the fills' SciPy is loaded (a controller's
-    ``limit`` costs 15 µs, ``threadpool_limits`` 0.7 ms: it looks the libraries up each time)."""
-    load_solvers()
+    """The BLAS libraries of this process once the fills' SciPy, and the OpenBLAS it links, is
+    loaded (a controller's ``limit`` costs 15 µs, ``threadpool_limits`` 0.7 ms: it looks the
+    libraries up each time)."""
+    import scipy.interpolate  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
     return ThreadpoolController()
 
 
