@@ -208,8 +208,13 @@ def test_prepare_stage_times_each_fill_and_estimates_the_named_splits(
         assert seconds > 0 and method["frames_per_s_per_worker"] == pytest.approx(1 / seconds)
         for split, frames in benchmarks.NAMED_SPLITS.items():
             assert method["hours"][split] == pytest.approx(frames * seconds / 8 / 3600)
+    # The solver against SciPy's spsolve of the same system, on this machine.
+    reference = stage["methods"]["colorization"]["spsolve"]
+    assert reference["s_per_frame"] > 0 and reference["speedup"] > 0
+    assert reference["max_difference_m"] < 0.01  # the 1 cm the fill is held to
     printed = capsys.readouterr().out
     assert "| colorization |" in printed and "h, nuscenes train" in printed
+    assert f"colorization: {reference['speedup']:.1f}× SciPy's spsolve" in printed
     assert "infer median" not in printed  # only the stage asked for
     assert "prepare" not in bench.bench_parser().parse_args([]).only.split(",")
 

@@ -64,6 +64,7 @@ from fusion_depth.runner.bench_record import (
     settings_line,
     speed_notes,
     speed_rows,
+    spsolve_note,
 )
 from fusion_depth.utils.atomic import write_json_atomic
 from fusion_depth.utils.console import quiet_known_noise
@@ -106,6 +107,9 @@ def format_result(result: dict[str, Any]) -> str:
     if "prepare" in result:
         header, rows, note = prepare_table(result)
         lines += ["", format_table(header, rows), "", note]
+        reference = spsolve_note(result)
+        if reference:
+            lines.append(reference)
     return "\n".join(lines)
 
 

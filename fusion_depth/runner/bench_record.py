@@ -248,6 +248,20 @@ def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
     return header, rows, note
 
 
+def spsolve_note(result: Mapping[str, Any]) -> str | None:
+    """The line under the ``prepare`` table: the colorization solver against SciPy's default
+    ``spsolve`` of the same system on the first frame, on the machine that ran it (None in
+    records made before it was measured)."""
+    reference = (result["prepare"]["methods"].get("colorization") or {}).get("spsolve")
+    if not reference:
+        return None
+    return (
+        f"colorization: {reference['speedup']:.1f}× SciPy's spsolve of the same system on this "
+        f"machine ({reference['s_per_frame']:.2f} s a frame), largest difference "
+        f"{1000 * reference['max_difference_m']:.3g} mm (first frame)"
+    )
+
+
 # --- Reading records back ----------------------------------------------------------------------
 
 
