@@ -201,3 +201,22 @@ def test_panels_refuses_no_record_several_records_and_table_options(tmp_path, ca
         main([str(tmp_path / "two" / "a"), "--panels", "p.png", "--format", "csv"])
     assert "--format is for tables" in capsys.readouterr().err
     assert not (tmp_path / "p.png").exists()
+
+
+def test_panels_replaces_only_a_picture_it_drew(tmp_path, capsys) -> None:
+    """A PNG of the user's is never overwritten; the picture --panels drew before is redrawn."""
+    from PIL import Image
+
+    _record_with_panels(tmp_path / "run")
+    photo = tmp_path / "photo.png"
+    Image.new("RGB", (4, 4), "red").save(photo)
+    before = photo.read_bytes()
+    assert main([str(tmp_path / "run"), "--panels", str(photo)]) == 2
+    assert "exists and was not written by report" in capsys.readouterr().err
+    assert photo.read_bytes() == before
+    drawn = tmp_path / "drawn.png"
+    assert main([str(tmp_path / "run"), "--panels", str(drawn)]) == 0
+    assert main([str(tmp_path / "run"), "--panels", str(drawn)]) == 0  # again: its own
+    (tmp_path / "folder.png").mkdir()
+    assert main([str(tmp_path / "run"), "--panels", str(tmp_path / "folder.png")]) == 2
+    assert "expected a new file or one report wrote before" in capsys.readouterr().err

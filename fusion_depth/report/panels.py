@@ -16,6 +16,7 @@ from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
 from fusion_depth.data.visualize import panel_figure, read_panel_frames
+from fusion_depth.report.output import check_target
 from fusion_depth.runner.run_folder import TEST_PANEL_FRAMES_FILE
 from fusion_depth.utils.atomic import write_atomic
 
@@ -37,6 +38,17 @@ def recorded_panel_frames(directory: str | os.PathLike) -> Path:
     return found[0]
 
 
+def _drawn_by_panels(path: Path) -> bool:
+    """Whether ``path`` is a PNG :func:`draw_recorded_panels` wrote (its description names the
+    frames it was drawn from)."""
+    try:
+        with Image.open(path) as image:
+            described = json.loads(image.info.get("Description", ""))
+    except (OSError, ValueError):
+        return False
+    return isinstance(described, dict) and "frames" in described
+
+
 def draw_recorded_panels(
     directory: str | os.PathLike, out: str | os.PathLike, command: str
 ) -> Path:
@@ -49,13 +61,15 @@ def draw_recorded_panels(
     same pixels.
 
     Raises:
-        ValueError: ``out`` is not a ``.png``; no single record; the record is not a
-            panel-frames file.
+        ValueError: ``out`` is not a ``.png``, or is a file report may not replace (a run's
+            record, a folder, a PNG this command did not draw: :func:`check_target`); no single
+            record; the record is not a panel-frames file.
         OSError: reading or writing failed.
     """
     out = Path(out)
     if out.suffix.lower() != ".png":
         raise ValueError(f"--panels {out}: expected a file name ending in .png")
+    check_target(out, "--panels", _drawn_by_panels)
     frames_file = recorded_panel_frames(directory)
     frames, min_depth, max_depth = read_panel_frames(frames_file)
     figure = panel_figure(frames, min_depth, max_depth)
