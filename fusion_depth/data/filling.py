@@ -76,7 +76,7 @@ def fill_depth(depth: np.ndarray, image: np.ndarray, method: str) -> np.ndarray:
         raise ValueError(
             f"image: expected shape {(*depth.shape, 3)} to match the depth map, got {image.shape}"
         )
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    depth = _measured(depth)
     known = depth > 0
     if method == "none" or known.all() or not known.any():
         return depth.copy()
@@ -107,12 +107,17 @@ def colorization_reference(depth: np.ndarray, image: np.ndarray) -> np.ndarray:
     """
     from scipy.sparse.linalg import spsolve
 
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    depth = _measured(depth)
     known = depth > 0
     transposed, rhs, scale, unknowns = colorization_system(depth, known, _intensity(image))
     filled = depth.astype(np.float64).ravel()
     filled[unknowns] = spsolve(transposed.T.tocsc(), rhs) * scale
     return filled.reshape(depth.shape)
+
+
+def _measured(depth: np.ndarray) -> np.ndarray:
+    """float32 ``depth`` with every pixel that is not a finite depth > 0 set to 0 (missing)."""
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
 
 
 def _intensity(image: np.ndarray) -> np.ndarray:

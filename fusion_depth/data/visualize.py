@@ -497,14 +497,12 @@ def read_panel_frames(path: str | os.PathLike) -> tuple[list[PanelFrame], float,
     names = (*_PANEL_ARRAYS, "depth_range")
     try:
         with np.load(path, allow_pickle=False) as data:
-            missing = [name for name in names if name not in data.files]
-            if missing:
-                raise ValueError(f"{path}: not a panel-frames file (no array {missing[0]!r})")
-            arrays = {name: data[name] for name in names}
-    except (ValueError, zipfile.BadZipFile) as err:
-        if str(err).startswith(f"{path}:"):
-            raise
+            arrays = {name: data[name] for name in names if name in data.files}
+    except (ValueError, zipfile.BadZipFile) as err:  # not an .npz, or an array needing pickle
         raise ValueError(f"{path}: not a panel-frames file ({type(err).__name__})") from None
+    missing = [name for name in names if name not in arrays]
+    if missing:
+        raise ValueError(f"{path}: not a panel-frames file (no array {missing[0]!r})")
     count = len(arrays["label"])
     image = arrays["image"]
     if (
