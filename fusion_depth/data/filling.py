@@ -23,10 +23,13 @@ filled map is the same as against the unfilled one.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
+
+from fusion_depth.data.stencil_lu import CENTRE, StencilLU, stencil_apply
 
 if TYPE_CHECKING:
     from scipy.sparse import csc_matrix
@@ -43,10 +46,14 @@ _MIN_SIGMA = 2e-6
 _OFFSETS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 # Nested dissection stops cutting at boxes this small: below it a cut saves less than it costs.
 _LEAF_PIXELS = 16
-# Iterative refinement of the float32 solve (in units of the largest measured depth, <= 256 m):
-# done when a step changes no unknown by more than this (< 3e-7 m), in at most this many steps.
-_REFINED = 1e-9
-_MAX_REFINEMENTS = 8
+# What the colorization fill promises: every pixel within this of the exact solution of its
+# system; the refinement stops once it has proved a tenth of it (colorization_error_bound).
+FILL_TOLERANCE_M = 0.01
+_MAX_REFINEMENTS = 6
+# Above the float64 rounding of a residual or of A z for values in [0, 1] with 9 terms a row.
+_ROUNDING = 1e-14
+# Where the 8 neighbours of _OFFSETS sit among the 9 of stencil_lu.STENCIL (the centre is 4).
+_NEIGHBOUR_SLOTS = [0, 1, 2, 3, 5, 6, 7, 8]
 
 
 @functools.cache
@@ -153,13 +160,91 @@ def _fill_linear(depth: np.ndarray, known: np.ndarray, outside: bool = True) -> 
 
 def _fill_colorization(depth: np.ndarray, known: np.ndarray, gray: np.ndarray) -> np.ndarray:
     """Levin et al.'s optimisation with the measured pixels fixed (:func:`colorization_system`),
-    solved directly: a sparse LU factorisation in single precision, refined in double precision
-    (Wilkinson's iterative refinement) until a step changes no depth by more than 1e-9 of the
-    largest measured one; the float64 factorisation where refinement stalls."""
+    solved directly on the pixel grid (:class:`~fusion_depth.data.stencil_lu.StencilLU`, float32
+    factors) and refined in float64 until :func:`colorization_error_bound` proves every pixel
+    within :data:`FILL_TOLERANCE_M` of the exact solution; SuperLU's float64 factorisation of
+    the system where it cannot."""
+    scale = float(depth[known].max())
+    coefficients = _grid_coefficients(known, gray)
+    rhs = np.where(known, depth.astype(np.float64) / scale, 0.0)
+    try:
+        factors = StencilLU(coefficients)
+    except ValueError:  # a front singular in float32: a nearly cut-off region
+        return _fill_colorization_float64(depth, known, gray)
+    bound = colorization_error_bound(factors, coefficients, known)
+    solution = np.zeros(depth.shape)
+    residual, previous = rhs, np.inf
+    for _ in range(_MAX_REFINEMENTS):
+        solution += factors.solve(residual)
+        solution[known] = rhs[known]
+        residual = rhs - stencil_apply(coefficients, solution)
+        size = float(np.abs(residual).max())
+        if bound(size) * scale <= FILL_TOLERANCE_M / 10:
+            return solution * scale
+        if not size < 0.5 * previous:  # stalled at rounding, or diverging
+            break
+        previous = size
+    return _fill_colorization_float64(depth, known, gray)
+
+
+def colorization_error_bound(
+    factors: StencilLU, coefficients: np.ndarray, known: np.ndarray
+) -> Callable[[float], float]:
+    """A proven bound on the colorization fill's error, from the largest residual.
+
+    The system ``A x = b`` in the missing pixels is a nonsingular M-matrix, so ``A^-1 >= 0``
+    entrywise, and for any ``z`` with ``A z >= c > 0`` in every row, ``A^-1 1 <= z / c``. The
+    error of an approximate solution with residual ``r = b - A x`` is ``A^-1 r``, so no pixel
+    is off by more than ``max|r| * max(z) / c`` (Varga, "Matrix Iterative Analysis", 2000,
+    sec. 3.5: a positive vector ``z`` with ``A z > 0`` bounds ``||A^-1||_inf``). ``z`` is the
+    factors' solve of ``A z = 1``, refined until ``c >= 1/2``; ``A z`` and ``r`` are computed
+    in float64, whose rounding (< 1e-14 here, values in [0, 1]) is added to both.
+
+    Args:
+        factors: the factorised operator of :func:`_grid_coefficients`.
+        coefficients: (9, H, W), that operator.
+        known: bool (H, W), the measured pixels (identity rows).
+
+    Returns:
+        ``bound(max|r|)``: the largest possible error of any pixel, in units of the largest
+        measured depth (``inf`` where no ``z`` is found: the bound cannot be proved).
+    """
+    ones = np.where(known, 0.0, 1.0)
+    z = np.zeros(known.shape)
+    residual = ones
+    for _ in range(3):
+        z += factors.solve(residual)
+        z[known] = 0.0
+        image = stencil_apply(coefficients, z)
+        residual = ones - image
+        largest = float(z.max()) if z.size else 0.0
+        smallest = float(image[~known].min()) - _ROUNDING * max(1.0, largest)
+        if smallest >= 0.5:
+            return lambda size: (size + _ROUNDING) * largest / smallest
+    return lambda size: np.inf
+
+
+def _fill_colorization_float64(
+    depth: np.ndarray, known: np.ndarray, gray: np.ndarray
+) -> np.ndarray:
+    """The fill by SuperLU's float64 factorisation of :func:`colorization_system`: slower (3-4x
+    the grid solver), for systems the float32 factors cannot solve to the tolerance."""
     transposed, rhs, scale, unknowns = colorization_system(depth, known, gray)
     filled = depth.astype(np.float64).ravel() / scale
-    filled[unknowns] = _solve_refined(transposed, rhs)
+    filled[unknowns] = _factorise(transposed).solve(rhs, trans="T")
     return filled.reshape(depth.shape) * scale
+
+
+def _grid_coefficients(known: np.ndarray, gray: np.ndarray) -> np.ndarray:
+    """The colorization operator on the whole grid as :class:`StencilLU` takes it: (9, H, W),
+    each missing pixel's row ``x_i - sum_j w_ij x_j`` (:func:`_neighbour_weights`), each
+    measured pixel's row the identity, so ``A x = b`` with ``b`` the measured depths (0
+    elsewhere) is :func:`colorization_system` with the measured pixels kept as unknowns."""
+    weights, _ = _neighbour_weights(gray)
+    coefficients = np.empty((9, *known.shape))
+    coefficients[CENTRE] = 1.0
+    coefficients[_NEIGHBOUR_SLOTS] = np.where(known, 0.0, -weights)
+    return coefficients
 
 
 def _factorise(transposed: csc_matrix) -> SuperLU:
@@ -178,35 +263,6 @@ def _factorise(transposed: csc_matrix) -> SuperLU:
         diag_pivot_thresh=0.0,
         options={"SymmetricMode": True},
     )
-
-
-def _solve_refined(transposed: csc_matrix, rhs: np.ndarray) -> np.ndarray:
-    """``x`` with ``A x = rhs`` (``transposed`` is ``A`` transposed, CSC), to :data:`_REFINED`.
-
-    Factorising in float32 takes about 0.7x the time of float64; each refinement step costs a
-    product and two triangular solves, and gains about three digits on these systems (the
-    factors are those of an M-matrix, so they are accurate to float32 rounding). Refinement
-    stops once a step changes no unknown by more than :data:`_REFINED`; a step that does not
-    at least halve the change falls back to the float64 factorisation.
-    """
-    matrix = transposed.T  # A in CSR: the same arrays, nothing copied
-    try:
-        factors = _factorise(transposed.astype(np.float32))
-    except RuntimeError:  # a pivot rounded to 0 in float32 (a nearly cut-off region)
-        return _factorise(transposed).solve(rhs, trans="T")
-    solution = factors.solve(rhs.astype(np.float32), trans="T").astype(np.float64)
-    previous = np.inf
-    for _ in range(_MAX_REFINEMENTS):
-        residual = rhs - matrix @ solution
-        step = factors.solve(residual.astype(np.float32), trans="T").astype(np.float64)
-        solution += step
-        change = float(np.abs(step).max())
-        if change <= _REFINED:
-            return solution
-        if not np.isfinite(change) or change > 0.5 * previous:
-            break
-        previous = change
-    return _factorise(transposed).solve(rhs, trans="T")
 
 
 def colorization_system(
