@@ -227,14 +227,19 @@ def test_the_prepare_table_has_a_row_per_fill_method_of_each_record(tmp_path, ca
             for method, seconds in (("linear", 0.5), ("colorization", 2.0))
         },
     }
+    prepare["methods"]["colorization"]["spsolve"] = {
+        "s_per_frame": 11.0,
+        "speedup": 5.5,
+        "max_difference_m": 4e-6,
+    }
     record = {key: RECORD[key] for key in ("settings", "machine")} | {"prepare": prepare}
     write_json_atomic(tmp_path / "prepare" / "bench.json", record)
     write_json_atomic(tmp_path / "speed" / "bench.json", RECORD)  # no prepare: no rows
     assert main([str(tmp_path), "--bench", "prepare"]) == 0
     rows = _rows(capsys.readouterr().out)
     assert [row[2:] for row in rows] == [
-        ["linear", "0.500", "2.00", "0.12"],
-        ["colorization", "2.000", "0.50", "0.49"],
+        ["linear", "0.500", "2.00", "", "0.12"],
+        ["colorization", "2.000", "0.50", "5.5× (11.00 s), 0.004 mm", "0.49"],
     ]
     assert rows[0][0] == "prepare" and "3 frames of /data/cache/kitti/abc/val" in rows[0][1]
     assert "3.7 % of pixels measured" in rows[0][1] and "32 cores" in rows[0][1]

@@ -372,13 +372,14 @@ def nested_dissection_order(height: int, width: int) -> np.ndarray:
 def _neighbour_weights(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised affinities of every pixel to its 8 neighbours and which neighbours exist."""
     h, w = gray.shape
-    padded = np.pad(gray, 1, mode="constant", constant_values=np.nan)
+    padded = np.pad(gray, 1)
+    inside = np.pad(np.ones((h, w), dtype=bool), 1)
     shifted = np.stack([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy, dx in _OFFSETS])
-    valid = ~np.isnan(shifted)
-    window = np.concatenate([shifted, gray[None]])  # the 3x3 window including the pixel itself
-    count = (~np.isnan(window)).sum(0)
-    mean = np.nansum(window, 0) / count
-    variance = np.nansum((window - mean) ** 2, 0) / count
+    valid = np.stack([inside[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy, dx in _OFFSETS])
+    # The 3x3 window's mean and variance, the pixel itself included, over the pixels that exist.
+    count = valid.sum(0) + 1
+    mean = (shifted.sum(0) + gray) / count  # outside neighbours are 0 in ``padded``
+    variance = (((shifted - mean) ** 2 * valid).sum(0) + (gray - mean) ** 2) / count
     diff2 = np.where(valid, (shifted - gray) ** 2, np.inf)
     sigma = np.maximum(_VARIANCE_FACTOR * variance, diff2.min(0) / -np.log(_MIN_NEIGHBOUR_WEIGHT))
     sigma = np.maximum(sigma, _MIN_SIGMA)

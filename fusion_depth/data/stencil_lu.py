@@ -34,7 +34,7 @@ import numpy as np
 STENCIL: tuple[tuple[int, int], ...] = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
 CENTRE = 4
 # A box of at most this many pixels is not cut: its front eliminates it whole.
-_LEAF_PIXELS = 12
+_LEAF_PIXELS = 24
 # Entries of the operator, of the cut blocks' inverses and of the updates smaller than this are
 # dropped: far below float32's precision next to the operator's O(1) entries (refinement
 # against the exact operator makes up the difference). Products of three of the rest are

@@ -214,7 +214,7 @@ def floor_note(result: Mapping[str, Any]) -> str:
     )
 
 
-PREPARE_HEADER_START = ("fill", "s per frame", "frames/s per worker")
+PREPARE_HEADER_START = ("fill", "s per frame", "frames/s per worker", "against spsolve")
 
 
 def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]], str]:
@@ -229,6 +229,7 @@ def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
             method,
             _fmt(m["s_per_frame"], 3),
             _fmt(m["frames_per_s_per_worker"], 2),
+            _against_spsolve(m.get("spsolve")),
             *(_fmt(m["hours"][split], 2) for split in splits),
         ]
         for method, m in stage["methods"].items()
@@ -246,6 +247,17 @@ def prepare_table(result: Mapping[str, Any]) -> tuple[list[str], list[list[str]]
         f"hours on {stage['cores']} cores (prepare.workers={stage['cores']})"
     )
     return header, rows, note
+
+
+def _against_spsolve(reference: Mapping[str, Any] | None) -> str:
+    """The colorization row's comparison with SciPy's spsolve on the first frame: the speed-up,
+    spsolve's seconds and the largest difference ("" where it was not measured)."""
+    if not reference:
+        return ""
+    return (
+        f"{_fmt(reference['speedup'], 1)}× ({reference['s_per_frame']:.2f} s), "
+        f"{1000 * reference['max_difference_m']:.2g} mm"
+    )
 
 
 def spsolve_note(result: Mapping[str, Any]) -> str | None:
