@@ -370,19 +370,40 @@ def nested_dissection_order(height: int, width: int) -> np.ndarray:
 
 
 def _neighbour_weights(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised affinities of every pixel to its 8 neighbours and which neighbours exist."""
+    """Normalised affinities of every pixel to its 8 neighbours and which neighbours exist.
+
+    One neighbour at a time, so that no (8, H, W) temporary is made beyond the result: at
+    KITTI's size each is 30 MB of memory the kernel would map afresh on a worker's first frame.
+    """
     h, w = gray.shape
-    padded = np.pad(gray, 1)
+    padded = np.pad(gray, 1)  # outside neighbours are 0, and do not count
     inside = np.pad(np.ones((h, w), dtype=bool), 1)
-    shifted = np.stack([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy, dx in _OFFSETS])
-    valid = np.stack([inside[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy, dx in _OFFSETS])
+
+    def neighbour(array: np.ndarray, k: int) -> np.ndarray:
+        dy, dx = _OFFSETS[k]
+        return array[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+
+    valid = np.stack([neighbour(inside, k) for k in range(8)])
     # The 3x3 window's mean and variance, the pixel itself included, over the pixels that exist.
     count = valid.sum(0) + 1
-    mean = (shifted.sum(0) + gray) / count  # outside neighbours are 0 in ``padded``
-    variance = (((shifted - mean) ** 2 * valid).sum(0) + (gray - mean) ** 2) / count
-    diff2 = np.where(valid, (shifted - gray) ** 2, np.inf)
-    sigma = np.maximum(_VARIANCE_FACTOR * variance, diff2.min(0) / -np.log(_MIN_NEIGHBOUR_WEIGHT))
+    total = np.zeros((h, w))
+    for k in range(8):
+        total += neighbour(padded, k)
+    mean = (total + gray) / count
+    spread = np.zeros((h, w))
+    closest = np.full((h, w), np.inf)
+    for k in range(8):
+        spread += (neighbour(padded, k) - mean) ** 2 * valid[k]
+        squared = np.where(valid[k], (neighbour(padded, k) - gray) ** 2, np.inf)
+        closest = np.minimum(closest, squared)
+    variance = (spread + (gray - mean) ** 2) / count
+    sigma = np.maximum(_VARIANCE_FACTOR * variance, closest / -np.log(_MIN_NEIGHBOUR_WEIGHT))
     sigma = np.maximum(sigma, _MIN_SIGMA)
-    weights = np.where(valid, np.exp(-np.where(valid, diff2, 0.0) / sigma), 0.0)
-    weights /= weights.sum(0)
+    weights = np.empty((8, h, w))
+    norm = np.zeros((h, w))
+    for k in range(8):
+        diff2 = np.where(valid[k], (neighbour(padded, k) - gray) ** 2, 0.0)
+        weights[k] = np.where(valid[k], np.exp(-diff2 / sigma), 0.0)
+        norm += weights[k]
+    weights /= norm
     return weights, valid

@@ -35,6 +35,8 @@ STENCIL: tuple[tuple[int, int], ...] = tuple((dy, dx) for dy in (-1, 0, 1) for d
 CENTRE = 4
 # A box of at most this many pixels is not cut: its front eliminates it whole.
 _LEAF_PIXELS = 24
+# Fronts are eliminated in chunks of about this many floats (512 kB), which stay in cache.
+_CHUNK_FLOATS = 1 << 17
 # Entries of the operator, of the cut blocks' inverses and of the updates smaller than this are
 # dropped: far below float32's precision next to the operator's O(1) entries (refinement
 # against the exact operator makes up the difference). Products of three of the rest are
@@ -282,30 +284,9 @@ class StencilLU:
         for groups in _plan(hp, wp):
             factors, level_updates = [], []
             for group in groups:
-                nb, s = group.cut.shape
-                size = s + group.ring.shape[1]
-                front = np.zeros((nb, size * size), dtype=np.float32)
-                front[:, group.entry_at] = flat[group.entry_from]
-                front = front.reshape(nb, size, size)
-                for child, positions, runs in group.children:
-                    update = updates[child] if positions is None else updates[child][positions]
-                    for rows_from, rows_to in runs:
-                        for cols_from, cols_to in runs:
-                            front[:, rows_to, cols_to] += update[:, rows_from, cols_from]
-                try:
-                    inverse = np.linalg.inv(front[:, :s, :s])
-                except np.linalg.LinAlgError:
-                    raise ValueError(
-                        "coefficients: a front is singular; expected a nonsingular M-matrix"
-                    ) from None
-                _drop_negligible(inverse)
-                solved = inverse @ front[:, :s, s:]  # the cut's part of U
-                ring_rows = front[:, s:, :s]
-                update = front[:, s:, s:]  # the Schur complement on the ring, in place
-                update -= ring_rows @ solved
-                level_updates.append(_drop_negligible(update))
-                factors.append((group, inverse, np.ascontiguousarray(ring_rows), solved))
-            self._levels.append(factors)
+                factors.append(_eliminate(group, flat, updates))
+                level_updates.append(factors[-1][-1])
+            self._levels.append([factor[:4] for factor in factors])
             updates = level_updates
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -333,6 +314,59 @@ class StencilLU:
                     ring = values[group.ring][:, :, None]
                     values[group.cut] -= np.matmul(solved, ring)[:, :, 0]
         return values.reshape(hp, wp)[: self.height, : self.width].astype(np.float64)
+
+
+def _eliminate(
+    group: _Group, flat: np.ndarray, updates: list[np.ndarray]
+) -> tuple[_Group, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Eliminates the cuts of ``group``'s boxes: their fronts assembled from the operator
+    (``flat``) and the children's ``updates`` (the level below's, one array per group).
+
+    The boxes are taken a chunk at a time (:data:`_CHUNK_FLOATS` of fronts), so that each
+    chunk's fronts stay in the CPU's cache through the assembly, the inverse and the
+    products, and the memory for them is reused, not mapped afresh for every level.
+
+    Returns:
+        (group, the cut blocks' inverses (nb, s, s), the ring's rows on the cut (nb, g, s),
+        the inverses times the cut's rows on the ring (nb, s, g), the Schur complements on the
+        rings (nb, g, g)), float32.
+
+    Raises:
+        ValueError: a cut block is singular.
+    """
+    nb, s = group.cut.shape
+    g = group.ring.shape[1]
+    size = s + g
+    inverse = np.empty((nb, s, s), dtype=np.float32)
+    ring_rows = np.empty((nb, g, s), dtype=np.float32)
+    solved = np.empty((nb, s, g), dtype=np.float32)
+    update = np.empty((nb, g, g), dtype=np.float32)
+    step = max(1, min(nb, _CHUNK_FLOATS // (size * size)))
+    buffer = np.empty((step, size * size), dtype=np.float32)
+    for first in range(0, nb, step):
+        boxes = slice(first, min(first + step, nb))
+        count = boxes.stop - first
+        front = buffer[:count]
+        front.fill(0.0)
+        front[:, group.entry_at] = flat[group.entry_from[boxes]]
+        front3 = front.reshape(count, size, size)
+        for child, positions, runs in group.children:
+            picked = updates[child][boxes if positions is None else positions[boxes]]
+            for rows_from, rows_to in runs:
+                for cols_from, cols_to in runs:
+                    front3[:, rows_to, cols_to] += picked[:, rows_from, cols_from]
+        try:
+            inverse[boxes] = _drop_negligible(np.linalg.inv(front3[:, :s, :s]))
+        except np.linalg.LinAlgError:
+            raise ValueError(
+                "coefficients: a front is singular; expected a nonsingular M-matrix"
+            ) from None
+        np.matmul(inverse[boxes], front3[:, :s, s:], out=solved[boxes])
+        ring_rows[boxes] = front3[:, s:, :s]
+        schur = front3[:, s:, s:]  # the Schur complement on the ring, in place
+        schur -= ring_rows[boxes] @ solved[boxes]
+        update[boxes] = _drop_negligible(schur)
+    return group, inverse, ring_rows, solved, update
 
 
 def _drop_negligible(array: np.ndarray) -> np.ndarray:
