@@ -758,8 +758,9 @@ def _worker_main(
             counter.value += n
 
     offset = start * len(todo) // workers
-    # Each worker's BLAS (SuperLU's dense kernels) gets its share of the cores: OpenBLAS starts
-    # a thread per core in every process, N × N threads on N cores. threadpoolctl limits the
+    # Each worker's BLAS (the colorization solver's dense products) gets its share of the
+    # cores: OpenBLAS starts a thread per core in every process, N × N threads on N cores.
+    # threadpoolctl limits the
     # libraries loaded now; one a fill loads later (SciPy's own OpenBLAS) reads the environment
     # when it starts. Unlimited, two workers' linear fills ran 2-15x slower on 2 cores
     # (docs/results/prepare.md, "Two workers against one, light fills").

@@ -5,16 +5,19 @@ Levin, Lischinski & Weiss (2004), as the NYU Depth v2 toolbox does (``fill_depth
 every missing pixel's depth is a weighted average of its 3x3 neighbours, with weights that are
 large where the image intensity is similar, so depth spreads along surfaces and stops at image
 edges. The measured pixels are fixed, and the resulting sparse linear system is solved once per
-frame, exactly, by a sparse LU factorisation in geometric nested-dissection order
-(:func:`nested_dissection_order`), factorised in float32 and refined in float64. On a
-KITTI-sized frame, one thread, against SciPy's default ``spsolve`` of the same system: 4.3-4.6x
-faster with 60 % less memory on 2 cores of an AMD EPYC with AVX2, 2.4-2.5x on an Intel Xeon with
-AMX (``docs/results/prepare.md``; ``python -m fusion_depth.bench --only prepare`` times the
-fill on your frames). ``linear`` is the cheap
-alternative (piecewise-linear over a Delaunay triangulation of the measured points, nearest
-measurement outside their convex hull); ``linear_hull`` the same inside the hull and nothing
-outside it (the rule of RadarNet's ``interpolate_depth``, ``setup/data_utils.py``:
-``LinearNDInterpolator`` with ``fill_value=0``); ``none`` leaves the map as it is.
+frame by a direct solver for 3x3-stencil systems on the pixel grid
+(:class:`~fusion_depth.data.stencil_lu.StencilLU`: geometric nested dissection, multifrontal,
+float32 factors), refined in float64 until a bound proves every pixel within 1 mm of the exact
+solution (:func:`colorization_error_bound`; the promise is :data:`FILL_TOLERANCE_M`, 1 cm).
+Measured by ``python -m fusion_depth.bench --only prepare`` on 2 cores of an Intel Xeon with
+AMX, one thread, against SciPy's default ``spsolve`` of the same system: 6.3-7.7x at KITTI's
+size and 8.2-8.6x at nuScenes' 448x800; a first fill in a fresh process, which also maps its
+memory, 4.4-4.5x (``docs/results/prepare.md``). The command prints the ratio on your machine.
+``linear`` is the cheap alternative (piecewise-linear over a Delaunay triangulation of the
+measured points, nearest measurement outside their convex hull); ``linear_hull`` the same
+inside the hull and nothing outside it (the rule of RadarNet's ``interpolate_depth``,
+``setup/data_utils.py``: ``LinearNDInterpolator`` with ``fill_value=0``); ``none`` leaves the
+map as it is.
 
 Every method returns every measured value exactly, so evaluation against the measured points of a
 filled map is the same as against the unfilled one.
@@ -103,7 +106,7 @@ def colorization_reference(depth: np.ndarray, image: np.ndarray) -> np.ndarray:
     """The colorization fill of ``depth`` solved by SciPy's default ``spsolve`` (SuperLU, COLAMD
     order, partial pivoting) of the same system (:func:`colorization_system`): what
     :func:`fill_depth` is held to (within 1 cm at every pixel) and timed against
-    (``python -m fusion_depth.bench --only prepare``). Slow: 11-13 s at KITTI's size.
+    (``python -m fusion_depth.bench --only prepare``). Slow: 8-13 s at KITTI's size.
 
     Args:
         depth: float (H, W) metres, 0 = missing (at least one measured pixel).
