@@ -240,7 +240,7 @@ def test_the_proven_bound_holds_against_the_float64_solve(weather) -> None:
     solution[known] = grid_rhs[known]
     residual = np.abs(grid_rhs - stencil_apply(coefficients, solution)).max()
     error = np.abs(solution.ravel()[unknowns] - exact).max()
-    assert 1e-9 < error <= bound(residual)
+    assert 1e-9 < error <= bound(residual, 1.0)
     filled = filling._fill_colorization(sparse, known, gray).ravel()[unknowns] / scale
     assert np.abs(filled - exact).max() * scale <= filling.FILL_TOLERANCE_M / 10
 
@@ -259,8 +259,8 @@ def test_the_bound_is_refused_where_no_positive_vector_is_found(monkeypatch) -> 
         def solve(self, rhs):
             return np.zeros_like(rhs)
 
-    assert filling.colorization_error_bound(Useless(), coefficients, known)(0.0) == np.inf
-    monkeypatch.setattr(filling, "colorization_error_bound", lambda *a: lambda size: np.inf)
+    assert filling.colorization_error_bound(Useless(), coefficients, known)(0.0, 1.0) == np.inf
+    monkeypatch.setattr(filling, "colorization_error_bound", lambda *a: lambda *s: np.inf)
     fallbacks = []
     real = filling._fill_colorization_float64
     monkeypatch.setattr(
@@ -268,6 +268,48 @@ def test_the_bound_is_refused_where_no_positive_vector_is_found(monkeypatch) -> 
     )
     fill_depth(sparse, image, "colorization")
     assert fallbacks == [1]
+
+
+def test_the_bound_proves_nothing_for_a_matrix_that_is_not_an_m_matrix() -> None:
+    """The bound does not assume A^-1 >= 0, it proves it: rows x1 - 2 x2 and x2 - 2 x1 have
+    no positive entry off the diagonal, but their inverse has negative entries, so the z that
+    solves A z = 1 is negative and no bound is claimed (it would be 0: wrong)."""
+    from fusion_depth.data import filling
+    from fusion_depth.data.stencil_lu import CENTRE, StencilLU
+
+    known = np.array([[True, False, False]])
+    coefficients = np.zeros((9, 1, 3))
+    coefficients[CENTRE] = 1.0
+    coefficients[5, 0, 1] = -2.0  # (0, 1): pixel 1's right neighbour
+    coefficients[3, 0, 2] = -2.0  # (0, -1): pixel 2's left neighbour
+    bound = filling.colorization_error_bound(StencilLU(coefficients), coefficients, known)
+    assert bound(1e-3, 1.0) == np.inf
+
+
+def test_the_superlu_fallback_is_bounded_too_and_warns_when_it_cannot_be(
+    monkeypatch, caplog
+) -> None:
+    """The fallback solves the same grid system (the same map as the grid solver, within the
+    millimetre), bounds its own error the same way, and says so when it cannot prove 1 cm."""
+    from fusion_depth.data import filling
+    from fusion_depth.data.procedural import render_frame
+
+    image, _, sparse = render_frame(3, "train", 1, 64, 192, 82.0, "fog", "lidar")
+    known = sparse > 0
+    gray = filling._intensity(image)
+    scale = float(sparse[known].max())
+    coefficients = filling._grid_coefficients(known, gray)
+    rhs = np.where(known, sparse.astype(np.float64) / scale, 0.0)
+    with caplog.at_level("WARNING", logger="fusion_depth.data.filling"):
+        fallback = filling._fill_colorization_float64(sparse, known, gray, coefficients, rhs)
+    assert caplog.records == []  # proved: no warning
+    np.testing.assert_allclose(fallback, filling._fill_colorization(sparse, known, gray), atol=1e-3)
+    monkeypatch.setattr(filling, "colorization_error_bound", lambda *a: lambda *s: 0.5)
+    with caplog.at_level("WARNING", logger="fusion_depth.data.filling"):
+        again = filling._fill_colorization_float64(sparse, known, gray, coefficients, rhs)
+    assert "could not be proven within 0.01 m" in caplog.text
+    assert f"(bound {0.5 * scale:.3g} m)" in caplog.text
+    np.testing.assert_array_equal(again, fallback)
 
 
 def test_linear_hull_is_radarnets_interpolation() -> None:

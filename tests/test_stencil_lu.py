@@ -1,4 +1,5 @@
-"""The grid solver: nested dissection plan, multifrontal factors, solves against dense LAPACK."""
+"""The grid solver: its nested-dissection plan, and its solves of random M-matrices against
+their known solutions (the operator itself checked against a dense matrix)."""
 
 from __future__ import annotations
 
@@ -88,7 +89,7 @@ def test_coefficients_of_the_wrong_shape_are_refused() -> None:
 
 
 def test_negligible_entries_do_not_change_the_refined_solution() -> None:
-    """Weights of 1e-30 (dropped from the factors, as subnormal-prone) still count in the
+    """Weights of about 1e-26 (dropped from the factors, as subnormal-prone) still count in the
     operator the refinement uses: the refined solution solves the exact system."""
     coefficients = _m_matrix(20, 24, seed=5)
     coefficients[1, 5:15, :] *= 1e-25  # vertical links nearly cut in a band

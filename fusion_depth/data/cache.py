@@ -760,10 +760,9 @@ def _worker_main(
     offset = start * len(todo) // workers
     # Each worker's BLAS (the colorization solver's dense products) gets its share of the
     # cores: OpenBLAS starts a thread per core in every process, N × N threads on N cores.
-    # threadpoolctl limits the
-    # libraries loaded now; one a fill loads later (SciPy's own OpenBLAS) reads the environment
-    # when it starts. Unlimited, two workers' linear fills ran 2-15x slower on 2 cores
-    # (docs/results/prepare.md, "Two workers against one, light fills").
+    # threadpoolctl limits the libraries loaded now; one a fill loads later (SciPy's own
+    # OpenBLAS) reads the environment when it starts. Unlimited, two workers' linear fills ran
+    # 2-15x slower on 2 cores (docs/results/prepare.md, "Two workers against one, light fills").
     threads = max(1, usable_cores() // workers)
     for variable in _THREAD_VARIABLES:
         os.environ[variable] = str(threads)

@@ -26,6 +26,7 @@ filled map is the same as against the unfilled one.
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -37,6 +38,8 @@ from fusion_depth.data.stencil_lu import CENTRE, StencilLU, stencil_apply
 if TYPE_CHECKING:
     from scipy.sparse import csc_matrix
     from scipy.sparse.linalg import SuperLU
+
+log = logging.getLogger(__name__)
 
 FILL_METHODS: tuple[str, ...] = ("none", "linear", "colorization", "linear_hull")
 
@@ -165,15 +168,15 @@ def _fill_colorization(depth: np.ndarray, known: np.ndarray, gray: np.ndarray) -
     """Levin et al.'s optimisation with the measured pixels fixed (:func:`colorization_system`),
     solved directly on the pixel grid (:class:`~fusion_depth.data.stencil_lu.StencilLU`, float32
     factors) and refined in float64 until :func:`colorization_error_bound` proves every pixel
-    within :data:`FILL_TOLERANCE_M` of the exact solution; SuperLU's float64 factorisation of
-    the system where it cannot."""
+    within a tenth of :data:`FILL_TOLERANCE_M` of the exact solution; where it cannot, by
+    SuperLU's float64 factorisation of the system (:func:`_fill_colorization_float64`)."""
     scale = float(depth[known].max())
     coefficients = _grid_coefficients(known, gray)
     rhs = np.where(known, depth.astype(np.float64) / scale, 0.0)
     try:
         factors = StencilLU(coefficients)
     except ValueError:  # a front singular in float32: a nearly cut-off region
-        return _fill_colorization_float64(depth, known, gray)
+        return _fill_colorization_float64(depth, known, gray, coefficients, rhs)
     bound = colorization_error_bound(factors, coefficients, known)
     solution = np.zeros(depth.shape)
     residual, previous = rhs, np.inf
@@ -182,35 +185,38 @@ def _fill_colorization(depth: np.ndarray, known: np.ndarray, gray: np.ndarray) -
         solution[known] = rhs[known]
         residual = rhs - stencil_apply(coefficients, solution)
         size = float(np.abs(residual).max())
-        if bound(size) * scale <= FILL_TOLERANCE_M / 10:
+        if bound(size, float(np.abs(solution).max())) * scale <= FILL_TOLERANCE_M / 10:
             return solution * scale
         if not size < 0.5 * previous:  # stalled at rounding, or diverging
             break
         previous = size
-    return _fill_colorization_float64(depth, known, gray)
+    return _fill_colorization_float64(depth, known, gray, coefficients, rhs)
 
 
 def colorization_error_bound(
     factors: StencilLU, coefficients: np.ndarray, known: np.ndarray
-) -> Callable[[float], float]:
+) -> Callable[[float, float], float]:
     """A proven bound on the colorization fill's error, from the largest residual.
 
-    The system ``A x = b`` in the missing pixels is a nonsingular M-matrix, so ``A^-1 >= 0``
-    entrywise, and for any ``z`` with ``A z >= c > 0`` in every row, ``A^-1 1 <= z / c``. The
-    error of an approximate solution with residual ``r = b - A x`` is ``A^-1 r``, so no pixel
-    is off by more than ``max|r| * max(z) / c`` (Varga, "Matrix Iterative Analysis", 2000,
-    sec. 3.5: a positive vector ``z`` with ``A z > 0`` bounds ``||A^-1||_inf``). ``z`` is the
-    factors' solve of ``A z = 1``, refined until ``c >= 1/2``; ``A z`` and ``r`` are computed
-    in float64, whose rounding (< 1e-14 here, values in [0, 1]) is added to both.
+    For a matrix ``A`` with no positive entry off its diagonal (the system in the missing
+    pixels: each row ``x_i - sum_j w_ij x_j``, ``w >= 0``), a vector ``z > 0`` with
+    ``A z >= c > 0`` in every row proves ``A`` a nonsingular M-matrix, so ``A^-1 >= 0`` entrywise
+    and ``A^-1 1 <= z / c`` (Berman & Plemmons, "Nonnegative Matrices in the Mathematical
+    Sciences", 1994, ch. 6, condition I27; Varga, "Matrix Iterative Analysis", 2000, sec. 3.5).
+    The error of an approximate solution with residual ``r = b - A x`` is ``A^-1 r``, so no
+    pixel is off by more than ``max|r| * max(z) / c``. ``z`` is the factors' solve of ``A z = 1``,
+    refined until ``c >= 1/2``; ``A z`` and ``r`` are computed in float64, and their rounding
+    (under 1e-14 of the largest value in a row's terms) is added to both.
 
     Args:
-        factors: the factorised operator of :func:`_grid_coefficients`.
+        factors: the factorised operator of :func:`_grid_coefficients` (or any object with
+            the same ``solve``, as the SuperLU fallback's).
         coefficients: (9, H, W), that operator.
-        known: bool (H, W), the measured pixels (identity rows).
+        known: bool (H, W), the measured pixels (identity rows; at least one missing pixel).
 
     Returns:
-        ``bound(max|r|)``: the largest possible error of any pixel, in units of the largest
-        measured depth (``inf`` where no ``z`` is found: the bound cannot be proved).
+        ``bound(max|r|, max|x|)``: the largest possible error of any pixel, in units of the
+        largest measured depth (``inf`` where no such ``z`` is found: nothing is proved).
     """
     ones = np.where(known, 0.0, 1.0)
     z = np.zeros(known.shape)
@@ -220,22 +226,59 @@ def colorization_error_bound(
         z[known] = 0.0
         image = stencil_apply(coefficients, z)
         residual = ones - image
-        largest = float(z.max()) if z.size else 0.0
+        largest, lowest = float(z[~known].max()), float(z[~known].min())
         smallest = float(image[~known].min()) - _ROUNDING * max(1.0, largest)
-        if smallest >= 0.5:
-            return lambda size: (size + _ROUNDING) * largest / smallest
-    return lambda size: np.inf
+        if lowest > 0 and smallest >= 0.5:
+            return lambda size, magnitude: (
+                (size + _ROUNDING * max(1.0, magnitude)) * largest / smallest
+            )
+    return lambda size, magnitude: np.inf
+
+
+class _SuperLUOnGrid:
+    """SuperLU's float64 factors of :func:`colorization_system`, solving the whole grid's system
+    as :meth:`StencilLU.solve` does (measured pixels: identity rows)."""
+
+    def __init__(self, coefficients: np.ndarray, depth: np.ndarray, known: np.ndarray, gray):
+        transposed, _, _, self.unknowns = colorization_system(depth, known, gray)
+        self.factors = _factorise(transposed)
+        self.coefficients, self.known = coefficients, known
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        fixed = np.where(self.known, rhs, 0.0)
+        moved = (rhs - stencil_apply(self.coefficients, fixed)).ravel()  # b_u - A_uk x_k
+        solution = fixed.ravel()
+        solution[self.unknowns] = self.factors.solve(moved[self.unknowns], trans="T")
+        return solution.reshape(rhs.shape)
 
 
 def _fill_colorization_float64(
-    depth: np.ndarray, known: np.ndarray, gray: np.ndarray
+    depth: np.ndarray,
+    known: np.ndarray,
+    gray: np.ndarray,
+    coefficients: np.ndarray,
+    rhs: np.ndarray,
 ) -> np.ndarray:
-    """The fill by SuperLU's float64 factorisation of :func:`colorization_system`: slower (3-4x
-    the grid solver), for systems the float32 factors cannot solve to the tolerance."""
-    transposed, rhs, scale, unknowns = colorization_system(depth, known, gray)
-    filled = depth.astype(np.float64).ravel() / scale
-    filled[unknowns] = _factorise(transposed).solve(rhs, trans="T")
-    return filled.reshape(depth.shape) * scale
+    """The fill by SuperLU's float64 factorisation of :func:`colorization_system`, for systems
+    the float32 grid factors cannot solve to the tolerance (3-4x their time). Its error is
+    bounded the same way (:func:`colorization_error_bound`); a frame whose system is too
+    ill-conditioned for even that to prove :data:`FILL_TOLERANCE_M` is filled all the same,
+    with a warning naming the bound."""
+    scale = float(depth[known].max())
+    factors = _SuperLUOnGrid(coefficients, depth, known, gray)
+    solution = factors.solve(rhs)
+    residual = rhs - stencil_apply(coefficients, solution)
+    proven = colorization_error_bound(factors, coefficients, known)(
+        float(np.abs(residual).max()), float(np.abs(solution).max())
+    )
+    if not proven * scale <= FILL_TOLERANCE_M:
+        log.warning(
+            "colorization: the fill could not be proven within %g m of the exact solution "
+            "(bound %.3g m): the frame's system is too ill-conditioned",
+            FILL_TOLERANCE_M,
+            proven * scale,
+        )
+    return solution * scale
 
 
 def _grid_coefficients(known: np.ndarray, gray: np.ndarray) -> np.ndarray:

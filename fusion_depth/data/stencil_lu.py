@@ -51,8 +51,9 @@ _MAX_LEAF_SIDE = 15
 def padded_size(n: int) -> int:
     """The smallest ``m >= n`` of the form ``(a + 1) 2^k - 1`` with ``1 <= a <= 15``: a side
     that halves around one-pixel cuts, the cheapest, down to ``a`` pixels (an even ``a`` is
-    then cut by two). The grid is padded to it with rows that touch nothing: 2-3 % more
-    pixels at KITTI's and nuScenes' sizes, against two-pixel cuts at every level above."""
+    then cut by two). The grid is padded to it with rows that touch nothing: 5 % more pixels
+    at KITTI's 375x1242 (383x1279), 11 % at nuScenes' 448x800 (479x831); two-pixel cuts at
+    every level instead took about 20 % longer at KITTI's size."""
     if n < 1:
         raise ValueError(f"grid side: expected at least 1 pixel, got {n}")
     best = n if n <= _MAX_LEAF_SIDE else None
