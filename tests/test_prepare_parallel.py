@@ -31,8 +31,10 @@ from fusion_depth.data.cache import (
     PreparedFrame,
     PrepareOptions,
     SkippedFramesError,
+    SplitJob,
     prepare_options,
     prepare_split,
+    prepare_splits,
 )
 from fusion_depth.errors import ArgumentError
 from fusion_depth.utils.atomic import write_atomic
@@ -248,6 +250,58 @@ def test_a_broken_frame_is_skipped_by_its_worker_and_the_others_go_on(tmp_path) 
     assert len(list((cache / "train").glob("0*.json"))) == 10
     assert not (cache / "train" / "index.json").exists()
     assert not list((cache / "train").glob(".0*"))  # no temporary file left
+
+
+def two_splits(cache: Path, make=make_frame) -> list[SplitJob]:
+    """A train split of every frame and a val split of the first four."""
+    return [
+        SplitJob(cache, "train", FRAMES, make, PARAMS),
+        SplitJob(cache, "val", FRAMES[:4], make, PARAMS),
+    ]
+
+
+def test_one_set_of_workers_serves_every_split(tmp_path) -> None:
+    """The workers are forked once for all the splits (a worker with no frame of one split
+    left goes on to the next instead of waiting for the others), and each split's files are
+    the serial prepare's."""
+    makers = tmp_path / "makers.txt"
+
+    def noting_its_process(frame_id: str) -> PreparedFrame:
+        with makers.open("a") as f:
+            f.write(f"{os.getpid()}\n")
+        return make_frame(frame_id, delay=0.02)
+
+    with prepare_options(PrepareOptions()):
+        prepare_splits(two_splits(tmp_path / "serial"))
+    with prepare_options(PrepareOptions(workers=2)):
+        prepare_splits(two_splits(tmp_path / "workers", noting_its_process))
+    processes = set(makers.read_text().split())
+    assert len(processes) <= 2 and str(os.getpid()) not in processes, processes
+    assert len(makers.read_text().split()) == len(FRAMES) + 4  # each frame made once
+    assert file_bytes(tmp_path / "workers") == file_bytes(tmp_path / "serial")
+
+
+def test_skipped_frames_are_reported_by_split_when_workers_share_the_splits(tmp_path) -> None:
+    def broken(frame_id: str) -> PreparedFrame:
+        if frame_id == "scene/002":  # in both splits: each reports it, neither gets an index
+            raise ValueError(f"{frame_id}.png: truncated")
+        if frame_id == "scene/007":  # in train only
+            raise ValueError(f"{frame_id}.png: truncated")
+        return make_frame(frame_id)
+
+    cache = tmp_path / "broken"
+    with prepare_options(PrepareOptions(workers=2)):
+        with pytest.raises(SkippedFramesError) as info:
+            prepare_splits(two_splits(cache, broken), on_error="skip")
+    train, val = info.value.reports
+    assert (train.split, [s.frame_id for s in train.skipped]) == (
+        "train",
+        ["scene/002", "scene/007"],
+    )
+    assert (val.split, [s.frame_id for s in val.skipped]) == ("val", ["scene/002"])
+    assert not (cache / "train" / "index.json").exists()
+    assert not (cache / "val" / "index.json").exists()
+    assert len(list((cache / "val").glob("0*.json"))) == 3
 
 
 def test_an_error_in_one_worker_stops_them_all_and_leaves_no_half_file(tmp_path) -> None:

@@ -86,7 +86,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -508,17 +508,35 @@ def prepare_split(
         CacheFullError: the cache's disk is full.
         DataFileError: ``meta.json`` records other settings (:func:`check_meta`).
     """
-    check_on_error(on_error)
-    options = current_prepare_options()
+    _prepare_jobs([SplitJob(cache, split, frame_ids, make_frame, params, sources)], on_error)
+    return cache / split
+
+
+@dataclass
+class _SplitWork:
+    """One split being prepared: its job, the positions this process still has to make, and
+    the frames skipped so far."""
+
+    cache: Path
+    split: str
+    job: _FrameJob
+    pending: list[int]
+    skipped: list[SkippedFrame] = field(default_factory=list)
+
+
+def _start_split(job: SplitJob, on_error: OnError, options: PrepareOptions) -> _SplitWork | None:
+    """Checks ``job``'s split and lists the frames this process has to make; None when the
+    split is prepared. Raises what :func:`prepare_split` names, but for skipped frames."""
+    cache, split, frame_ids = job.cache, job.split, job.frame_ids
     split_dir = cache / split
-    if is_prepared(cache, split, frame_ids, params):
+    if is_prepared(cache, split, frame_ids, job.params):
         log.info("using the prepared %s split in %s", split, split_dir)
-        return split_dir
+        return None
     if not frame_ids:
-        raise ValueError(f"split {split!r}: no frames to prepare (settings: {params})")
+        raise ValueError(f"split {split!r}: no frames to prepare (settings: {job.params})")
     with _disk_full_names(cache):
         cache.mkdir(parents=True, exist_ok=True)
-        check_meta(cache, params)
+        check_meta(cache, job.params)
         split_dir.mkdir(parents=True, exist_ok=True)
         remove_orphaned_temporaries(split_dir, [INDEX_FILE, SHARDED_FILE])
         sharded = _read_sharded(split_dir)
@@ -529,42 +547,61 @@ def prepare_split(
             raise IncompleteSplitError(split_dir, done, len(frame_ids), sharded)
         positions = range(options.shard, len(frame_ids), options.num_shards)
         pending = [i for i in positions if _done_record(split_dir, i, frame_ids[i]) is None]
-        log.info(
-            "%s %s: %d of this process's %d frames to prepare, with %d worker(s)",
-            cache.parent.name,
-            split,
-            len(pending),
-            len(positions),
-            min(options.workers, max(len(pending), 1)),
+    log.info(
+        "%s %s: %d of this process's %d frames to prepare, with %d worker(s)",
+        cache.parent.name,
+        split,
+        len(pending),
+        len(positions),
+        min(options.workers, max(len(pending), 1)),
+    )
+    frame_job = _FrameJob(split_dir, tuple(frame_ids), job.make_frame, on_error, job.sources)
+    return _SplitWork(cache, split, frame_job, pending)
+
+
+def _make_pending(works: Sequence[_SplitWork], workers: int) -> None:
+    """Makes every split's pending frames, in one set of workers (a worker that finds no
+    frame of a split left goes on to the next, so none waits for another to end a split);
+    then waits for the frames another live process claimed."""
+    names = ", ".join(work.split for work in works)
+    description = f"preparing {works[0].cache.parent.name} {names}" if works else ""
+    while active := [work for work in works if work.pending]:
+        skipped = _prepare_frames(
+            [work.job for work in active], [work.pending for work in active], workers, description
         )
-        job = _FrameJob(split_dir, tuple(frame_ids), make_frame, on_error, sources)
-        description = f"preparing {cache.parent.name} {split}"
-        skipped: list[SkippedFrame] = []
-        while pending:
-            skipped += _prepare_frames(job, pending, options.workers, description)
-            bad = {frame.frame_id for frame in skipped}
-            pending = [
+        for work, split_skipped in zip(active, skipped, strict=True):
+            work.skipped += split_skipped
+            bad = {frame.frame_id for frame in work.skipped}
+            ids = work.job.frame_ids
+            work.pending = [
                 i
-                for i in pending
-                if frame_ids[i] not in bad
-                and _done_record(split_dir, i, frame_ids[i], warn=False) is None
+                for i in work.pending
+                if ids[i] not in bad
+                and _done_record(work.job.split_dir, i, ids[i], warn=False) is None
             ]
-            if pending:  # claimed by another live process: wait for it, or for its claim to lapse
-                log.info("waiting for %d frame(s) another process is preparing", len(pending))
-                time.sleep(1.0)
-        if skipped:  # no index: the split stays unprepared until every frame is there
-            raise SkippedFramesError([SplitReport(split, len(frame_ids), tuple(skipped))])
-        missing = _missing(split_dir, frame_ids)
+        waiting = sum(len(work.pending) for work in works)
+        if waiting:  # claimed by another live process: wait for it, or for its claim to lapse
+            log.info("waiting for %d frame(s) another process is preparing", waiting)
+            time.sleep(1.0)
+
+
+def _finish_split(work: _SplitWork, options: PrepareOptions) -> None:
+    """Writes the split's index once every frame is there; raises SkippedFramesError for its
+    skipped frames, IncompleteSplitError while other shards' frames are missing."""
+    frame_ids = work.job.frame_ids
+    with _disk_full_names(work.cache):
+        if work.skipped:  # no index: the split stays unprepared until every frame is there
+            raise SkippedFramesError([SplitReport(work.split, len(frame_ids), tuple(work.skipped))])
+        missing = _missing(work.job.split_dir, frame_ids)
         if missing:
             raise IncompleteSplitError(
-                split_dir,
+                work.job.split_dir,
                 len(frame_ids) - len(missing),
                 len(frame_ids),
                 options.num_shards,
-                _other_sharded_settings(cache, split),
+                _other_sharded_settings(work.cache, work.split),
             )
-        _write_index(split_dir, frame_ids)
-    return split_dir
+        _write_index(work.job.split_dir, frame_ids)
 
 
 def _other_sharded_settings(cache: Path, split: str) -> str | None:
@@ -610,10 +647,13 @@ class _FrameJob:
 
 
 def _prepare_frames(
-    job: _FrameJob, todo: Sequence[int], workers: int, description: str
-) -> list[SkippedFrame]:
-    """Makes the frames at positions ``todo`` (claimed one by one), in this process or in
-    ``workers`` forked ones, with a progress bar or log lines; returns the skipped ones.
+    jobs: Sequence[_FrameJob], todos: Sequence[Sequence[int]], workers: int, description: str
+) -> list[list[SkippedFrame]]:
+    """Makes the frames at positions ``todos[k]`` of each ``jobs[k]`` (claimed one by one), in
+    this process or in ``workers`` forked ones, with a progress bar or log lines; returns the
+    skipped ones of each job. One set of workers serves every job: a worker forked once per
+    split would start cold (0.1 s on a 2-core Xeon, as much as a few light frames), and the
+    first to run out of a split's frames would wait for the others to end it.
 
     Workers ignore Ctrl-C and die with this process (:func:`~fusion_depth.utils.processes.
     die_with_parent`); a worker that dies raises ChildProcessError here. The first error a
@@ -623,6 +663,7 @@ def _prepare_frames(
     :data:`STOP_GRACE_S`. Once every worker has stopped (a second Ctrl-C does not cut this
     short), the temporary files and claims no live process holds are removed.
     """
+    todo = [(k, i) for k, positions in enumerate(todos) for i in positions]
     workers = min(workers, len(todo))
     if workers > 1 and "fork" not in multiprocessing.get_all_start_methods():
         log.warning("%d workers: this platform cannot fork; preparing in one", workers)
@@ -630,22 +671,23 @@ def _prepare_frames(
     with Progress(len(todo), description, unit="frames", transient=True, logger=log) as progress:
         if workers <= 1:
             try:
-                return _work(job, todo, progress.advance)
+                return _by_job(jobs, _work(jobs, todo, progress.advance))
             finally:  # an interrupt between a temporary file's creation and its write's guard
                 with _interrupts_deferred():
-                    _remove_orphans(job.split_dir)
+                    for job in jobs:
+                        _remove_orphans(job.split_dir)
         context = multiprocessing.get_context("fork")  # make_frame is a closure: not picklable
         counter = context.Value("i", 0)
         results = context.SimpleQueue()
         processes = [
             context.Process(
                 target=_worker_main,
-                args=(job, todo, k, workers, counter, results, os.getpid()),
+                args=(jobs, todo, k, workers, counter, results, os.getpid()),
                 daemon=True,
             )
             for k in range(workers)
         ]
-        skipped: list[SkippedFrame] = []
+        skipped: list[tuple[int, SkippedFrame]] = []
         try:
             # Forked with SIGINT blocked: a Ctrl-C before a worker ignores it stays pending.
             old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -673,6 +715,10 @@ def _prepare_frames(
                 now = counter.value
                 progress.advance(now - seen)
                 seen = now
+                if not running:  # every worker has exited: its report is in the queue by now
+                    if results.empty() and reported < workers:
+                        raise ChildProcessError("a prepare worker ended without reporting")
+                    continue
                 # A worker reports, then exits: waking on its exit (or every 0.1 s, for the
                 # progress) ends the split as soon as the last frame is written, not up to a
                 # poll later, which on a split of cheap frames was a few percent of its time.
@@ -689,12 +735,22 @@ def _prepare_frames(
                 # A worker stopped mid-write (killed, or signalled again during its cleanup)
                 # may have left a temporary file and its claim: with every worker gone, no one
                 # will rename or release them.
-                _remove_orphans(job.split_dir)
+                for job in jobs:
+                    _remove_orphans(job.split_dir)
+        return _by_job(jobs, skipped)
+
+
+def _by_job(
+    jobs: Sequence[_FrameJob], skipped: Sequence[tuple[int, SkippedFrame]]
+) -> list[list[SkippedFrame]]:
+    """Each job's skipped frames, once each (a worker that skipped a frame and exited leaves a
+    stale claim, so another worker may try the frame again), in the job's frame order."""
+    by_job: list[list[SkippedFrame]] = []
+    for k, job in enumerate(jobs):
         order = {frame_id: i for i, frame_id in enumerate(job.frame_ids)}
-        # A worker that skipped a frame and exited leaves a stale claim, so another worker may
-        # try the frame again: it is reported once.
-        unique = {frame.frame_id: frame for frame in reversed(skipped)}
-        return sorted(unique.values(), key=lambda frame: order[frame.frame_id])
+        unique = {frame.frame_id: frame for j, frame in reversed(skipped) if j == k}
+        by_job.append(sorted(unique.values(), key=lambda frame: order[frame.frame_id]))
+    return by_job
 
 
 @contextmanager
@@ -732,8 +788,8 @@ _THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS
 
 
 def _worker_main(
-    job: _FrameJob,
-    todo: Sequence[int],
+    jobs: Sequence[_FrameJob],
+    todo: Sequence[tuple[int, int]],
     start: int,
     workers: int,
     counter: Any,
@@ -768,7 +824,7 @@ def _worker_main(
         os.environ[variable] = str(threads)
     try:
         with threadpool_limits(limits=threads):
-            results.put(("done", _work(job, [*todo[offset:], *todo[:offset]], advance)))
+            results.put(("done", _work(jobs, [*todo[offset:], *todo[:offset]], advance)))
     except SystemExit:
         raise  # stopped by the parent, which is no longer listening
     except BaseException as err:
@@ -779,39 +835,53 @@ def _worker_main(
         raise SystemExit(1) from None
 
 
-def _work(job: _FrameJob, todo: Sequence[int], advance: Callable[..., Any]) -> list[SkippedFrame]:
-    """Claims and makes each frame at ``todo`` that no one else has; the skipped ones."""
+def _work(
+    jobs: Sequence[_FrameJob], todo: Sequence[tuple[int, int]], advance: Callable[..., Any]
+) -> list[tuple[int, SkippedFrame]]:
+    """Claims and makes each frame ``(k, i)`` of ``todo`` (position ``i`` of ``jobs[k]``) that
+    no one else has; the skipped ones, with their ``k``."""
     skipped = []
-    for i in todo:
-        stem = f"{i:06d}"
-        frame_id = job.frame_ids[i]
-        # Only the frames this worker makes (or skips) count: every worker walks the whole list,
-        # so counting the ones others claimed would count each frame once per worker.
-        if not _claim(job.split_dir, stem):
-            continue  # another worker or process is making it (or found it broken)
-        release, made = True, False
-        try:
-            if _done_record(job.split_dir, i, frame_id, warn=False) is not None:
-                continue  # made by another process before this one claimed it
-            made = True
-            _remove_temporaries(job.split_dir, stem)
-            try:
-                sources, frame = _sources_and_frame(job, frame_id)
-                _check_frame(frame, frame_id)
-            except FRAME_ERRORS as err:
-                if job.on_error == "raise":
-                    raise
-                skipped.append(SkippedFrame(frame_id, one_line(err)))
-                log.warning("skipped %s: %s", frame_id, skipped[-1].reason)
-                release = False  # the other workers leave it; a later run tries it again
-                continue
-            _write_frame(job.split_dir, stem, frame_id, frame, sources)
-        finally:
-            if release:
-                _release(job.split_dir, stem)
-            if made:
-                advance()
+    for k, i in todo:
+        # A full disk is named here, where its cache is known (the workers serve every split).
+        with _disk_full_names(jobs[k].split_dir.parent):
+            frame = _claim_and_make(jobs[k], i, advance)
+        if frame is not None:
+            skipped.append((k, frame))
     return skipped
+
+
+def _claim_and_make(job: _FrameJob, i: int, advance: Callable[..., Any]) -> SkippedFrame | None:
+    """Claims and makes the frame at position ``i`` unless another has it; the frame when it
+    is skipped (``on_error="skip"``)."""
+    stem = f"{i:06d}"
+    frame_id = job.frame_ids[i]
+    # Only the frames this worker makes (or skips) count: every worker walks the whole list,
+    # so counting the ones others claimed would count each frame once per worker.
+    if not _claim(job.split_dir, stem):
+        return None  # another worker or process is making it (or found it broken)
+    release, made = True, False
+    try:
+        if _done_record(job.split_dir, i, frame_id, warn=False) is not None:
+            return None  # made by another process before this one claimed it
+        made = True
+        _remove_temporaries(job.split_dir, stem)
+        try:
+            sources, frame = _sources_and_frame(job, frame_id)
+            _check_frame(frame, frame_id)
+        except FRAME_ERRORS as err:
+            if job.on_error == "raise":
+                raise
+            skipped = SkippedFrame(frame_id, one_line(err))
+            log.warning("skipped %s: %s", frame_id, skipped.reason)
+            release = False  # the other workers leave it; a later run tries it again
+            return skipped
+        _write_frame(job.split_dir, stem, frame_id, frame, sources)
+        return None
+    finally:
+        if release:
+            _release(job.split_dir, stem)
+        if made:
+            advance()
 
 
 def _sources_and_frame(job: _FrameJob, frame_id: str) -> tuple[list | None, PreparedFrame]:
@@ -1283,8 +1353,6 @@ def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> 
     tried, :class:`IncompleteSplitError` is raised for the first, with all of them in its
     ``splits``.
     """
-    reports: list[SplitReport] = []
-    incomplete: list[IncompleteSplitError] = []
     older = older_caches(jobs[0].cache) if jobs else []
     if older:
         log.info(
@@ -1294,29 +1362,40 @@ def prepare_splits(jobs: Sequence[SplitJob], *, on_error: OnError = "raise") -> 
             jobs[0].cache,
             ", ".join(str(folder) for folder in older),
         )
-    for job in jobs:
+    _prepare_jobs(jobs, on_error)
+
+
+def _prepare_jobs(jobs: Sequence[SplitJob], on_error: OnError) -> None:
+    """:func:`prepare_splits` without its note on older caches: every split is checked, then
+    their frames made by one set of workers (:func:`_prepare_frames`), then each split's index
+    written."""
+    check_on_error(on_error)
+    options = current_prepare_options()
+    reports = [SplitReport(job.split, len(job.frame_ids)) for job in jobs]
+    incomplete: dict[int, IncompleteSplitError] = {}
+    works: dict[int, _SplitWork] = {}
+    for k, job in enumerate(jobs):
         try:
-            prepare_split(
-                job.cache,
-                job.split,
-                job.frame_ids,
-                job.make_frame,
-                job.params,
-                on_error=on_error,
-                sources=job.sources,
-            )
-        except SkippedFramesError as err:
-            reports += err.reports
+            work = _start_split(job, on_error, options)
         except IncompleteSplitError as err:
-            incomplete.append(err)
-            reports.append(SplitReport(job.split, len(job.frame_ids)))
-        else:
-            reports.append(SplitReport(job.split, len(job.frame_ids)))
+            incomplete[k] = err
+            continue
+        if work is not None:
+            works[k] = work
+    _make_pending(list(works.values()), options.workers)
+    for k, work in works.items():
+        try:
+            _finish_split(work, options)
+        except SkippedFramesError as err:
+            reports[k] = err.reports[0]
+        except IncompleteSplitError as err:
+            incomplete[k] = err
     if any(report.skipped for report in reports):
         raise SkippedFramesError(reports)
     if incomplete:
-        incomplete[0].splits = incomplete
-        raise incomplete[0]
+        first, *_ = (incomplete[k] for k in sorted(incomplete))
+        first.splits = [incomplete[k] for k in sorted(incomplete)]
+        raise first
 
 
 def older_caches(cache: Path) -> list[Path]:
