@@ -682,7 +682,7 @@ def _prepare_frames(
         processes = [
             context.Process(
                 target=_worker_main,
-                args=(jobs, todo, k, workers, counter, results, os.getpid()),
+                args=(jobs, todos, k, workers, counter, results, os.getpid()),
                 daemon=True,
             )
             for k in range(workers)
@@ -789,7 +789,7 @@ _THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS
 
 def _worker_main(
     jobs: Sequence[_FrameJob],
-    todo: Sequence[tuple[int, int]],
+    todos: Sequence[Sequence[int]],
     start: int,
     workers: int,
     counter: Any,
@@ -798,8 +798,8 @@ def _worker_main(
 ) -> None:
     """A worker: it dies with ``parent`` and ignores Ctrl-C (the parent stops it), SIGTERM
     becomes SystemExit (so the write in progress removes its temporary file, as on any
-    exception), then :func:`_work` from its own place in the list, so the first claims do not
-    collide; reports ``("done", skipped)`` or ``("error", exception)``."""
+    exception), then :func:`_work` on each split in turn; reports ``("done", skipped)`` or
+    ``("error", exception)``."""
     die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
@@ -813,7 +813,13 @@ def _worker_main(
         with counter.get_lock():
             counter.value += n
 
-    offset = start * len(todo) // workers
+    # Each worker starts each split at its own place, so the first claims do not collide, and
+    # ends the splits in order: the last (val and test: unfilled, cheap) fill the time others
+    # spend on their last frame of the first.
+    todo = []
+    for k, positions in enumerate(todos):
+        offset = start * len(positions) // workers
+        todo += [(k, i) for i in [*positions[offset:], *positions[:offset]]]
     # Each worker's BLAS (the colorization solver's dense products) gets its share of the
     # cores: OpenBLAS starts a thread per core in every process, N × N threads on N cores.
     # threadpoolctl limits the libraries loaded now; one a fill loads later (SciPy's own
@@ -824,7 +830,7 @@ def _worker_main(
         os.environ[variable] = str(threads)
     try:
         with threadpool_limits(limits=threads):
-            results.put(("done", _work(jobs, [*todo[offset:], *todo[:offset]], advance)))
+            results.put(("done", _work(jobs, todo, advance)))
     except SystemExit:
         raise  # stopped by the parent, which is no longer listening
     except BaseException as err:
