@@ -13,7 +13,8 @@ Measured by ``python -m fusion_depth.bench --only prepare`` on 2 cores of an Int
 AMX, one thread, against SciPy's default ``spsolve`` of the same system: 6.8-7.1x on real
 375x1242 KITTI frames (a Velodyne scan projected into its image), 6.3-7.7x on generated ones
 of that size and 8.2-8.6x at nuScenes' 448x800; a first fill in a fresh process, which also
-maps its memory, 4.2-4.5x (``docs/results/prepare.md``). The command prints the ratio on your machine.
+maps its memory, 4.2-4.5x (``docs/results/prepare.md``). The command prints the ratio on your
+machine.
 ``linear`` is the cheap alternative (piecewise-linear over a Delaunay triangulation of the
 measured points, nearest measurement outside their convex hull); ``linear_hull`` the same
 inside the hull and nothing outside it (the rule of RadarNet's ``interpolate_depth``,
