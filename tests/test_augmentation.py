@@ -183,6 +183,29 @@ def test_bad_augmentation_values_get_a_short_error(tmp_path, override, expected)
         validate_config(cfg)
 
 
+def test_an_outlier_filter_it_cannot_apply_is_refused_before_training(tmp_path) -> None:
+    """Before: ``[-1, 1]`` passed (``-1 % 2 == 1``) and training died at its first batch with a
+    torch traceback. Every kernel that is not an odd integer ≥ 1, and every threshold that is
+    not finite metres > 0, is one line naming the key, before anything is built; and from
+    Python, naming the argument."""
+    composed = compose_config([], tmp_path)
+    inf, nan = float("inf"), float("nan")
+    bad = [[-1, 1], [0, 1], [-3, 1.5], [2, 1], [7, 0], [7, -1], [7, inf], [7, nan]]
+    for value in [*bad, [7], [True, 1], "7"]:
+        cfg = composed.copy()
+        cfg.augment.outlier_filter = value
+        with pytest.raises(ConfigError) as err:
+            validate_config(cfg)
+        assert str(err.value).startswith("augment.outlier_filter=") and "\n" not in str(err.value)
+        assert "expected [kernel, threshold]: an odd side ≥ 1" in str(err.value)
+    for value in bad:
+        with pytest.raises(ArgumentError, match=r"^outlier_filter=.*expected \[kernel"):
+            TrainAugmentation(outlier_filter=value)
+    cfg = composed.copy()
+    cfg.augment.outlier_filter = [1, 0.5]  # the smallest filter: no neighbour but itself
+    validate_config(cfg)
+
+
 _KITTI = ["dataset=kitti", "dataset.root=DATA", "dataset.raw_root=RAW"]
 
 

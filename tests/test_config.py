@@ -9,6 +9,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from helpers import compose_config
 from hydra.errors import ConfigCompositionException, MissingConfigException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -249,3 +250,49 @@ def test_cli_rejects_bad_choice_before_touching_data(tmp_path: Path) -> None:
     assert result.returncode != 0
     assert "loss" in result.stderr and "berhu" in result.stderr
     assert not (tmp_path / "cache").exists()
+
+
+# What a training run reads is set by the dataset group, the model's dataset recipe
+# (conf/experiment/<dataset>_<model>.yaml), an experiment and the command line.
+AS_TRAINED = {
+    "default": [],  # the built-in dataset's recipe for densedepth: a 6,400-frame pool
+    "paper": ["experiment=paper"],  # the model's own recipe: the dataset group's pool
+    "nuscenes_radarnet": ["dataset=nuscenes", "dataset.root=DATA", "model=radarnet"],
+    "command_line_wins": ["model=sparse_to_dense", "dataset.num_train=320"],
+}
+
+
+@pytest.mark.parametrize("overrides", AS_TRAINED.values(), ids=AS_TRAINED.keys())
+def test_prepare_prepares_the_dataset_training_reads(overrides, tmp_path, monkeypatch) -> None:
+    """``prepare model=<m>`` (or ``experiment=``) composes the dataset block that ``train`` with
+    the same overrides reads: here, and with prepare's options alone, as its command registers
+    them without importing a network (the store's training options set aside)."""
+    from hydra.core.config_store import ConfigStore
+
+    def dataset(command: str) -> dict:
+        cfg = compose_config(overrides, tmp_path / command, config_name=command)
+        return OmegaConf.to_container(cfg.dataset, resolve=True)
+
+    trained = dataset("train")
+    assert dataset("prepare") == trained
+    from fusion_depth.config.recipes import register_dataset_recipes
+
+    monkeypatch.setitem(ConfigStore.instance().repo, "model_recipe", {})
+    register_dataset_recipes(overrides=overrides)
+    assert dataset("prepare") == trained
+
+
+@pytest.mark.slow
+def test_the_prepare_command_composes_the_dataset_training_reads(tmp_path: Path) -> None:
+    overrides = AS_TRAINED["nuscenes_radarnet"]
+    result = subprocess.run(
+        [sys.executable, "-m", "fusion_depth.prepare", *overrides, "--cfg", "job", "--resolve"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    prepared = OmegaConf.create(result.stdout).dataset
+    trained = compose_config(overrides, tmp_path / "train").dataset
+    assert OmegaConf.to_container(prepared) == OmegaConf.to_container(trained, resolve=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 
 import pytest
 import torch
@@ -334,6 +335,7 @@ def evaluates_and_exports(run, cwd):
     assert "verified with onnxruntime" in exported.stderr + exported.stdout
 
 
+@pytest.mark.slow
 def test_smoke_run_trains_with_the_prior_evaluates_and_exports(tmp_path, tiny_folder):
     run = tmp_path / "run"
     done = _train(
@@ -359,6 +361,7 @@ def test_smoke_run_trains_with_the_prior_evaluates_and_exports(tmp_path, tiny_fo
         ),
     ],
 )
+@pytest.mark.slow
 def test_bad_prior_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, message):
     overrides = [o.replace("{tiny}", str(tiny_folder)) for o in overrides]
     failed = _train(tmp_path, "prior=depth_anything_v2", *overrides, f"hydra.run.dir={tmp_path}/r")
@@ -397,6 +400,7 @@ def test_correction_starts_as_the_global_alignment(tiny_folder):
     assert not any(k.startswith("prior.") for k in net.state_dict())
 
 
+@pytest.mark.slow
 def test_correction_trains_evaluates_and_exports(tmp_path, tiny_folder):
     run = tmp_path / "run"
     overrides = ["model=prior_correction", "fusion=concat", "prior=depth_anything_v2"]
@@ -457,6 +461,7 @@ def test_a_platform_checkpoint_serves_as_the_prior(tmp_path):
         CheckpointPrior(tmp_path / "notes.ckpt")
 
 
+@pytest.mark.slow
 def test_smoke_run_with_a_checkpoint_prior(tmp_path):
     from helpers import save_untrained_checkpoint
 
@@ -512,3 +517,230 @@ def test_the_fit_runs_in_fp32_under_bf16_autocast(tiny_folder):
     assert inverse.dtype == torch.float32
     exact = net.global_fit(relative.float(), sparse)
     torch.testing.assert_close(inverse, exact)
+
+
+# --- bad prior files, weights folders that would reach the network, priors replaced ------------
+
+
+def _bad_checkpoints(folder, good):
+    """Files ``prior=checkpoint`` may be given that are not a checkpoint ``train`` wrote, by
+    what is wrong with them: ``(path, what the message says is expected)``."""
+    checkpoint = torch.load(good, weights_only=True)
+    state = checkpoint["state_dict"]
+    variants = {
+        "list_state": ({**checkpoint, "state_dict": list(state.values())}, "mapping of parameter"),
+        "text_state": ({**checkpoint, "state_dict": "weights"}, "mapping of parameter"),
+        "int_values": ({**checkpoint, "state_dict": dict.fromkeys(state, 1)}, "mapping of param"),
+        "int_keys": ({**checkpoint, "state_dict": dict(enumerate(state.values()))}, "mapping of"),
+        "no_state": ({k: v for k, v in checkpoint.items() if k != "state_dict"}, "state_dict"),
+        "no_net": ({**checkpoint, "fusion_depth_config": {"model": [1]}}, "names no network"),
+        "not_a_mapping": ([1, 2, 3], "state_dict"),
+    }
+    cases = []
+    for name, (content, expected) in variants.items():
+        torch.save(content, folder / f"{name}.ckpt")
+        cases.append((folder / f"{name}.ckpt", expected))
+    raw = good.read_bytes()
+    (folder / "truncated.ckpt").write_bytes(raw[: len(raw) // 2])
+    (folder / "text.ckpt").write_text("hello, not a checkpoint")
+    (folder / "empty.ckpt").write_bytes(b"")
+    readable = "not a readable PyTorch checkpoint"
+    cases += [(folder / f"{n}.ckpt", readable) for n in ("truncated", "text", "empty")]
+    return cases
+
+
+def test_a_bad_prior_checkpoint_is_one_line_naming_it(tmp_path):
+    from helpers import save_untrained_checkpoint
+
+    from fusion_depth.models.depth_prior import CheckpointPrior
+
+    good = save_untrained_checkpoint(tmp_path / "rgb.ckpt", "rgb", DATASET, backbone="resnet10t")
+    before = {p: p.read_bytes() for p in tmp_path.iterdir()}
+    for path, expected in _bad_checkpoints(tmp_path, good):
+        with pytest.raises(ArgumentError) as raised:
+            CheckpointPrior(path)
+        message = str(raised.value)
+        assert message.startswith(f"weights={path}: "), message
+        assert expected in message and "\n" not in message and len(message) < 400, message
+    assert all(p.read_bytes() == data for p, data in before.items())  # nothing written over
+
+
+HUB_CONFIGS = [
+    ({"backbone": "facebook/dinov2-small", "backbone_config": None}, "backbone"),
+    ({"use_pretrained_backbone": True}, "use_pretrained_backbone"),
+    ({"backbone": "vit_small_patch14_dinov2", "use_timm_backbone": True}, "backbone"),
+    ({"use_timm_backbone": True}, "use_timm_backbone"),
+    ({"backbone_config": "facebook/dinov2-small"}, "backbone_config"),
+]
+
+
+def _hub_folder(tmp_path, tiny_folder, edit):
+    folder = tmp_path / "weights"
+    shutil.copytree(tiny_folder, folder)
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, **edit}))
+    return folder
+
+
+def _count_network(monkeypatch):
+    """Every connection or name lookup attempted, refused (recorded: a loader that catches
+    the error cannot hide that it tried)."""
+    import socket
+
+    attempts = []
+
+    def refuse(*args, **kwargs):
+        attempts.append(args)
+        raise OSError("the network is not reachable in this test")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket, "getaddrinfo", refuse)
+    return attempts
+
+
+@pytest.mark.parametrize(("edit", "key"), HUB_CONFIGS)
+def test_a_config_naming_a_hub_backbone_never_reaches_the_network(
+    tmp_path, tiny_folder, monkeypatch, edit, key
+):
+    import os
+
+    attempts = _count_network(monkeypatch)
+    folder = _hub_folder(tmp_path, tiny_folder, edit)
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(folder)
+    message = str(raised.value)
+    assert message.startswith(f"weights={folder}: {folder / 'config.json'} sets {key}=")
+    assert "local files only" in message and "\n" not in message
+    assert attempts == []
+    assert "HF_HUB_OFFLINE" not in os.environ  # the offline switch is put back as it was
+
+
+@pytest.mark.parametrize(("edit", "key"), HUB_CONFIGS)
+def test_the_folder_is_read_with_every_download_path_off(
+    tmp_path, tiny_folder, monkeypatch, edit, key
+):
+    """Past the check of config.json (skipped here), the hub's offline switch still stops
+    any request: the folder loads from its own files or is refused in one line, and no
+    connection is attempted."""
+    from fusion_depth.models import depth_prior
+
+    attempts = _count_network(monkeypatch)
+    monkeypatch.setattr(depth_prior, "_check_local_config", lambda *args: None, raising=False)
+    folder = _hub_folder(tmp_path, tiny_folder, edit)
+    try:
+        load_depth_anything_v2(folder)
+    except ArgumentError as err:
+        assert str(err).startswith(f"weights={folder}: ") and "\n" not in str(err)
+    else:  # the backbone is described in the folder: nothing to fetch
+        assert isinstance(edit.get("backbone_config", {}), dict)
+    assert attempts == []
+
+
+def _checkpoint_with_prior(path, folder):
+    """A network with ``folder`` as its prior, saved as training saves it."""
+    from fusion_depth.runner.module import DepthModule
+
+    net = prior_net(folder)
+    spec = {"name": "depth_anything_v2", "weights": str(folder), "input_size": 28}
+    net_config = {"backbone": "resnet10t", "fusion": "concat", "prior": {**spec, "dropout": 0.2}}
+    checkpoint = {"state_dict": {f"net.{k}": v for k, v in net.state_dict().items()}}
+    module = DepthModule(net)
+    module.run_config = {
+        "model": {"net": net_config},
+        "fusion": {"mode": "concat"},
+        "backbone": {"name": "resnet10t"},
+        "dataset": DATASET,
+    }
+    module.on_save_checkpoint(checkpoint)
+    torch.save(checkpoint, path)
+    return path
+
+
+def test_a_checkpoint_refuses_a_prior_replaced_at_its_path(tmp_path, tiny_folder, caplog):
+    from fusion_depth.runner.checkpoints import load_model
+    from fusion_depth.utils.checkpoint_file import CheckpointError
+
+    folder = tmp_path / "weights"
+    shutil.copytree(tiny_folder, folder)
+    path = _checkpoint_with_prior(tmp_path / "net.ckpt", folder)
+    assert load_model(path).net.prior is not None
+    copy = tmp_path / "copy"  # the same weights elsewhere: the same prior
+    shutil.copytree(folder, copy)
+    load_model(path, prior={"name": "depth_anything_v2", "weights": str(copy)})
+    # Another network saved to the same place (a re-download, another size)
+    torch.manual_seed(1)
+    other = tiny_depth_anything()
+    with torch.no_grad():
+        for parameter in other.parameters():
+            parameter.add_(0.1)
+    other.save_pretrained(folder)
+    with pytest.raises(CheckpointError) as raised:
+        load_model(path)
+    from fusion_depth.models.depth_prior import PRIOR_KEY, weights_digest
+
+    message = str(raised.value)
+    recorded = torch.load(path, weights_only=True)[PRIOR_KEY]["sha256"]
+    assert message.startswith(f"ckpt_path={path}: ")
+    assert recorded[:16] in message and weights_digest(folder)[:16] in message
+    assert str(folder) in message and "\n" not in message
+    # A resumed run (Lightning loads the checkpoint into the module) is refused the same way.
+    from fusion_depth.runner.module import DepthModule
+
+    with pytest.raises(CheckpointError, match=recorded[:16]):
+        DepthModule(prior_net(folder)).on_load_checkpoint(torch.load(path, weights_only=True))
+    # A checkpoint from before digests were recorded still loads, with a warning.
+    old = torch.load(path, weights_only=True)
+    del old[PRIOR_KEY]
+    torch.save(old, tmp_path / "old.ckpt")
+    with caplog.at_level("WARNING"):
+        load_model(tmp_path / "old.ckpt")
+    assert "records no digest of its prior" in caplog.text
+
+
+@pytest.mark.slow
+def test_evaluate_predict_and_export_refuse_a_replaced_prior(tmp_path, tiny_folder):
+    from helpers import run_module
+
+    folder = tmp_path / "weights"
+    shutil.copytree(tiny_folder, folder)
+    run = tmp_path / "run"
+    prior = ["prior=depth_anything_v2", f"prior.weights={folder}", "prior.input_size=28"]
+    done = _train(tmp_path, *prior, f"hydra.run.dir={run}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    (checkpoint,) = (run / "checkpoints").glob("epoch*.ckpt")
+    torch.manual_seed(1)
+    tiny_depth_anything(necks=(3, 3)).save_pretrained(folder)  # another prior, same place
+    commands = {
+        "evaluate": ["fusion_depth.evaluate", f"ckpt_path={checkpoint}"],
+        "predict": ["fusion_depth.predict", f"ckpt_path={checkpoint}", "input=split:test"],
+        "export": ["fusion_depth.export", f"ckpt_path={checkpoint}", "format=onnx"],
+    }
+    for name, command in commands.items():
+        refused = run_module(
+            [*command, f"hydra.run.dir={tmp_path / name}"], cwd=tmp_path, env=offline_environment()
+        )
+        assert refused.returncode == 1, (name, refused.stderr[-2000:])
+        lines = [line for line in refused.stderr.splitlines() if "sha256" in line]
+        assert len(lines) == 1 and str(folder) in lines[0], (name, refused.stderr[-2000:])
+        assert "Traceback" not in refused.stderr
+
+
+def test_run_folders_name_prior_weights_short_and_stable(tmp_path):
+    from fusion_depth.config.run_dirs import run_dir, run_dirname
+
+    weights = tmp_path / "some" / "deep" / "place" / "da2-small"
+    name = run_dirname(f"prior=depth_anything_v2,prior.weights={weights},seed=1")
+    assert str(tmp_path.name) not in name and "_some_deep_place" not in name
+    assert name.startswith("prior-depth_anything_v2+prior.weights-da2-small-")
+    assert name.endswith("+seed-1") and len(name) < 70
+    assert name == run_dirname(f"prior=depth_anything_v2,prior.weights={weights},seed=1")
+    other = tmp_path / "elsewhere" / "da2-small"  # the same folder name, another folder
+    assert run_dirname(f"prior=depth_anything_v2,prior.weights={other},seed=1") != name
+    # A sweep over two weights names each short; a folder an earlier release named after the
+    # whole path is still found (its run resumes).
+    sweep = run_dirname(f"prior.weights={weights},{other}")
+    assert sweep.count("da2-small-") == 2 and "_some_" not in sweep
+    overrides = f"prior.weights={weights}"
+    earlier = tmp_path / "outputs" / f"prior.weights-{str(weights).replace('/', '_')}"
+    earlier.mkdir(parents=True)
+    assert run_dir(str(tmp_path / "outputs"), overrides) == str(earlier)

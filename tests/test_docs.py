@@ -214,3 +214,276 @@ def test_every_generated_picture_is_what_its_command_draws(tmp_path, monkeypatch
     for page in (DOCS / "index.md", DOCS / "get-started" / "quickstart.md"):
         shown = re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", page.read_text())
         assert any((page.parent / path).resolve().parent == GENERATED for path in shown), page
+
+
+# --- Docs that run as written ------------------------------------------------------------------
+
+
+# Pages a reader follows: every page of the site but the generated tables and the changelog,
+# whose entries record what was (a past command stays as it was written).
+def _reader_pages() -> list[Path]:
+    pages = [p for p in DOCS.rglob("*.md") if "generated" not in p.parts]
+    return [README, *sorted(p for p in pages if p.name != "changelog.md")]
+
+
+def _markdown_tables(text: str) -> list[list[list[str]]]:
+    """The tables of a Markdown text: rows of cells (the separator row left out)."""
+    tables, rows = [], []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            if not re.fullmatch(r"\|[-:| ]+\|", line.strip()):
+                rows.append([c.strip() for c in line.strip().strip("|").split(" | ")])
+        elif rows:
+            tables.append(rows)
+            rows = []
+    return tables
+
+
+def test_no_list_item_holds_a_block_indented_too_little() -> None:
+    """A fenced block inside a list item is indented by the item's four spaces: with two, the
+    list ends at the block and the next item renders as text starting "- " (the browser check
+    finds such paragraphs in the built site)."""
+    fence = re.compile(r"^ {1,3}(```|~~~)", re.M)
+    found = [
+        f"{p.relative_to(REPO)}: {m.group(0)!r}"
+        for p in _reader_pages()
+        for m in fence.finditer(p.read_text())
+    ]
+    assert found == []
+
+
+def test_install_commands_work_as_written() -> None:
+    """The package is installed from a clone (it is not on PyPI): no page, config comment or
+    message of a config names ``pip install "fusion-depth[...]"``; the Hub's command is
+    ``hf download`` (``huggingface-cli`` is gone); and every extra is on the Install page and
+    in the README's install paragraph."""
+    import tomllib
+
+    texts = {p: p.read_text() for p in _reader_pages()}
+    texts.update({p: p.read_text() for p in (REPO / "conf").rglob("*.yaml")})
+    from_index = re.compile(r"pip install ['\"]?fusion-depth\b")
+    assert [str(p) for p, t in texts.items() if from_index.search(t)] == []
+    assert [str(p) for p, t in texts.items() if "huggingface-cli" in t] == []
+    assert "hf download depth-anything/" in (DOCS / "guides" / "foundation-prior.md").read_text()
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    install = (DOCS / "get-started" / "install.md").read_text()
+    readme = README.read_text().split("## Install", 1)[1].split("\n## ", 1)[0]
+    for extra in extras["optional-dependencies"]:
+        assert f"| `{extra}` |" in install, extra
+        assert f".[{extra}]" in readme, extra
+
+
+def test_the_colorization_cost_is_one_figure() -> None:
+    """The nuScenes tutorial and guide quote one CPU time per frame for each fill, and it
+    agrees with the 8–9 CPU-hours they give for the 28,130 training frames."""
+    tutorial = (DOCS / "tutorials" / "nuscenes-to-table.md").read_text()
+    guide = (DOCS / "guides" / "datasets" / "nuscenes.md").read_text()
+    quoted = []
+    for text in (tutorial, guide):
+        flat = " ".join(text.split())
+        cost = re.search(r"[Cc]osts about ([\d.]+(?:–[\d.]+)?) s of CPU time", flat)
+        linear = re.search(r"linear(?:` takes about|:) ([\d.]+) s", flat)
+        assert cost and linear, "the fill's cost per frame"
+        assert "8–9 CPU-hours" in flat
+        quoted.append((cost.group(1), linear.group(1)))
+    assert quoted[0] == quoted[1], quoted  # (colorization, linear): tutorial, guide
+    low, _, high = quoted[0][0].partition("–")
+    high = high or low
+    assert 7.5 <= 28130 * float(low) / 3600 and 28130 * float(high) / 3600 <= 9  # hours
+
+
+def test_the_prior_results_have_short_labels_and_whole_millimetres() -> None:
+    """The foundation prior's results tables name their rows by short settings (the overrides
+    every row shares named once, under the table), and print millimetres whole; its figure's
+    legend is as short."""
+    from fusion_depth.report import read_figure_description
+
+    for name in ("prior-overall", "prior-rmse", "prior-radarnet", "prior-radarnet-mae"):
+        text = (GENERATED / f"{name}.md").read_text()
+        for table in _markdown_tables(text):
+            header, rows = table[0], table[1:]
+            if "Setting" in header:
+                at = header.index("Setting")
+                assert max(len(row[at]) for row in rows) <= 45, name
+            for j, column in enumerate(header):
+                if "(mm)" in column:
+                    cells = [row[j].strip("*") for row in rows if row[j] != "–"]
+                    assert cells and not any(re.search(r"\d\.\d", c) for c in cells), column
+        if "Setting" in text:
+            assert "Left out of Setting" in text and "prior.weights=" in text, name
+    described = read_figure_description(GENERATED / "prior-rmse.svg")
+    labels = re.findall(r"'(?:label|name)': '([^']*)'", repr(described["panels"]))
+    assert labels and max(len(label) for label in labels) <= 90, labels
+    assert not any(" vs " in label or "/  /" in label for label in labels), labels
+
+
+def test_the_site_builds_from_the_docs_group_alone() -> None:
+    """The site's tools install without the package (and its torch): the ``docs`` dependency
+    group lists what the ``docs`` extra does, Black among them (mkdocstrings wraps signatures
+    with it); the site's hooks import neither the package nor torch; CI builds the site in an
+    environment of that group alone."""
+    import ast
+
+    import tomllib
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())
+    group = project["dependency-groups"]["docs"]
+    assert group == project["project"]["optional-dependencies"]["docs"]
+    names = {re.split(r"[\[<>=~! ]", requirement, maxsplit=1)[0] for requirement in group}
+    assert {"mkdocs", "mkdocs-material", "mkdocstrings", "black"} <= names
+    assert not names & {"torch", "fusion-depth", "torchvision"}
+    for hook in (DOCS / "_hooks").glob("*.py"):
+        for node in ast.walk(ast.parse(hook.read_text())):
+            if isinstance(node, ast.Import | ast.ImportFrom):
+                modules = (
+                    [a.name for a in node.names]
+                    if isinstance(node, ast.Import)
+                    else [node.module or ""]
+                )
+                assert not any(m.split(".")[0] in ("fusion_depth", "torch") for m in modules)
+    site = yaml.safe_load((REPO / "mkdocs.yml").read_text())
+    options = site["plugins"][1]["mkdocstrings"]["handlers"]["python"]["options"]
+    assert options["separate_signature"] is True
+    ci = (REPO / ".ci" / "run").read_text()
+    assert "pip install --quiet --group docs" in ci and ".ci-docs-venv/bin/mkdocs build" in ci
+
+
+def test_the_home_page_says_what_the_readme_says() -> None:
+    """The site's home holds the README's result table, its commands and the methods beyond
+    the paper."""
+    home = (DOCS / "index.md").read_text()
+    readme = README.read_text()
+    result = readme.split("## A result", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in result.splitlines() if line.startswith("| RGB")]
+    assert len(rows) == 3 and all(row in home for row in rows)
+    commands = readme.split("## What else it does", 1)[1].split("```", 2)[1]
+    lines = [line for line in commands.splitlines() if line.startswith(("python -m", "pip "))]
+    shown = " ".join(home.replace("\\\n", " ").split())  # continued lines joined
+    assert len(lines) > 8 and [line for line in lines if " ".join(line.split()) not in shown] == []
+    for method in ("Sparse-to-Dense", "RadarNet", "Depth Anything V2", "foundation-prior.md"):
+        assert method in home, method
+
+
+def test_get_started_points_on_and_troubleshooting_collects_the_fixes() -> None:
+    """Quick start ends with where to go next: real data, a GPU, a cluster (the scale guide and
+    the SLURM tutorial), troubleshooting. The troubleshooting page is in the Get started
+    navigation, linked from the home page, Install, Quick start and the README, and covers
+    offline ImageNet weights, the devkit's numpy pin, bf16 on older CPUs and data errors,
+    each linked to where it is explained."""
+    quickstart = (DOCS / "get-started" / "quickstart.md").read_text()
+    next_steps = quickstart.split("## Where to go next", 1)[1].split("\n## ", 1)[0]
+    for target in (
+        "../tutorials/nuscenes-to-table.md",
+        "../guides/scale.md",
+        "../tutorials/slurm-sweep.md",
+        "trainer=gpu",
+        "troubleshooting.md",
+    ):
+        assert target in next_steps, target
+    config = yaml.safe_load((REPO / "mkdocs.yml").read_text())
+    get_started = next(item["Get started"] for item in config["nav"] if "Get started" in item)
+    assert "get-started/troubleshooting.md" in _nav_pages(get_started)
+    for page, link in (
+        (DOCS / "index.md", "get-started/troubleshooting.md"),
+        (DOCS / "get-started" / "install.md", "troubleshooting.md"),
+        (README, "docs/get-started/troubleshooting.md"),
+    ):
+        assert f"]({link})" in page.read_text(), page
+    page = (DOCS / "get-started" / "troubleshooting.md").read_text()
+    sections = {s.split("\n", 1)[0]: s for s in page.split("\n## ")[1:]}
+    topics = {
+        "ImageNet": ("backbone.weights=", "backbone.pretrained=false", "models.md#pretrained"),
+        "numpy": ('pip install -e ".[nuscenes]"', "numpy < 2", "nuscenes.md#install"),
+        "bf16": ("trainer.precision=auto", "AVX-512 BF16", "speed.md"),
+        "data": ("prepare", "predict", "configuration.md#errors-about-your-data"),
+    }
+    for word, needed in topics.items():
+        (section,) = [s for title, s in sections.items() if word in title]
+        assert all(n in section for n in needed), (word, [n for n in needed if n not in section])
+
+
+# The methods the docs quote numbers of, and where each is published.
+CITED = {
+    "TacoDepth": "https://arxiv.org/abs/2504.11773",
+    "RadarCam-Depth": "https://arxiv.org/abs/2401.04325",
+    "POLAR": "https://arxiv.org/abs/2503.17182",
+    "MiDaS": "https://arxiv.org/abs/1907.01341",
+    "SA-RCD": "https://arxiv.org/abs/2506.05008",
+}
+
+
+def test_every_named_method_is_cited_where_it_is_named() -> None:
+    """A page that names one of the field's methods links its paper."""
+    missing = [
+        f"{page.relative_to(REPO)}: {name}"
+        for page in _reader_pages()
+        for name, url in CITED.items()
+        if re.search(rf"\b{re.escape(name)}\b", page.read_text())
+        and f"]({url})" not in page.read_text()
+    ]
+    assert missing == []
+
+
+def test_the_python_page_api_is_documented() -> None:
+    """``DepthNet`` and ``predict_depth`` list every parameter in an Args section, and what the
+    Python page reads of a loaded model (``fusion``, ``backbone``) has a docstring."""
+    import inspect
+
+    from fusion_depth.models.depth_net import DepthNet
+    from fusion_depth.models.inference import predict_depth
+    from fusion_depth.runner.checkpoints import LoadedModel
+
+    for documented, function in ((DepthNet, DepthNet.__init__), (predict_depth, predict_depth)):
+        doc = inspect.getdoc(documented) or ""
+        assert "Args:" in doc, documented
+        args = doc.split("Args:", 1)[1]
+        for name in list(inspect.signature(function).parameters)[
+            1 if function is not predict_depth else 0 :
+        ]:
+            assert re.search(rf"^\s+{name}:", args, re.M), (documented, name)
+    for name in ("fusion", "backbone"):
+        assert (getattr(LoadedModel, name).__doc__ or "").strip(), name
+    page = (DOCS / "get-started" / "python.md").read_text()
+    assert "loaded.fusion" in page and "loaded.backbone" in page
+
+
+def test_every_sphinx_role_of_the_package_becomes_a_link() -> None:
+    """Each Sphinx role in the package's sources, a labelled one (``:meth:`title <target>```)
+    included, is one the site's Griffe extension (docs/_hooks/sphinx_roles.py) rewrites: none is
+    left as raw text on the site. (The extension's pattern is read from its source, so this runs
+    without the docs' packages.)"""
+    import ast
+
+    source = (DOCS / "_hooks" / "sphinx_roles.py").read_text()
+    (pattern,) = [
+        ast.literal_eval(node.value.args[0])
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "ROLE"
+    ]
+    role = re.compile(pattern)
+    any_role = re.compile(r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):`[^`]+`")
+    found = [
+        (path.relative_to(REPO), text)
+        for path in (REPO / "fusion_depth").rglob("*.py")
+        for text in any_role.findall(path.read_text())
+    ]
+    assert len(found) > 100
+    assert [(p, text) for p, text in found if not role.fullmatch(text)] == []
+    assert any("<" in text for _, text in found), "a labelled role is among them"
+
+
+def test_tables_hold_no_essays_and_keep_names_whole() -> None:
+    """No cell of a table in the docs runs past 60 words (the detail goes below the table),
+    and the stylesheet keeps a name in code font in a table's first column on one line (the
+    browser check measures it on the configuration guide)."""
+    long = [
+        (page.relative_to(REPO), cell[:50])
+        for page in _reader_pages()
+        for table in _markdown_tables(page.read_text())
+        for row in table
+        for cell in row
+        if len(cell.split()) > 60
+    ]
+    assert long == []
+    css = " ".join((DOCS / "stylesheets" / "extra.css").read_text().split())
+    assert "td:first-child code { white-space: nowrap;" in css

@@ -139,6 +139,7 @@ def test_the_fixed_batch_file_runs_any_batch(checkpoint: Path, model_files) -> N
         net(image[..., :32, :], sparse[..., :32, :])
 
 
+@pytest.mark.slow
 def test_predict_model_file_writes_the_depth_pngs(
     checkpoint: Path, model_files: dict[str, Path], tmp_path: Path
 ) -> None:

@@ -309,3 +309,40 @@ def test_odd_dataset_names_and_run_records_are_refused(checkpoints, tmp_path) ->
     (runs / "metrics.json").write_text('{"best_checkpoint": 5}')
     with pytest.raises(CheckpointError, match=r"best_checkpoint=5 is not a path"):
         evaluate(compose_config([f"ckpt_path={runs.parent}"], tmp_path / "e", "evaluate"))
+
+
+def _written(data: bytes):
+    return lambda path, source: path.write_bytes(data)
+
+
+def _state_dict_as(value):
+    def write(path: Path, source: Path) -> None:
+        checkpoint = torch.load(source, weights_only=True)
+        checkpoint["state_dict"] = value
+        torch.save(checkpoint, path)
+
+    return write
+
+
+@pytest.mark.parametrize(
+    "write,message",
+    [
+        (_written(b"hello\n"), "not a readable PyTorch checkpoint"),
+        (_written(b"\x80\x02}q"), "not a readable PyTorch checkpoint"),
+        (_state_dict_as([torch.zeros(2)]), "state_dict"),
+        (_state_dict_as({"net.x": [1, 2]}), "state_dict"),
+        (_state_dict_as({1: torch.zeros(2)}), "state_dict"),
+    ],
+)
+def test_a_checkpoint_of_odd_bytes_or_shapes_is_one_line_naming_it(
+    checkpoints, tmp_path, write, message
+) -> None:
+    """A text file (torch.load's unpickler raised KeyError), a cut pickle, and a checkpoint
+    whose state_dict is a list, holds a list or has a key that is no name: each is refused in
+    one line naming the file, by what evaluate, predict and export load with."""
+    path = tmp_path / "odd.ckpt"
+    write(path, checkpoints["rgb"])
+    with pytest.raises((CheckpointError, ValueError)) as err:
+        load_model(path)
+    text = str(err.value)
+    assert "\n" not in text and str(path) in text and message in text, text

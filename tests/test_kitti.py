@@ -674,7 +674,7 @@ def test_prepare_runs_without_torch_and_checks_its_keys(kitti_data, tmp_path) ->
     for extra, message in [
         ("+dataset.reader.fill_iters=3", "dataset.reader.fill_iters: unknown key"),
         ("+prepare.worker=3", "prepare.worker: unknown key (nothing reads it"),
-        ("dataset.fill=colorisation", "dataset.fill=colorisation"),
+        ("dataset.fill=colorisation", "dataset.fill='colorisation': expected one of"),
     ]:
         refused = run(extra)
         assert refused.returncode == 1 and message in refused.stderr, (extra, refused.stderr)

@@ -165,6 +165,118 @@ def test_a_1x1_image_between_good_ones_gets_its_outputs_and_so_do_they(
     assert not viz[1:, :3].any() and viz[:, 3:].any()
 
 
+def test_no_output_replaces_another_output_of_the_run(
+    fusion_model, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: with ``x.png`` and ``x.viz.png`` in the folder, the depth PNG of the input
+    ``x.viz.png`` replaced the visualisation of ``x.png``, and the run said "predicted 2 of 2".
+    Now the later input whose outputs would take another's names is skipped in one line naming
+    the other, and every output written is the one of its own input."""
+    images, sparse = _write_inputs(tmp_path, {"x": (H, W), "x.viz": (H, W), "y": (H, W)})
+    write_rgb_png(images / "y.jpg", read_rgb(images / "y.png"))  # first by name: takes y.png
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO, logger="fusion_depth.predict"):
+        summary = predict_folder(fusion_model, images, out, sparse, npy=True, progress=False)
+
+    assert [p.name for p in summary.written] == ["x.png", "y.png"]
+    assert summary.total == 4 and not summary.ok
+    for name, other in (("x.viz.png", "x.png"), ("y.png", "y.jpg")):
+        (line,) = [
+            r.getMessage() for r in caplog.records if f"skipped {images / name}" in r.getMessage()
+        ]
+        assert "\n" not in line and f"of {other}" in line
+    # x.viz.png is x.png's visualisation (8-bit colour, image | sparse | prediction | colour
+    # bar), not a depth PNG; each depth PNG is its own input's prediction.
+    assert read_rgb(out / "x.viz.png").shape == (H, 3 * W + _colorbar_width(H), 3)
+    for stem in "xy":
+        _assert_round_trip(out / f"{stem}.png", np.load(out / f"{stem}.npy"))
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"{s}{suffix}" for s in "xy" for suffix in (".png", ".npy", ".viz.png")
+    )
+    # Without visualisations nothing collides: both x inputs are predicted.
+    summary = predict_folder(
+        fusion_model, images, tmp_path / "plain", sparse, visualize=False, limit=2, progress=False
+    )
+    assert summary.ok and [p.name for p in summary.written] == ["x.png", "x.viz.png"]
+
+
+@pytest.fixture(scope="module")
+def too_many_pixels(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 9000×9000 PNG (81 MP, under Pillow's limit): 80 KB on disk, 243 MB decoded, and tens
+    of GB for the network at full resolution."""
+    from PIL import Image
+
+    path = tmp_path_factory.mktemp("huge") / "huge.png"
+    Image.new("RGB", (9000, 9000)).save(path, compress_level=1)
+    return path
+
+
+def _never_decoded(monkeypatch: pytest.MonkeyPatch, path: Path) -> None:
+    """Reading ``path``'s pixels fails the test: the bound is checked from the header."""
+    import fusion_depth.predict.files as module
+
+    real = module.read_rgb
+
+    def read_rgb(file, *args, **kwargs):
+        assert Path(file) != path, f"{path} was decoded"
+        return real(file, *args, **kwargs)
+
+    monkeypatch.setattr(module, "read_rgb", read_rgb)
+
+
+def test_an_image_too_big_for_memory_is_refused_in_one_line_alone_or_in_a_folder(
+    rgb_model, too_many_pixels: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: given alone, an 81 MP image was decoded and sent to the network (an allocator
+    traceback, or the machine's memory exhausted); in a folder it was skipped only once the
+    network failed. Now both refuse it from its header, naming the file, its size and the
+    limit, and a folder predicts the rest."""
+    _never_decoded(monkeypatch, too_many_pixels)
+    out = tmp_path / "out"
+    with pytest.raises(ValueError) as err:
+        predict_file(rgb_model, too_many_pixels, out)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{too_many_pixels}: ")
+    assert "9000×9000" in message and "max_pixels=16777216" in message
+    assert not out.exists() or not list(out.iterdir())
+
+    folder = tmp_path / "images"
+    write_rgb_png(folder / "a.png", np.full((H, W, 3), 128, np.uint8))
+    (folder / "huge.png").symlink_to(too_many_pixels)
+    summary = predict_folder(rgb_model, folder, out, progress=False)
+    assert [p.name for p in summary.written] == ["a.png"]
+    (skipped,) = summary.skipped
+    assert skipped.source == str(folder / "huge.png") and "9000×9000" in skipped.reason
+    # The bound is an option: a smaller one refuses a smaller image; null takes any size.
+    with pytest.raises(ValueError, match=r"a\.png: an image of 96×64 pixels.*max_pixels=1000"):
+        predict_file(rgb_model, folder / "a.png", tmp_path / "small", max_pixels=1000)
+    predict_file(rgb_model, folder / "a.png", tmp_path / "any", max_pixels=None)
+    with pytest.raises(ValueError, match=r"max_pixels=0: expected null \(any size\) or"):
+        predict_file(rgb_model, folder / "a.png", tmp_path / "any", max_pixels=0)
+
+
+@pytest.mark.slow
+def test_the_command_refuses_an_image_too_big_for_memory_in_one_line(
+    checkpoints, too_many_pixels: Path, tmp_path: Path
+) -> None:
+    result = run_module(
+        [
+            "fusion_depth.predict",
+            f"ckpt_path={checkpoints['rgb']}",
+            f"input={too_many_pixels}",
+            f"output_dir={tmp_path / 'out'}",
+            f"hydra.run.dir={tmp_path / 'run'}",
+            "device=cpu",
+        ],
+        cwd=REPO,
+        timeout=300,
+    )
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 1 and len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"{too_many_pixels}: an image of 9000×9000 pixels")
+    assert not (tmp_path / "out").exists() or not list((tmp_path / "out").iterdir())
+
+
 def test_with_colorbar_pads_a_short_panel_and_keeps_a_tall_one() -> None:
     panel = np.full((1, 5, 3), 200, np.uint8)
     out = with_colorbar(panel, MIN_DEPTH, MAX_DEPTH)

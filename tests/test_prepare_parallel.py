@@ -193,6 +193,32 @@ def test_shards_share_the_split_and_the_last_writes_the_index(tmp_path, serial) 
     prepare(cache)  # usable now
 
 
+def test_a_shard_joined_with_another_num_shards_is_told_both(tmp_path, serial, caplog) -> None:
+    """Shards of different counts split the frames differently, so some frames fall to no shard
+    and every shard waits. A shard that joins (or resumes) a split started with another
+    ``num_shards`` says so in one line naming both counts, when it starts and in its hint; so
+    does a shard of the first count that runs after it. Shards of one count are told nothing."""
+    cache = tmp_path / "mixed"
+    with pytest.raises(IncompleteSplitError) as info:
+        prepare(cache, PrepareOptions(shard=0, num_shards=3, finish_sharded=True))
+    assert info.value.hint is None
+    for shard, num_shards, other in ((1, 2, 3), (0, 3, 2)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger=cache_module.__name__):
+            with pytest.raises(IncompleteSplitError) as info:
+                options = PrepareOptions(shard=shard, num_shards=num_shards, finish_sharded=True)
+                prepare(cache, options)
+        hint = info.value.hint
+        assert hint is not None and "\n" not in hint
+        assert f"num_shards={other}" in hint and f"num_shards={num_shards}" in hint
+        assert hint in str(info.value)
+        if num_shards == 2:  # it joined shards of 3: said when it starts
+            warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+            assert any("num_shards=3" in w and "num_shards=2" in w for w in warned), warned
+    prepare(cache, PrepareOptions(finish_sharded=True))  # a plain prepare finishes it
+    assert file_bytes(cache) == serial
+
+
 def test_a_plain_prepare_finishes_what_shards_left(tmp_path, serial) -> None:
     cache = tmp_path / "finish"
     with pytest.raises(IncompleteSplitError):
@@ -674,9 +700,9 @@ def test_a_killed_worker_stops_the_command_in_one_line_leaving_nothing(tmp_path)
     _, stderr = process.communicate(timeout=60)
     lines = [line for line in stderr.decode().splitlines() if line.strip()]
     assert process.returncode == 1, lines
-    # Hydra's job line, the error, Hydra's hint: as every short error of a command.
-    assert lines[0].startswith("Error executing job") and len(lines) == 3, lines
-    assert lines[1].startswith("a prepare worker died (killed by SIGKILL"), lines
+    # One line, as every error of a command about the user's input or machine.
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("a prepare worker died (killed by SIGKILL"), lines
     assert "Traceback" not in stderr.decode(), lines
     assert not [pid for pid in workers if _running(pid)]
     _no_leftovers_and_the_next_run_finishes(cache, argv, env)

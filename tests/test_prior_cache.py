@@ -5,6 +5,7 @@ image; filled ahead by ``prepare``; a missing or damaged file is one line naming
 from __future__ import annotations
 
 import json
+import os
 import shutil
 
 import pytest
@@ -101,6 +102,40 @@ def test_a_missing_or_damaged_cached_prior_is_one_line_naming_it(tmp_path, tiny_
     CachedPriorFrames(data, cache)[0]  # the other frame still reads
 
 
+def dead_pid() -> int:
+    """The id of a process that has exited (and been reaped)."""
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_a_rerun_removes_the_temporaries_of_a_killed_fill(tmp_path, tiny_folder):
+    """A kill while the cache fills leaves ``.<digest>.npy.p<pid>h<host>.<random>.npy``; the
+    next run that opens the cache removes those of gone processes, never a live writer's."""
+    from fusion_depth.utils.atomic import host_tag
+
+    spec = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
+    data = frames(2)
+    cache = PriorCache(spec, root=tmp_path)
+    cache.fill(DepthAnythingPrior(tiny_folder, input_size=28), data, "test frames")
+    final = cache.path(frame_digest(data[0]["image"]))
+    shard = final.parent
+    orphan = shard / f".{'ab' * 32}.npy.p{dead_pid()}h{host_tag()}.x1y2z3.npy"
+    live = shard / f".{'cd' * 32}.npy.p{os.getpid()}h{host_tag()}.q4r5s6.npy"
+    for path in (orphan, live):
+        path.write_bytes(b"half a prior")
+    again = PriorCache(spec, root=tmp_path)  # the rerun opens the same folder
+    assert again.folder == cache.folder
+    assert not orphan.exists()
+    assert live.exists()  # a process that is alive may be writing it
+    assert final.is_file()  # finished frames stay
+    assert again.fill(DepthAnythingPrior(tiny_folder, input_size=28), data, "test frames") == 0
+    assert sorted(p.name for p in shard.iterdir() if p.name.startswith(".")) == [live.name]
+
+
 def test_the_flip_moves_the_cached_prior_with_the_image():
     image = torch.rand(2, 3, 8, 12)
     batch = {
@@ -114,6 +149,7 @@ def test_the_flip_moves_the_cached_prior_with_the_image():
     torch.testing.assert_close(out["image"], image.flip(-1))
 
 
+@pytest.mark.slow
 def test_prepare_fills_it_and_training_reads_it(tmp_path, tiny_folder):
     prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]
     environment = {**offline_environment(), "FUSION_DEPTH_CACHE": str(tmp_path / "cache")}
@@ -170,6 +206,7 @@ def test_prepare_fills_it_and_training_reads_it(tmp_path, tiny_folder):
     assert on_the_fly.returncode == 0, on_the_fly.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_bench_reads_the_prior_and_the_network_on_top_apart(tmp_path, tiny_folder):
     result = tmp_path / "bench.json"
     prior = ["prior=depth_anything_v2", f"prior.weights={tiny_folder}", "prior.input_size=28"]

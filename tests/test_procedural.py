@@ -414,3 +414,36 @@ procedural.ProceduralDepth("val", {str(tmp_path)!r}, **{SMALL!r})
     for pid in running:
         os.kill(pid, 9)
     assert len(renderers) == 2 and running == []
+
+
+# What the command line makes of null, inf, nan, abc, [1], -1, 1.5 and true.
+BAD_COUNTS = [None, float("inf"), float("nan"), "abc", [1], -1, 1.5, True]
+
+
+@pytest.mark.parametrize("key", ["num_train", "num_val", "num_test"])
+def test_a_bad_frame_count_is_one_line_naming_the_key_before_any_work(
+    make_config, tmp_path, key: str
+) -> None:
+    """Before: null, inf or a list ended in a TypeError or OverflowError inside the reader, and
+    abc got "invalid literal for int()" naming nothing. Now the config check names the key the
+    user sets (dataset.num_train, which the reader's argument interpolates), and so does the
+    reader for a caller from Python."""
+    import copy
+
+    from omegaconf import OmegaConf
+
+    from fusion_depth.config import validate_config
+    from fusion_depth.errors import ArgumentError, ConfigError
+
+    composed = make_config("experiment=smoke")
+    for value in BAD_COUNTS:
+        cfg = copy.deepcopy(composed)
+        OmegaConf.update(cfg, f"dataset.{key}", value)
+        with pytest.raises(ConfigError) as err:
+            validate_config(cfg)
+        message = str(err.value)
+        assert "\n" not in message and message.startswith(f"dataset.{key}="), message
+        assert "expected an integer ≥ 1" in message
+        with pytest.raises(ArgumentError, match=rf"^{key}=.*: expected an integer ≥ 1"):
+            ProceduralDepth("train", tmp_path / "cache", **{key: value})
+    assert not (tmp_path / "cache").exists()

@@ -107,7 +107,9 @@ def test_other_overrides_are_not_averaged_together(tmp_path) -> None:
     from fusion_depth.runner.record import load_runs
 
     table = build_table(group_runs(load_runs(tmp_path)))
-    assert "Setting" in table and "optimizer.lr=0.001" in table and "±" not in table
+    # The setting is kept, its key cut to its last part (the CSV has it whole).
+    assert "Setting" in table and "| lr=0.001 " in table and "±" not in table
+    assert "optimizer.lr=0.001" in build_table(group_runs(load_runs(tmp_path)), "csv")
 
 
 def test_latex_and_csv(tmp_path, capsys) -> None:
@@ -504,9 +506,9 @@ def test_a_preset_prints_in_its_units_and_order_one_row_per_cap(tmp_path, capsys
         ("RGB-Fusion", "50"), ("RGB-Fusion", "70"), ("RGB-Fusion", "80"),
     ]  # fmt: skip
     mae = header.index("MAE (mm)")
-    assert rows[0][mae] == "2100.000 ± 141.421"  # mean and std of 2.0, 2.2 m, in mm
-    assert rows[3][mae] == "**1500.000**" and rows[0][mae].count("**") == 0  # best at 50 m
-    assert rows[2][mae].startswith("**4100.000")  # best at 80 m
+    assert rows[0][mae] == "2100 ± 141"  # mean and std of 2.0, 2.2 m, in whole mm
+    assert rows[3][mae] == "**1500**" and rows[0][mae].count("**") == 0  # best at 50 m
+    assert rows[2][mae].startswith("**4100")  # best at 80 m
     assert rows[0][header.index("iMAE (1/km)")].startswith("4.200 ±")  # 1/km: not scaled
     assert main([str(tmp_path), "--by", "cap", "--metric", "mae"]) == 0
     assert "MAE (mm) (50)" in capsys.readouterr().out
@@ -560,7 +562,7 @@ def test_paired_differences_print_in_the_presets_units(tmp_path, capsys) -> None
     header = [c.strip() for c in lines[0].strip("|").split("|")]
     column = header.index("ΔRMSE (mm) (all, 95% CI)")
     cell = [c.strip() for c in lines[2].strip("|").split("|")][column]
-    assert cell.startswith("**-250.000 [-250.000, -250.000]")  # -0.25 m on every image
+    assert cell.startswith("**-250 [-250, -250]")  # -0.25 m on every image, in whole mm
 
 
 def test_runs_of_different_presets_are_not_tabulated_together(tmp_path, capsys) -> None:
@@ -986,3 +988,95 @@ def test_csv_cells_a_spreadsheet_would_run_are_neutralised(tmp_path, capsys) -> 
         for cell in row.values():
             assert not cell.startswith(("=", "+", "@", "\t", "\r")), cell
             assert not cell.startswith("-") or float(cell) < 0, cell
+
+
+# --- records of frames prepared by different format versions ----------------------------------
+
+
+def _set_format_version(root: Path, name: str, version: int | None) -> None:
+    path = root / name / "metrics.json"
+    record = json.loads(path.read_text())
+    record["run"].pop("format_version", None)
+    if version is not None:
+        record["run"]["format_version"] = version
+    write_json_atomic(path, record)
+
+
+def test_records_of_different_data_format_versions_are_not_compared(tmp_path, capsys) -> None:
+    """nuScenes records made before the placement change (format 2, or a record from before
+    records named their format) and after it (3) are refused in one line naming both versions
+    and both records; --mixed-formats reports them anyway, saying so."""
+    base = np.linspace(4.0, 6.0, NUM_IMAGES)
+    _write_image_run(tmp_path, "old", "rgb", 1, base, dataset="nuscenes")  # names no version
+    _write_image_run(tmp_path, "new", "concat", 1, base - 0.1, dataset="nuscenes")
+    _set_format_version(tmp_path, "new", 3)
+    old, new = (str(tmp_path / n / "metrics.json") for n in ("old", "new"))
+    compare = [str(tmp_path), "--compare", "fusion=rgb", "--resamples", "200"]
+    for argv in (compare, [str(tmp_path)], [str(tmp_path), "--by", "condition"]):
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        err = captured.err.strip()
+        assert "\n" not in err and "Traceback" not in err, err
+        assert "format version" in err and "unknown" in err and "3" in err, err
+        assert old in err and new in err and captured.out == ""
+    _set_format_version(tmp_path, "old", 2)
+    assert main(compare) == 2
+    err = capsys.readouterr().err
+    assert "nuscenes" in err and "2 (" in err and "3 (" in err and old in err and new in err
+    # Asked for, they are compared, and the mix is said on stderr in one line.
+    assert main([*compare, "--mixed-formats"]) == 0
+    captured = capsys.readouterr()
+    assert "-0.100" in captured.out
+    (note,) = captured.err.strip().splitlines()
+    assert note.startswith("note: ") and "2 (" in note and "3 (" in note
+    # One version, or versions of different datasets, are compared as before.
+    _set_format_version(tmp_path, "old", 3)
+    assert main(compare) == 0
+    assert capsys.readouterr().err == ""
+    _write_image_run(tmp_path, "kitti", "rgb", 1, base, dataset="kitti")
+    _set_format_version(tmp_path, "kitti", 1)
+    assert main([str(tmp_path)]) == 0
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--bench", "speed", "--mixed-formats"])
+    assert "--mixed-formats is for metrics records" in capsys.readouterr().err
+
+
+def test_records_carry_the_format_version_of_the_frames_they_scored(tmp_path) -> None:
+    """Training (run_identity) and evaluate (rescored_identity) record their dataset reader's
+    format version; a dataset without prepared frames, or a reader the package does not hold
+    and that is not loaded, records none (and nothing is imported for it)."""
+    import sys
+
+    from fusion_depth.data import kitti, nuscenes
+    from fusion_depth.runner.record import (
+        RunRecord,
+        read_run_record,
+        rescored_identity,
+        run_identity,
+        write_run_record,
+    )
+
+    def config(name: str, target: str) -> dict:
+        return {"dataset": {"name": name, "reader": {"_target_": target}}, "seed": 1}
+
+    nusc = config("nuscenes", "fusion_depth.data.nuscenes.NuScenesDepth")
+    assert run_identity(nusc).format_version == nuscenes.FORMAT_VERSION == 3
+    kitti_block = config("kitti", "fusion_depth.data.kitti.KittiDepth")["dataset"]
+    assert run_identity({"dataset": kitti_block}).format_version == kitti.KittiDepth.format_version
+    procedural = config("procedural", "fusion_depth.data.procedural.ProceduralDepth")
+    assert run_identity(procedural).format_version is None
+    foreign = config("mine", "not_a_loaded_module_of_mine.Reader")
+    assert run_identity(foreign).format_version is None
+    assert "not_a_loaded_module_of_mine" not in sys.modules
+    # evaluate: the version of the dataset scored now, not of the one trained on.
+    trained = run_identity(procedural).to_json()
+    rescored = rescored_identity(trained, procedural, nusc["dataset"])
+    assert (rescored.dataset, rescored.trained_on) == ("nuscenes", "procedural")
+    assert rescored.format_version == 3
+    # Written and read back with the record; a record of a dataset without one has none.
+    record = RunRecord(status="ok", run=rescored, test={"rmse": 1.0}, checkpoint="x.ckpt")
+    back = read_run_record(write_run_record(tmp_path / "a", record))
+    assert back.run.format_version == 3
+    plain = RunRecord(status="ok", run=run_identity(procedural), test={"rmse": 1.0})
+    written = json.loads(write_run_record(tmp_path / "b", plain).read_text())
+    assert "format_version" not in written["run"]

@@ -398,6 +398,40 @@ def test_a_run_that_trained_no_step_is_never_done(tmp_path) -> None:
         assert summarize_sweep(tmp_path / "sweep")[0]["status"] == ("ok" if done else "incomplete")
 
 
+_KILLED_WRITE = """
+import os, sys
+from pathlib import Path
+from fusion_depth.utils.atomic import write_atomic
+def killed(tmp):
+    tmp.write_bytes(b"half written")
+    os._exit(9)  # killed between the write and the rename
+write_atomic(Path(sys.argv[1]), killed, suffix=sys.argv[2])
+"""
+
+
+def test_a_new_start_removes_every_temporary_a_killed_writer_left(tmp_path) -> None:
+    """Writers killed mid-write (test_panels.npz, a prior map, a predict PNG) leave their real
+    temporary names, whatever their suffix, in the run folder and below: a new start removes
+    them all, and leaves the files a run keeps."""
+    run = tmp_path / "run"
+    targets = [
+        (run / "test_panels.npz", ".npz"),
+        (run / "prior" / "0123abcd.npy", ".npy"),
+        (run / "predictions" / "x.png", ".png"),
+        (run / "metrics.json", ".tmp"),
+    ]
+    for target, suffix in targets:
+        killed = subprocess.run([sys.executable, "-c", _KILLED_WRITE, str(target), suffix])
+        assert killed.returncode == 9
+    left = [p for p in run.rglob(".*") if p.is_file()]
+    assert len(left) == len(targets), left
+    kept = run / "predictions" / "x.png"
+    kept.write_bytes(b"a finished output")
+    assert plan_start(run, None, "auto", True, ["experiment=smoke"]).checkpoint is None
+    assert [p for p in run.rglob(".*") if p.is_file()] == []
+    assert kept.read_bytes() == b"a finished output"
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [

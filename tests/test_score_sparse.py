@@ -81,3 +81,46 @@ def test_a_dataset_without_a_sparse_input_and_a_bad_split_are_refused(tmp_path) 
     cfg = compose_config(["split=tset"], tmp_path / "b", config_name="score_sparse")
     with pytest.raises(ValueError, match="split=tset: expected one of train, val, test"):
         score_sparse(cfg)
+
+
+def test_eval_radarnet_scores_the_sparse_input_at_full_resolution_as_evaluate_does() -> None:
+    """Under eval.resolution=full (eval=radarnet) a frame that keeps its full-resolution ground
+    truth as points (``depth_points``: rows y, x, depth in the frame's pixel coordinates) is
+    scored there, as evaluate scores a prediction: each point against the return drawn on the
+    frame's pixel that holds it (nearest; a sparse map is not interpolated)."""
+    depth = torch.full((4, 4), 10.0)
+    sparse = torch.zeros(4, 4)
+    sparse[1, 2] = 12.0  # one return, 2 m too far
+    sparse[3, 0] = 5.0  # one over a pixel whose full-resolution points have no ground truth
+    # An 8x8 full resolution: four points in each frame pixel, at (i + 0.5) / 2 - 0.5.
+    grid = (torch.arange(8.0) + 0.5) / 2 - 0.5
+    y, x = torch.meshgrid(grid, grid, indexing="ij")
+    truth = torch.full((8, 8), 11.0)
+    truth[6:, :2] = 0.0  # the pixel under the second return: no ground truth there
+    truth[2, 4] = 14.0  # one point under the first return differs
+    points = torch.stack([y.flatten(), x.flatten(), truth.flatten()], dim=-1)
+    points = torch.cat([points, torch.zeros(5, 3)])  # padding rows: never scored
+    frame = {**_frame("day", depth, sparse), "depth_points": points}
+    full = EvalProtocol.from_config({"resolution": "full"}, min_depth=0.5, max_depth=80.0)
+
+    score = score_sparse_input([frame], full, ["day"])
+
+    overall = score.result.overall
+    assert overall["num_pixels"] == 4  # the four points of pixel (1, 2), not one frame pixel
+    errors = torch.tensor([12.0 - 14.0, 1.0, 1.0, 1.0])
+    assert overall["mae"] == pytest.approx(errors.abs().mean().item())
+    assert score.coverage["all"] == pytest.approx(4 / 60)  # of the 60 points with ground truth
+    assert score.result.protocol.resolution == "full"
+    # Without points the frame is scored at its own resolution, and the record says so.
+    plain = score_sparse_input([_frame("day", depth, sparse)], full, ["day"])
+    assert plain.result.overall["num_pixels"] == 2
+    assert plain.result.protocol.resolution == "network"
+
+
+def test_the_command_says_at_which_resolution_it_scored(tmp_path, monkeypatch, capsys) -> None:
+    monkeypatch.setenv("FUSION_DEPTH_CACHE", str(tmp_path / "cache"))
+    sizes = ["dataset.num_train=2", "dataset.num_val=2", "dataset.num_test=3", "eval=radarnet"]
+    score_sparse(compose_config(sizes, tmp_path / "a", config_name="score_sparse"))
+    printed = capsys.readouterr().out
+    # The built-in dataset keeps no full-resolution points: its frames are what is scored.
+    assert "at the frames' resolution" in printed and "eval.resolution=full" in printed

@@ -17,8 +17,12 @@ from typing import Any
 
 import griffe
 
-# :class:`Name`, :func:`~pkg.mod.f`, :py:meth:`Class.method` ...
-ROLE = re.compile(r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):`(~?)([^`<>]+)`")
+# :class:`Name`, :func:`~pkg.mod.f`, :py:meth:`Class.method`, and with a title of its own,
+# :meth:`title <pkg.mod.Class.method>` (the title shown, the target linked).
+ROLE = re.compile(
+    r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):"
+    r"`(?:([^`<>]*?)\s*<(~?)([^`<>]+)>|(~?)([^`<>]+))`"
+)
 
 
 def _package_of(obj: griffe.Object) -> griffe.Object:
@@ -65,8 +69,14 @@ class SphinxRoles(griffe.Extension):
                 continue
 
             def link(match: re.Match, obj: griffe.Object = obj) -> str:
-                short, target = match.group(1), match.group(2).strip()
+                label, labelled = match.group(1), match.group(3)
+                short, target = (
+                    (match.group(2), labelled) if labelled else (match.group(4), match.group(5))
+                )
+                target = target.strip()
                 title = target.rsplit(".", 1)[-1] if short else target.lstrip(".")
+                if labelled and label.strip():
+                    title = label.strip()
                 path = _path(obj, target)
                 if path is None:
                     return f"<code>{html.escape(title)}</code>"

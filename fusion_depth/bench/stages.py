@@ -549,6 +549,29 @@ def prepared_frames(split_dir: str | Path, count: int) -> list[tuple[np.ndarray,
     return frames
 
 
+def _against_spsolve(
+    image: np.ndarray, depth: np.ndarray, ours: np.ndarray, ours_s: float
+) -> dict[str, Any]:
+    """SciPy's default solve of the colorization system of ``depth`` (a frame with a measured
+    pixel) against the solver's fill ``ours``, which took ``ours_s`` seconds: its seconds, the
+    speed-up and the largest difference in metres, on this machine, not on the one the docs
+    name."""
+    # SciPy's imports, untimed, on a patch holding a measured pixel (a frame's corner is often
+    # sky, which fills at once); SuperLU keeps nothing from one solve to the next.
+    row, col = (int(v) for v in np.argwhere(depth > 0)[0])
+    patch = np.s_[max(row - 16, 0) : row + 16, max(col - 16, 0) : col + 16]
+    colorization_reference(depth[patch], image[patch])
+    reference: list[np.ndarray] = []
+    spsolve_s = time_calls(
+        lambda: reference.append(colorization_reference(depth, image)), CPU, 0, 1
+    )[0]
+    return {
+        "s_per_frame": spsolve_s,
+        "speedup": spsolve_s / ours_s if ours_s > 0 else None,
+        "max_difference_m": float(np.abs(ours - reference[0]).max()),
+    }
+
+
 def bench_prepare(
     height: int,
     width: int,
@@ -607,23 +630,8 @@ def bench_prepare(
             },
         }
     if "colorization" in first and (depth > 0).any():
-        # The solver against SciPy's default solve of the same system, on the first frame: the
-        # speed-up and the largest difference on this machine, not on the one the docs name.
         ours, ours_s = first["colorization"]
-        # SciPy's imports, untimed, on a patch holding a measured pixel (a frame's corner is
-        # often sky, which fills at once); SuperLU keeps nothing from one solve to the next.
-        row, col = (int(v) for v in np.argwhere(depth > 0)[0])
-        patch = np.s_[max(row - 16, 0) : row + 16, max(col - 16, 0) : col + 16]
-        colorization_reference(depth[patch], image[patch])
-        reference: list[np.ndarray] = []
-        spsolve_s = time_calls(
-            lambda: reference.append(colorization_reference(depth, image)), CPU, 0, 1
-        )[0]
-        methods_out["colorization"]["spsolve"] = {
-            "s_per_frame": spsolve_s,
-            "speedup": spsolve_s / ours_s if ours_s > 0 else None,
-            "max_difference_m": float(np.abs(ours - reference[0]).max()),
-        }
+        methods_out["colorization"]["spsolve"] = _against_spsolve(image, depth, ours, ours_s)
     return {
         "source": source,
         "frames": len(inputs) if prepared is not None else 1,

@@ -17,12 +17,13 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
-from fusion_depth.config.arguments import config_message
+from fusion_depth.config.arguments import config_message, where_set
 from fusion_depth.config.keys import check_known_keys
 from fusion_depth.data.base import check_depth_range, check_size
 from fusion_depth.errors import ArgumentError, ConfigError, MissingDependencyError
+from fusion_depth.utils.config_values import ABSENT, config_value
 from fusion_depth.utils.overrides import show
-from fusion_depth.utils.schema import is_number
+from fusion_depth.utils.schema import Schema, is_number
 
 
 class MissingValueError(MissingMandatoryValue, ConfigError):
@@ -48,12 +49,49 @@ def one_line_errors() -> Iterator[None]:
         raise ConfigError(f"{err.full_key or 'config'}: {first}") from None
 
 
+def reader_rules(ds: Any) -> Schema:
+    """What the arguments of ``ds.reader``'s target accept: its ``ARGUMENT_RULES`` (argument →
+    :class:`~fusion_depth.utils.schema.Rule`, declared on the reader class); empty when it
+    declares none, or when the target cannot be imported (an unknown target is
+    :func:`~fusion_depth.config.keys.check_known_keys`' to name)."""
+    from hydra.utils import get_object
+
+    reader = ds.get("reader") if isinstance(ds, DictConfig) else None
+    target = reader.get("_target_") if isinstance(reader, DictConfig) else None
+    if not isinstance(target, str):
+        return {}
+    try:
+        built = get_object(target)
+    except Exception:  # noqa: BLE001 - named by check_known_keys, with the reason
+        return {}
+    rules = getattr(built, "ARGUMENT_RULES", None)
+    return rules if isinstance(rules, dict) else {}
+
+
+def check_reader(ds: Any) -> None:
+    """Every ``dataset.reader.<argument>`` its reader declares a rule for (:func:`reader_rules`),
+    checked before any work: a null, infinite, non-numeric or listed count would otherwise fail
+    inside the reader, or deep in the preparation.
+
+    Raises:
+        ConfigError: ``<key>=<value>: expected <what it accepts>``, naming where the value is set
+            (``dataset.fill`` for ``dataset.reader.fill: ${dataset.fill}``).
+    """
+    for argument, rule in reader_rules(ds).items():
+        value = config_value(ds, f"reader.{argument}")
+        if value is ABSENT or rule.ok(value):
+            continue
+        key = where_set(ds._get_root(), f"dataset.reader.{argument}")
+        raise ConfigError(f"{key}={show(value)}: expected {rule.expected}")
+
+
 def check_dataset(ds: Any, fusion: str) -> None:
     """A dataset block the network can take, with ``fusion`` (its input mode) allowed on it.
     ``ds`` is the ``dataset`` node (a DictConfig, or any object with its keys as attributes).
 
     Raises:
-        ConfigError: a size, depth range or fusion mode the dataset cannot take, naming the key.
+        ConfigError: a size, depth range, reader value (:func:`check_reader`) or fusion mode the
+            dataset cannot take, naming the key.
         MissingDependencyError: the dataset's optional package is not installed (with the
             command that installs it).
     """
@@ -71,6 +109,7 @@ def check_dataset(ds: Any, fusion: str) -> None:
     except ArgumentError as err:
         keys = {"min_depth": "dataset.min_depth", "max_depth": "dataset.max_depth"}
         raise ConfigError(config_message(err, keys)) from None
+    check_reader(ds)  # before the package check: a bad value is named without it
     needs = ds.get("requires")
     if needs is not None and importlib.util.find_spec(needs.module) is None:
         raise MissingDependencyError(

@@ -9,10 +9,13 @@
 * **Unknown keys in one line.** ``trainer.max_epoch=3`` gets ``did you mean max_epochs?`` and
   the keys that exist (or, for a key the node's target takes, how to add it with ``+``), read
   from the error Hydra raises when it composes the config, instead of Hydra's struct error.
-* **Short errors.** Errors the package raises about the user's data, config or files (a
-  ``ValueError`` or ``OSError`` raised by package code, also from inside a DataLoader worker)
-  print as their message, in a few lines, and so do Hydra's own errors about the user's files (a
-  run folder it cannot create); ``HYDRA_FULL_ERROR=1`` shows the full traceback, as in Hydra.
+* **One-line errors.** Errors the package raises about the user's data, config or files (a
+  ``ValueError`` or ``OSError`` raised by package code, also from inside a DataLoader worker),
+  before the job starts or while it runs, print as one line on stderr, and so do Hydra's own
+  errors about the user's files (a run folder it cannot create): Hydra's ``Error executing job
+  with overrides`` line and its ``HYDRA_FULL_ERROR`` hint are left out (in a multirun the line
+  starts with the failed job's overrides instead). ``HYDRA_FULL_ERROR=1`` shows the full
+  traceback, as in Hydra; a bug keeps its traceback and the hint.
 
 The command line goes to Hydra as typed. Run folders are named so that a path a run prints can
 be pasted back unquoted (:mod:`fusion_depth.config.run_dirs`); a path of one's own with ``=``,
@@ -220,42 +223,85 @@ def user_message(err: BaseException, cfg: DictConfig | None = None) -> str | Non
     return None
 
 
+class _WithoutJobLine:
+    """``sys.stderr`` while a failed job's error travels up through Hydra: drops the ``Error
+    executing job with overrides: [...]`` line Hydra writes before re-raising it (the error
+    itself is reported in one line), and passes everything else through."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        if text.startswith(HYDRA_JOB_LINE):
+            return len(text)
+        return self.stream.write(text)
+
+    def __getattr__(self, name: str) -> Any:  # flush, fileno, isatty, encoding, ...
+        return getattr(self.stream, name)
+
+
+HYDRA_JOB_LINE = "Error executing job with overrides:"
+# Whether a command of hydra_main reports the job's errors itself (not with HYDRA_FULL_ERROR=1
+# set by the user, nor for a config passed in by a caller).
+_reporting = False
+
+
+def _drop_hydra_job_line() -> None:
+    """From now until :func:`hydra_main`'s command returns, Hydra's job line is not printed."""
+    if _reporting and not isinstance(sys.stderr, _WithoutJobLine):
+        sys.stderr = _WithoutJobLine(sys.stderr)
+
+
+def _in_multirun_job(message: str) -> str:
+    """``message``, led by the job's overrides in a multirun (which of its jobs failed)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    try:
+        hydra = HydraConfig.get() if HydraConfig.initialized() else None
+    except Exception:  # noqa: BLE001 - a half-set Hydra config: no job to name
+        hydra = None
+    if hydra is None or hydra.mode != RunMode.MULTIRUN:
+        return message
+    from fusion_depth.runner.redaction import redact_overrides
+
+    overrides = " ".join(redact_overrides(list(hydra.overrides.task))) or "no overrides"
+    return f"job {hydra.job.num} ({overrides}): {message}"
+
+
 def _short_errors(task: Callable[[DictConfig], Any]) -> Callable[[DictConfig], Any]:
     @functools.wraps(task)  # keeps the module and name Hydra derives the job name from
     def run(cfg: DictConfig) -> Any:
         try:
             return task(cfg)
-        except SHORT_ERRORS as err:
-            message = user_message(err, cfg)
-            if message != str(err).strip():
-                raise CommandError(message) from err
-            raise
-        except (OSError, ValueError) as err:
+        except (*SHORT_ERRORS, OSError, ValueError) as err:
             message = user_message(err, cfg)
             if message is None:
                 raise
-            raise CommandError(message) from err
+            _drop_hydra_job_line()
+            raise CommandError(_in_multirun_job(message)) from err
 
     return run
 
 
 def _report(err: Exception) -> None:
     """Print ``err`` as Hydra does without ``HYDRA_FULL_ERROR``, but an error about the user's
-    input (:func:`user_message`) as its message alone."""
+    input (:func:`user_message`) as its message alone, in one line."""
     from omegaconf.errors import OmegaConfBaseException
 
     message = user_message(err)
-    if message is None:
+    if message is None:  # a bug: its traceback, and Hydra's hint
         traceback.print_exception(err)
-    else:
-        sys.stderr.write(message + os.linesep)
-        if isinstance(err, SHORT_ERRORS) and isinstance(err.__cause__, OmegaConfBaseException):
-            sys.stderr.write(str(err.__cause__) + os.linesep)
-    sys.stderr.write(
-        os.linesep
-        + "Set the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace."
-        + os.linesep
-    )
+        sys.stderr.write(
+            os.linesep
+            + "Set the environment variable HYDRA_FULL_ERROR=1 for a complete stack trace."
+            + os.linesep
+        )
+        return
+    if isinstance(err, SHORT_ERRORS) and isinstance(err.__cause__, OmegaConfBaseException):
+        # OmegaConf's own message spans lines (full_key, object_type): its first says why.
+        message = f"{message}: {str(err.__cause__).strip().splitlines()[0]}"
+    sys.stderr.write(message + os.linesep)
 
 
 # --- the decorator ----------------------------------------------------------------------------
@@ -267,6 +313,17 @@ def _hydra_flags(argv: list[str]) -> tuple[list[str], str | None]:
 
     args, _ = get_args_parser().parse_known_args(argv)
     return list(args.overrides or []), args.config_dir
+
+
+def _register_recipes(config_name: str, config_dir: str | None, overrides: list[str]) -> None:
+    """The recipe options the defaults of ``config_name`` pick: each model's for ``train``;
+    for ``prepare`` the dataset recipes, so that it prepares the dataset training reads."""
+    from fusion_depth.config import recipes
+
+    if config_name == "train":
+        recipes.register_model_recipes(config_dir, overrides)
+    elif config_name == "prepare":
+        recipes.register_dataset_recipes(config_dir, overrides)
 
 
 def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Callable[[], Any]]:
@@ -289,15 +346,18 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
                 return hydra_task(cfg_passthrough)
             overrides, config_dir = _hydra_flags(sys.argv[1:])
             register_sweeps(config_dir)
-            if config_name == "train":  # its defaults pick each model's recipe options
-                from fusion_depth.config.recipes import register_model_recipes
-
-                register_model_recipes(config_dir, overrides)
+            try:
+                _register_recipes(config_name, config_dir, overrides)
+            except UserError as err:  # a recipe file of one's own that cannot be read
+                sys.stderr.write(f"{err}{os.linesep}")
+                sys.exit(1)
             if os.environ.get("HYDRA_FULL_ERROR"):  # the user asked for Hydra's tracebacks
                 return hydra_task()
             # Hydra then raises its errors instead of printing them, so that they are reported
             # here: an unknown key in one line, errors about the user's files short.
+            global _reporting
             os.environ["HYDRA_FULL_ERROR"] = "1"
+            _reporting = True
             try:
                 return hydra_task()
             except KeyboardInterrupt:
@@ -312,6 +372,9 @@ def hydra_main(config_name: str) -> Callable[[Callable[[DictConfig], Any]], Call
                 sys.exit(1)
             finally:
                 os.environ.pop("HYDRA_FULL_ERROR", None)
+                _reporting = False
+                if isinstance(sys.stderr, _WithoutJobLine):
+                    sys.stderr = sys.stderr.stream
 
         return main
 

@@ -7,6 +7,10 @@ A name uses only characters that Hydra's override grammar and a shell read as pl
 can be pasted into any command unquoted. Folders of releases before 0.2 were named with ``=``
 and ``,`` (:func:`legacy_run_dirname`); a run whose folder of that name exists, and whose new
 name does not, keeps using it, so re-running an old command still resumes or skips it.
+
+A prior's weights (``prior.weights=/home/me/weights/da2-small``) are named by the file or
+folder's own name and a digest of its absolute path (``prior.weights-da2-small-1a2b3c4d``), not
+by the whole path; folders named with the whole path (before 0.3) are found as legacy names are.
 """
 
 from __future__ import annotations
@@ -29,18 +33,55 @@ def _shortened(name: str) -> str:
     return f"{name.encode()[: _MAX_DIRNAME - 11].decode(errors='ignore')}-{digest}"
 
 
+# ``prior.weights=<path>`` (or ``model.net.prior.weights``) in an ``override_dirname``: its value
+# runs to the next ``,<key>=`` (a sweep's value holds commas itself) or the end.
+_WEIGHTS = re.compile(
+    r"(?:^|(?<=,))([+~]*(?:model\.net\.)?prior\.weights)=(.*?)(?=,[+~]*[A-Za-z_][\w.@/-]*=|$)"
+)
+_WEIGHTS_DIGEST = 8  # hex digits of the path's digest
+
+
+def _weights_name(value: str) -> str:
+    """A weights path as a folder name: its own name and a digest of its absolute path
+    (``/home/me/weights/da2-small`` → ``da2-small-<8 hex digits>``)."""
+    path = value.strip().strip("'\"")
+    if path in ("", "null", "None"):
+        return value
+    absolute = os.path.abspath(os.path.expanduser(path))
+    digest = hashlib.sha256(absolute.encode()).hexdigest()[:_WEIGHTS_DIGEST]
+    return f"{Path(absolute).name or 'root'}-{digest}"
+
+
+def _short_weights(override_dirname: str) -> str:
+    """``override_dirname`` with each ``prior.weights`` path (each of a sweep's) shortened by
+    :func:`_weights_name`."""
+
+    def shorten(match: re.Match) -> str:
+        values = ",".join(_weights_name(v) for v in match.group(2).split(","))
+        return f"{match.group(1)}={values}"
+
+    return _WEIGHTS.sub(shorten, override_dirname)
+
+
+def _plain_name(override_dirname: str) -> str:
+    name = _NOT_PLAIN.sub("_", override_dirname.replace("=", "-").replace(",", "+"))
+    return _shortened(name or "default")
+
+
 def run_dirname(override_dirname: str) -> str:
     """A run's folder name from Hydra's ``override_dirname`` (``fusion=concat,loss=l1``).
 
     ``=`` becomes ``-`` and ``,`` becomes ``+`` (``fusion-concat+loss-l1``); any other
     character the override grammar or a shell would read as syntax (``/``, spaces, quotes,
-    brackets, ``:``, ``$``, ...) becomes ``_``. ``default`` when there are no overrides; a name
-    over 200 bytes is cut and ends in a hash of the whole. Two runs whose overrides map to one
-    name cannot mix: a run only resumes a checkpoint of its own configuration
+    brackets, ``:``, ``$``, ...) becomes ``_``. A ``prior.weights`` path is named by its own
+    name and 8 hex digits of a SHA-256 of its absolute path
+    (``prior.weights-da2-small-1a2b3c4d``): short, the same for the same path, another for
+    another path. ``default`` when there are no overrides; a name over 200 bytes is cut and
+    ends in a hash of the whole. Two runs whose overrides map to one name cannot mix: a run
+    only resumes a checkpoint of its own configuration
     (:func:`fusion_depth.runner.resume.plan_start`).
     """
-    name = _NOT_PLAIN.sub("_", override_dirname.replace("=", "-").replace(",", "+"))
-    return _shortened(name or "default")
+    return _plain_name(_short_weights(override_dirname))
 
 
 def legacy_run_dirname(override_dirname: str) -> str:
@@ -50,11 +91,15 @@ def legacy_run_dirname(override_dirname: str) -> str:
 
 
 def _found_name(parent: str | os.PathLike, override_dirname: str) -> str:
-    """The folder name of ``override_dirname`` inside ``parent``: :func:`run_dirname`, or
-    :func:`legacy_run_dirname` when only a folder of that name exists there."""
-    name, legacy = run_dirname(override_dirname), legacy_run_dirname(override_dirname)
-    if legacy != name and (Path(parent) / legacy).is_dir() and not (Path(parent) / name).exists():
-        return legacy
+    """The folder name of ``override_dirname`` inside ``parent``: :func:`run_dirname`, or an
+    earlier release's name for it when only a folder of that name exists there (weights paths
+    spelt out, then :func:`legacy_run_dirname`)."""
+    name = run_dirname(override_dirname)
+    if (Path(parent) / name).exists():
+        return name
+    for earlier in (_plain_name(override_dirname), legacy_run_dirname(override_dirname)):
+        if earlier != name and (Path(parent) / earlier).is_dir():
+            return earlier
     return name
 
 

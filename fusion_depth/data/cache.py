@@ -522,6 +522,7 @@ class _SplitWork:
     job: _FrameJob
     pending: list[int]
     skipped: list[SkippedFrame] = field(default_factory=list)
+    started_with: int | None = None  # the num_shards of the shards this one joined, if other
 
 
 def _start_split(job: SplitJob, on_error: OnError, options: PrepareOptions) -> _SplitWork | None:
@@ -540,7 +541,11 @@ def _start_split(job: SplitJob, on_error: OnError, options: PrepareOptions) -> _
         split_dir.mkdir(parents=True, exist_ok=True)
         remove_orphaned_temporaries(split_dir, [INDEX_FILE, SHARDED_FILE])
         sharded = _read_sharded(split_dir)
+        joined = None  # the count of the shards this one joins, where it is another
         if options.num_shards > 1:
+            if _other_num_shards(sharded, options.num_shards):
+                joined = sharded
+                log.warning(_num_shards_hint(split_dir, sharded, options.num_shards))
             write_json_atomic(split_dir / SHARDED_FILE, {"num_shards": options.num_shards})
         elif sharded is not None and not options.finish_sharded:
             done = len(frame_ids) - len(_missing(split_dir, frame_ids))
@@ -556,7 +561,7 @@ def _start_split(job: SplitJob, on_error: OnError, options: PrepareOptions) -> _
         min(options.workers, max(len(pending), 1)),
     )
     frame_job = _FrameJob(split_dir, tuple(frame_ids), job.make_frame, on_error, job.sources)
-    return _SplitWork(cache, split, frame_job, pending)
+    return _SplitWork(cache, split, frame_job, pending, started_with=joined)
 
 
 def _make_pending(works: Sequence[_SplitWork], workers: int) -> None:
@@ -594,14 +599,45 @@ def _finish_split(work: _SplitWork, options: PrepareOptions) -> None:
             raise SkippedFramesError([SplitReport(work.split, len(frame_ids), tuple(work.skipped))])
         missing = _missing(work.job.split_dir, frame_ids)
         if missing:
+            hints = [
+                _shard_count_hint(work, options.num_shards),
+                _other_sharded_settings(work.cache, work.split),
+            ]
             raise IncompleteSplitError(
                 work.job.split_dir,
                 len(frame_ids) - len(missing),
                 len(frame_ids),
                 options.num_shards,
-                _other_sharded_settings(work.cache, work.split),
+                "; ".join(hint for hint in hints if hint) or None,
             )
         _write_index(work.job.split_dir, frame_ids)
+
+
+def _other_num_shards(recorded: int | None, num_shards: int) -> bool:
+    """Whether a split's shard marker records a count of shards other than ``num_shards``."""
+    return bool(recorded) and recorded != num_shards
+
+
+def _num_shards_hint(split_dir: Path, recorded: int, num_shards: int) -> str:
+    """One line: the split was started by ``recorded`` shards, this one runs with
+    ``num_shards``."""
+    return (
+        f"{split_dir} was started with num_shards={recorded} and this shard runs with "
+        f"num_shards={num_shards}: shards of different counts split the frames differently, so "
+        f"some frames fall to no shard; start every shard with num_shards={recorded}, "
+        "or run prepare without shards to finish the split"
+    )
+
+
+def _shard_count_hint(work: _SplitWork, num_shards: int) -> str | None:
+    """The hint of :func:`_num_shards_hint` when this shard joined shards of another count, or
+    a shard of another count joined it since (its marker now says so); None otherwise."""
+    if num_shards <= 1:
+        return None
+    recorded = work.started_with or _read_sharded(work.job.split_dir)
+    if not _other_num_shards(recorded, num_shards):
+        return None
+    return _num_shards_hint(work.job.split_dir, recorded, num_shards)
 
 
 def _other_sharded_settings(cache: Path, split: str) -> str | None:
@@ -687,7 +723,6 @@ def _prepare_frames(
             )
             for k in range(workers)
         ]
-        skipped: list[tuple[int, SkippedFrame]] = []
         try:
             # Forked with SIGINT blocked: a Ctrl-C before a worker ignores it stays pending.
             old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -696,39 +731,7 @@ def _prepare_frames(
                     process.start()
             finally:
                 signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
-            reported, seen, running = 0, 0, list(processes)
-            while reported < workers:
-                while not results.empty():
-                    kind, value = results.get()
-                    reported += 1
-                    if kind == "error":
-                        raise value
-                    skipped += value
-                dead = [p for p in processes if p.exitcode not in (None, 0)]
-                if dead and results.empty():
-                    code = dead[0].exitcode
-                    how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit {code}"
-                    raise ChildProcessError(
-                        f"a prepare worker died ({how}; out of memory?); prepare again to go on "
-                        "(finished frames are kept)"
-                    )
-                now = counter.value
-                progress.advance(now - seen)
-                seen = now
-                if not running:  # every worker has exited: its report is in the queue by now
-                    if results.empty() and reported < workers:
-                        raise ChildProcessError("a prepare worker ended without reporting")
-                    continue
-                # A worker reports, then exits: waking on its exit (or every 0.1 s, for the
-                # progress) ends the split as soon as the last frame is written, not up to a
-                # poll later, which on a split of cheap frames was a few percent of its time.
-                # An exited worker is reaped at once, so its exit code is known on the next
-                # pass (its sentinel is ready before the kernel lets it be reaped).
-                for sentinel in wait([p.sentinel for p in running], timeout=0.1):
-                    ended = next(p for p in running if p.sentinel == sentinel)
-                    ended.join(STOP_GRACE_S)
-                    running.remove(ended)
-            progress.advance(counter.value - seen)
+            skipped = _collect_reports(processes, results, counter, progress)
         finally:
             with _interrupts_deferred():
                 _stop(processes)
@@ -738,6 +741,50 @@ def _prepare_frames(
                 for job in jobs:
                     _remove_orphans(job.split_dir)
         return _by_job(jobs, skipped)
+
+
+def _collect_reports(
+    processes: Sequence[Any], results: Any, counter: Any, progress: Progress
+) -> list[tuple[int, SkippedFrame]]:
+    """The skipped frames every worker of ``processes`` reports on ``results`` once it has
+    made its frames, advancing ``progress`` by the frames ``counter`` counts meanwhile. The
+    first error a worker reports is raised here, and a worker that dies (or ends without
+    reporting) is a ChildProcessError."""
+    skipped: list[tuple[int, SkippedFrame]] = []
+    reported, seen, running = 0, 0, list(processes)
+    while reported < len(processes):
+        while not results.empty():
+            kind, value = results.get()
+            reported += 1
+            if kind == "error":
+                raise value
+            skipped += value
+        dead = [p for p in processes if p.exitcode not in (None, 0)]
+        if dead and results.empty():
+            code = dead[0].exitcode
+            how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit {code}"
+            raise ChildProcessError(
+                f"a prepare worker died ({how}; out of memory?); prepare again to go on "
+                "(finished frames are kept)"
+            )
+        now = counter.value
+        progress.advance(now - seen)
+        seen = now
+        if not running:  # every worker has exited: its report is in the queue by now
+            if results.empty() and reported < len(processes):
+                raise ChildProcessError("a prepare worker ended without reporting")
+            continue
+        # A worker reports, then exits: waking on its exit (or every 0.1 s, for the progress)
+        # ends the split as soon as the last frame is written, not up to a poll later, which
+        # on a split of cheap frames was a few percent of its time. An exited worker is
+        # reaped at once, so its exit code is known on the next pass (its sentinel is ready
+        # before the kernel lets it be reaped).
+        for sentinel in wait([p.sentinel for p in running], timeout=0.1):
+            ended = next(p for p in running if p.sentinel == sentinel)
+            ended.join(STOP_GRACE_S)
+            running.remove(ended)
+    progress.advance(counter.value - seen)
+    return skipped
 
 
 def _by_job(

@@ -404,7 +404,7 @@ def _whole(value: object, minimum: int) -> bool:
     """A whole number (``3`` or ``3.0``) of at least ``minimum``."""
     try:
         return int(value) == value and value >= minimum  # type: ignore[call-overload, operator]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # a list or null; a string or nan; inf
         return False
 
 

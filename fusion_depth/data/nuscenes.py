@@ -98,7 +98,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from PIL import Image
@@ -122,6 +122,14 @@ from fusion_depth.data.radar_points import (
     point_rows,
 )
 from fusion_depth.errors import ArgumentError, check_choice
+from fusion_depth.utils.schema import (
+    NON_NEGATIVE_INT,
+    POSITIVE_INT,
+    Rule,
+    Schema,
+    is_number,
+    one_of,
+)
 
 # Bump when projection or resizing changes, so old caches are not reused. 3: points placed at
 # round() of centre-aware coordinates, as the devkit and RadarNet (1 put them half a pixel off),
@@ -887,6 +895,22 @@ def load_tables(devkit: Devkit, root: Path, version: str) -> Any:
         ) from err
 
 
+# What NuScenesDepth's arguments accept (fusion_depth.utils.schema), checked with the config
+# before any work (dataset.reader.<argument>: fusion_depth.config.dataset_validation), and here
+# for a caller from Python. The others (channels, filter states) are lists checked in __init__.
+READER_RULES: Schema = {
+    "version": one_of(*VERSIONS),
+    "fill": one_of(*FILL_METHODS),
+    "radar_nsweeps": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (radar sweeps per frame)"),
+    "lidar_nsweeps": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (lidar sweeps per frame)"),
+    "lidar_keyframes": Rule(NON_NEGATIVE_INT.ok, "an integer ≥ 0 (keyframes each way; 0: none)"),
+    "min_distance": Rule(lambda v: is_number(v) and math.isfinite(v) and v > 0, "metres > 0"),
+    "stride": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (every n-th keyframe)"),
+    "test_split": one_of(*TEST_SPLITS),
+}
+_NUMBERS = ("radar_nsweeps", "lidar_nsweeps", "lidar_keyframes", "min_distance", "stride")
+
+
 def _reader_error(message: str, argument: str) -> ArgumentError:
     """An :class:`ArgumentError` about :class:`NuScenesDepth`'s ``argument``."""
     return ArgumentError(message, argument, owner=NuScenesDepth)
@@ -907,6 +931,8 @@ class NuScenesDepth(PreparedDataset):
     name = "nuscenes"
     layout = LAYOUT
     conditions_allowed = NUSCENES_CONDITIONS
+    ARGUMENT_RULES: ClassVar[Schema] = READER_RULES  # what dataset.reader's keys may hold
+    format_version = FORMAT_VERSION
 
     def __init__(
         self,
@@ -942,18 +968,11 @@ class NuScenesDepth(PreparedDataset):
             check_choice(value, allowed, name, owner=NuScenesDepth)
         self.conditions_kept = check_conditions(conditions, NUSCENES_CONDITIONS)
         self.radar_channels = check_conditions(radar_channels, RADAR_CHANNELS, "radar_channels")
-        for name, value in (
-            ("radar_nsweeps", radar_nsweeps),
-            ("lidar_nsweeps", lidar_nsweeps),
-            ("stride", stride),
-        ):
-            if int(value) != value or value < 1:
-                raise _reader_error(f"{{{name}}}={value}: expected an integer >= 1", name)
-        if int(lidar_keyframes) != lidar_keyframes or lidar_keyframes < 0:
-            raise _reader_error(
-                f"{{lidar_keyframes}}={lidar_keyframes}: expected an integer >= 0",
-                "lidar_keyframes",
-            )
+        given = (radar_nsweeps, lidar_nsweeps, lidar_keyframes, min_distance, stride)
+        for name, value in zip(_NUMBERS, given, strict=True):
+            if not READER_RULES[name].ok(value):  # null, inf, nan, a list or a string too
+                expected = READER_RULES[name].expected
+                raise _reader_error(f"{{{name}}}={value!r}: expected {expected}", name)
         if lidar_keyframes and lidar_nsweeps != 1:
             raise ArgumentError(
                 f"{{lidar_keyframes}}={lidar_keyframes} with {{lidar_nsweeps}}={lidar_nsweeps}: "
@@ -967,10 +986,6 @@ class NuScenesDepth(PreparedDataset):
                 f"{{lidar_removed}}={lidar_removed!r}: expected a list of category prefixes "
                 "(vehicle, human)",
                 "lidar_removed",
-            )
-        if not (math.isfinite(min_distance) and min_distance > 0):
-            raise _reader_error(
-                f"{{min_distance}}={min_distance}: expected metres > 0", "min_distance"
             )
         self.radar_states = radar_filter_states(
             radar_filters, radar_invalid_states, radar_dynprop_states, radar_ambig_states
@@ -996,7 +1011,7 @@ class NuScenesDepth(PreparedDataset):
     def prepare(self, cache_root: Path) -> Path:
         """Prepares every split not yet in its cache folder; returns this split's folder."""
         base = {
-            "format_version": FORMAT_VERSION,
+            "format_version": self.format_version,
             "root": str(self.root),
             "version": self.version,
             "tables": check_tables(self.root, self.version),

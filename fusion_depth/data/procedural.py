@@ -38,7 +38,8 @@ one process per core this process may use, at most one per ``_FRAMES_PER_PROCESS
 a pure function of its index, so the arrays are the same for any number of processes.
 
 Run ``python -m fusion_depth.data.procedural --out preview.png`` to look at one frame per
-condition.
+condition, and ``python -m fusion_depth.data.procedural --frames DIR`` for the first test frames
+as files a program reads (:func:`write_test_frames`).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ import uuid
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Literal, overload
+from typing import ClassVar, Literal, overload
 
 import numpy as np
 import torch
@@ -70,8 +71,10 @@ from fusion_depth.data.cache import check_settings_file
 from fusion_depth.data.depth_io import DEPTH_PNG_SCALE, DataFileError, check_npy, short_reason
 from fusion_depth.data.encoding import decode_sample, encode_sample
 from fusion_depth.data.radar_points import check_max_points, pad_points, point_rows
+from fusion_depth.errors import ArgumentError
 from fusion_depth.utils.atomic import fsync_file, owner_tag, remove_orphaned_temporaries
 from fusion_depth.utils.processes import die_with_parent
+from fusion_depth.utils.schema import NON_NEGATIVE_INT, POSITIVE_INT, Rule, Schema, is_number
 
 # Bump whenever rendering changes, so old caches are not reused. 3: radar_points' u, v put pixel
 # centres at integers (the same pixels as 2, which put their corners there).
@@ -188,6 +191,24 @@ class ProceduralDepth(Dataset):
     # Where it writes (the argument, a folder below the cache), as PreparedDataset.writes_into.
     writes_into = ("root", "procedural")
 
+    # What the arguments accept (fusion_depth.utils.schema), checked with the config before any
+    # work (dataset.reader.<argument>: fusion_depth.config.dataset_validation) and here for a
+    # caller from Python.
+    ARGUMENT_RULES: ClassVar[Schema] = {
+        "num_train": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (frames)"),
+        "num_val": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (frames)"),
+        "num_test": Rule(POSITIVE_INT.ok, "an integer ≥ 1 (frames)"),
+        "seed": NON_NEGATIVE_INT,
+        "fov_deg": Rule(
+            lambda v: is_number(v) and 10.0 <= v <= 150.0,
+            "a horizontal field of view in [10, 150] degrees",
+        ),
+        "radar_height_extension": Rule(
+            lambda v: is_number(v) and 0.0 <= v <= 10.0,
+            "a height in [0, 10] metres (0 keeps each radar return a single pixel)",
+        ),
+    }
+
     def __init__(
         self,
         split: str,
@@ -208,22 +229,21 @@ class ProceduralDepth(Dataset):
         _check_choice("sparse", sparse, SENSORS)
         conditions = tuple(check_conditions(conditions))
         height, width = check_size(height, width)
+        given = {
+            "num_train": num_train,
+            "num_val": num_val,
+            "num_test": num_test,
+            "seed": seed,
+            "fov_deg": fov_deg,
+            "radar_height_extension": radar_height_extension,
+        }
+        for name, value in given.items():  # null, inf, nan, a list or a string too
+            if not self.ARGUMENT_RULES[name].ok(value):
+                expected = self.ARGUMENT_RULES[name].expected
+                raise ArgumentError(
+                    f"{{{name}}}={value!r}: expected {expected}", name, owner=ProceduralDepth
+                )
         counts = {"train": num_train, "val": num_val, "test": num_test}
-        for name, count in counts.items():
-            if int(count) != count or count < 1:
-                raise ValueError(f"num_{name}={count}: expected an integer >= 1")
-        if int(seed) != seed or seed < 0:
-            raise ValueError(f"seed={seed}: expected a non-negative integer")
-        if not 10.0 <= fov_deg <= 150.0:
-            raise ValueError(
-                f"fov_deg={fov_deg}: expected a horizontal field of view in [10, 150] degrees"
-            )
-
-        if not 0.0 <= radar_height_extension <= 10.0:
-            raise ValueError(
-                f"radar_height_extension={radar_height_extension}: expected a height in [0, 10] "
-                "metres (0 keeps each radar return a single pixel)"
-            )
 
         max_radar_points = check_max_points(max_radar_points)
 
@@ -548,31 +568,115 @@ def preview(
     return np.concatenate(rows[:-1], 0)
 
 
+# The built-in dataset's settings (conf/dataset/procedural.yaml): the frames a default run tests
+# on, which --frames writes.
+DATASET_FRAMES = {"height": 64, "width": 192, "radar_height_extension": 2.0, "seed": 0}
+
+
+def write_test_frames(
+    folder: str | os.PathLike,
+    count: int = len(CONDITIONS),
+    sparse: str = "radar",
+    **settings: float,
+) -> list[Path]:
+    """Frames ``0 … count - 1`` of the built-in dataset's test split (one per condition, in
+    :data:`~fusion_depth.data.CONDITIONS`' order) as the files a program or ``predict`` reads:
+    ``folder/photos/<i:06d>.png`` (RGB) and ``folder/<sparse>/<i:06d>.png`` (the sparse depth as
+    a 16-bit PNG in 1/256 m, 0 = no return; :func:`~fusion_depth.data.depth_io.read_depth_png`
+    reads it). ``settings`` (``height``, ``width``, ``radar_height_extension``, ``seed``,
+    ``fov_deg``) default to the dataset's (:data:`DATASET_FRAMES`), so the frames are those a
+    default run is tested on. Returns the photos' paths.
+
+    Raises:
+        ValueError: ``count`` below 1, or an unknown sensor.
+    """
+    from PIL import Image
+
+    from fusion_depth.data.depth_io import write_depth_png
+
+    if int(count) != count or count < 1:
+        raise ValueError(f"--count {count}: expected an integer >= 1")
+    _check_choice("sparse", sparse, SENSORS)
+    given = {**DATASET_FRAMES, "fov_deg": 70.0, **settings}
+    height, width = check_size(given["height"], given["width"])
+    photos, depths = Path(folder) / "photos", Path(folder) / sparse
+    photos.mkdir(parents=True, exist_ok=True)
+    depths.mkdir(parents=True, exist_ok=True)
+    written = []
+    for i in range(int(count)):
+        image, _, sparse_map = render_frame(
+            int(given["seed"]),
+            "test",
+            i,
+            height,
+            width,
+            float(given["fov_deg"]),
+            CONDITIONS[i % len(CONDITIONS)],
+            sparse,
+            float(given["radar_height_extension"]) if sparse == "radar" else 0.0,
+        )
+        Image.fromarray(image).save(photos / f"{i:06d}.png")
+        write_depth_png(depths / f"{i:06d}.png", sparse_map)
+        written.append(photos / f"{i:06d}.png")
+    return written
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """CLI: render one frame per condition into a PNG grid for a person to look at."""
+    """CLI: render one frame per condition into a PNG grid for a person to look at (``--out``),
+    or write the first test frames as PNG files (``--frames``, :func:`write_test_frames`)."""
     from PIL import Image
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", required=True, help="PNG file to write")
-    parser.add_argument("--height", type=int, default=192)
-    parser.add_argument("--width", type=int, default=640)
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--out", help="PNG file to write: a grid of one frame per condition")
+    what.add_argument(
+        "--frames",
+        metavar="DIR",
+        help="write the first --count test frames of the built-in dataset, as a default run "
+        "tests on them, into DIR/photos/ (RGB PNGs) and DIR/radar/ (16-bit depth PNGs, 1/256 m)",
+    )
+    parser.add_argument("--count", type=int, default=len(CONDITIONS), help="frames of --frames")
+    parser.add_argument("--height", type=int, help="default: 192 (--out), the dataset's 64")
+    parser.add_argument("--width", type=int, help="default: 640 (--out), the dataset's 192")
     parser.add_argument("--sparse", choices=SENSORS, default="radar")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fov-deg", type=float, default=70.0)
     parser.add_argument(
         "--radar-height-extension",
         type=float,
-        default=0.0,
-        help="draw each radar return as a vertical line from the ground to this height (m)",
+        help="draw each radar return as a vertical line from the ground to this height (m); "
+        "default: 0 (--out), the dataset's 2",
     )
     args = parser.parse_args(argv)
+    if args.frames is not None:
+        settings = {
+            key: value
+            for key, value in (
+                ("height", args.height),
+                ("width", args.width),
+                ("radar_height_extension", args.radar_height_extension),
+                ("seed", args.seed),
+                ("fov_deg", args.fov_deg),
+            )
+            if value is not None
+        }
+        try:
+            written = write_test_frames(args.frames, args.count, args.sparse, **settings)
+        except ValueError as err:
+            parser.error(str(err))
+        folder = Path(args.frames)
+        print(
+            f"wrote {len(written)} test frames of the built-in dataset into {folder / 'photos'} "
+            f"and their {args.sparse} depth into {folder / args.sparse}"
+        )
+        return
     grid = preview(
-        args.height,
-        args.width,
+        args.height or 192,
+        args.width or 640,
         args.sparse,
         args.seed,
         args.fov_deg,
-        args.radar_height_extension,
+        args.radar_height_extension or 0.0,
     )
     Image.fromarray(grid).save(args.out)
     print(f"wrote {args.out} ({', '.join(CONDITIONS)} from top to bottom)")

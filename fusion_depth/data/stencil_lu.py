@@ -87,23 +87,18 @@ class _Group:
 
 
 @functools.lru_cache(maxsize=8)
-def _plan(height: int, width: int) -> tuple[tuple[_Group, ...], ...]:
-    """The nested-dissection tree of a (height, width) grid, leaves first: for each level,
-    its groups of boxes with the same front layout.
-
-    Every box of a level has the same shape: a box is cut across its longer side (if it can
-    be) through the middle, by one row or column of pixels if that side is odd, two if it is
-    even, so both halves are equal. Boxes of at most :data:`_LEAF_PIXELS` pixels, or too thin
-    to cut, are leaves."""
-    shapes = []  # top-down: (height, width, "rows" | "cols" | None, cut width, row and
-    # column origins of the level's boxes)
+def _box_shapes(height: int, width: int) -> list[tuple]:
+    """The levels of :func:`_plan`'s tree, top-down: for each, its boxes' (height, width),
+    how they are cut (``"rows"``, ``"cols"``, or None for the leaves), the cut's width in
+    pixels, and the row and column origins of the level's boxes."""
+    shapes = []
     h, w = height, width
     row_origins, col_origins = np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64)
     while True:
         rows_cut, cols_cut = _cut_width(h), _cut_width(w)
         if h * w <= _LEAF_PIXELS or not (rows_cut or cols_cut):
             shapes.append((h, w, None, 0, row_origins, col_origins))
-            break
+            return shapes
         split = "rows" if rows_cut and (h >= w or not cols_cut) else "cols"
         width_of_cut = rows_cut if split == "rows" else cols_cut
         shapes.append((h, w, split, width_of_cut, row_origins, col_origins))
@@ -116,9 +111,18 @@ def _plan(height: int, width: int) -> tuple[tuple[_Group, ...], ...]:
             col_origins = np.concatenate([col_origins, col_origins + w + width_of_cut])
             col_origins.sort()
 
+
+def _plan(height: int, width: int) -> tuple[tuple[_Group, ...], ...]:
+    """The nested-dissection tree of a (height, width) grid, leaves first: for each level,
+    its groups of boxes with the same front layout.
+
+    Every box of a level has the same shape: a box is cut across its longer side (if it can
+    be) through the middle, by one row or column of pixels if that side is odd, two if it is
+    even, so both halves are equal. Boxes of at most :data:`_LEAF_PIXELS` pixels, or too thin
+    to cut, are leaves."""
     levels: list[tuple[_Group, ...]] = []
     below: dict | None = None  # the level below: each lattice cell's group and position
-    for h, w, split, width_of_cut, row_origins, col_origins in reversed(shapes):
+    for h, w, split, width_of_cut, row_origins, col_origins in reversed(_box_shapes(height, width)):
         i, j = np.meshgrid(np.arange(len(row_origins)), np.arange(len(col_origins)), indexing="ij")
         # Which borders of the grid each box touches: top, bottom, left, right.
         sides = np.stack([i == 0, i == i.max(), j == 0, j == j.max()])

@@ -92,7 +92,9 @@ class TrainAugmentation(nn.Module):
           a radar point moved outside the crop becomes a zero row (``valid`` 0).
 
     Raises:
-        ArgumentError: a ``crop`` larger than the batch's frames.
+        ArgumentError: an ``outlier_filter`` it cannot apply (a kernel that is not an odd
+            integer ≥ 1, a threshold that is not finite metres > 0); in :meth:`forward`, a
+            ``crop`` larger than the batch's frames.
     """
 
     def __init__(
@@ -128,6 +130,15 @@ class TrainAugmentation(nn.Module):
         self.scale = tuple(scale) if scale is not None else None
         self.rotation = float(rotation)
         self.resample = resample
+        if outlier_filter is not None:
+            given = list(outlier_filter) if isinstance(outlier_filter, Sequence) else outlier_filter
+            if not ARGUMENT_RULES["outlier_filter"].ok(given):
+                raise ArgumentError(
+                    f"{{outlier_filter}}={given!r}: expected "
+                    f"{ARGUMENT_RULES['outlier_filter'].expected}",
+                    "outlier_filter",
+                    owner=TrainAugmentation,
+                )
         self.outlier_filter = tuple(outlier_filter) if outlier_filter is not None else None
 
     @torch.no_grad()
@@ -395,10 +406,12 @@ ARGUMENT_RULES: Schema = {
             isinstance(v, list)
             and len(v) == 2
             and is_int(v[0])
+            and v[0] >= 1  # -1 % 2 is 1 too
             and v[0] % 2 == 1
             and is_number(v[1])
+            and math.isfinite(v[1])
             and v[1] > 0
         ),
-        "[kernel, threshold]: an odd side in pixels and metres > 0",
+        "[kernel, threshold]: an odd side ≥ 1 in pixels and finite metres > 0",
     ).or_null("no filter"),
 }

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,10 +33,12 @@ _TURBO_ANCHORS = np.array(
 
 
 def colorize_depth(depth: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
-    """Depth (H, W) in metres → uint8 RGB (H, W, 3); inverse-depth scaled, 0 (invalid) black."""
-    depth = np.asarray(depth, dtype=np.float32)
-    valid = depth > 0
-    inv = 1.0 / np.clip(depth, min_depth, max_depth)
+    """Depth (H, W) in metres → uint8 RGB (H, W, 3); inverse-depth scaled, 0 and non-finite
+    values (no depth) black."""
+    with np.errstate(over="ignore"):  # a float64 beyond float32 is infinite: no depth
+        depth = np.asarray(depth, dtype=np.float32)
+    valid = np.isfinite(depth) & (depth > 0)
+    inv = 1.0 / np.clip(np.where(valid, depth, max_depth), min_depth, max_depth)
     t = (inv - 1.0 / max_depth) / (1.0 / min_depth - 1.0 / max_depth)
     pos = np.clip(t, 0, 1) * (len(_TURBO_ANCHORS) - 1)
     lo = np.floor(pos).astype(int).clip(0, len(_TURBO_ANCHORS) - 2)
@@ -148,6 +151,7 @@ def _text_image(
             va="center",
             ha="left",
             transform=IdentityTransform(),
+            parse_math=False,  # a label is text: "$x^$" is drawn, not parsed as mathtext
         )
     canvas.draw()
     text = np.asarray(canvas.buffer_rgba())[..., :3][:height, :width]
@@ -304,8 +308,9 @@ def _frame_error(frame: PanelFrame) -> tuple[np.ndarray, np.ndarray]:
     target = frame.target.detach().float().reshape(height, width).cpu()
     pred = frame.prediction.detach().float()
     pred = F.interpolate(pred.reshape(1, 1, *pred.shape[-2:]).cpu(), size=(height, width))[0, 0]
-    valid = torch.isfinite(target) & (target > 0) & torch.isfinite(pred)
-    error = torch.where(valid, (pred - target).abs(), torch.zeros_like(target))
+    difference = pred - target
+    valid = torch.isfinite(target) & (target > 0) & torch.isfinite(difference)
+    error = torch.where(valid, difference.abs(), torch.zeros_like(target))
     return error.numpy(), valid.numpy()
 
 
@@ -341,6 +346,29 @@ def error_colorbar(height: int, max_error: float) -> np.ndarray:
     return _labelled_bar(colours, sorted(ticks))
 
 
+# The depths a colour scale may span, metres (beyond them 1/depth under- or overflows).
+DEPTH_RANGE_LIMITS = (1e-6, 1e6)
+
+
+def check_depth_range(min_depth: float, max_depth: float, where: str) -> None:
+    """Refuse a colour scale from ``min_depth`` to ``max_depth`` (metres) that cannot be drawn:
+    expected 0 < min_depth < max_depth, both finite, within :data:`DEPTH_RANGE_LIMITS`.
+
+    Raises:
+        ValueError: in one line starting with ``where``.
+    """
+    low, high = DEPTH_RANGE_LIMITS
+    try:
+        ok = low <= float(min_depth) < float(max_depth) <= high  # False for NaN
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(
+            f"{where}: depth range [{min_depth}, {max_depth}]: expected 0 < min_depth < "
+            f"max_depth, finite metres within [{low:g}, {high:g}]"
+        )
+
+
 def panel_figure(frames: Sequence[PanelFrame], min_depth: float, max_depth: float) -> np.ndarray:
     """Rows of ``image | sparse input | prediction | ground truth | |error|`` with a header,
     each row's label at its left, and labelled colour bars in metres, as uint8 (H', W', 3).
@@ -353,13 +381,17 @@ def panel_figure(frames: Sequence[PanelFrame], min_depth: float, max_depth: floa
     the ground-truth and error columns are left out. Every frame must have the same image size.
 
     Raises:
-        ValueError: no frames, or frames of different sizes.
+        ValueError: no frames, frames of different sizes or of no pixels, or a depth range that
+            is not :func:`check_depth_range`'s.
     """
+    check_depth_range(min_depth, max_depth, "panel_figure")
     if not frames:
         raise ValueError("panel_figure: no frames to draw")
     sizes = {tuple(f.image.shape[-2:]) for f in frames}
     if len(sizes) != 1:
         raise ValueError(f"panel_figure: frames of different sizes {sorted(sizes)}")
+    if min(next(iter(sizes))) < 1 or any(min(f.prediction.shape[-2:]) < 1 for f in frames):
+        raise ValueError("panel_figure: frames of no pixels; expected at least 1 x 1")
     with_error = all(f.target is not None for f in frames)
     max_error = 0.0
     if with_error:
@@ -481,54 +513,196 @@ def write_panel_frames(
     return Path(path)
 
 
+# What a figure drawn from a record (:func:`read_panel_frames`) may cost. A record beyond these
+# is refused from its arrays' headers, before any array is read: a few kilobytes of compressed
+# zeros can declare gigabytes, and one row of 300,000 pixels is drawn 128 rows tall.
+MAX_PANEL_PIXELS = 50_000_000  # five frames of 900x1600 in five columns make about 40 MP
+MAX_PANEL_SIDE = 2**15  # pixels, either side
+MAX_PANEL_LABEL_CHARS = 120  # a row's label (a condition, a frame's name)
+MAX_PREDICTION_SCALE = 4  # a prediction may hold up to this many times its image's pixels
+_LARGEST_FONT = 14  # pixels: panel_figure's labels and a colour bar's are at most this size
+
+
+def _label_width(chars: int, font: int = _LARGEST_FONT) -> int:
+    """:func:`_text_width` of a label of ``chars`` characters, without making it."""
+    return int(np.ceil(0.65 * font * chars))
+
+
+def panel_figure_bound(count: int, height: int, width: int, label_chars: int) -> tuple[int, int]:
+    """At least the (rows, columns) of :func:`panel_figure` of ``count`` frames of ``height`` x
+    ``width`` pixels (``height`` >= 1) whose labels have at most ``label_chars`` characters,
+    with every column and both colour bars: what the figure costs, known before any array is
+    read."""
+    scale = -(-MIN_TILE_HEIGHT // height)  # as panel_figure enlarges short tiles
+    body_rows = max(count * height * scale, MIN_COLORBAR_HEIGHT)
+    label = _label_width(label_chars) + 4 if label_chars else 0
+    # Each bar: pads, its strip, ticks and labels of at most 16 characters ("≥0.000125 m").
+    bars = 2 * (max(8, body_rows // 24) + 9 + _label_width(16))
+    rows = body_rows + _LARGEST_FONT + 8  # and the header
+    return rows, label + len(PANEL_COLUMNS) * width * scale + bars
+
+
+# The kind of each array of a panel-frames file (numpy's dtype.kind) and its number of axes.
+_PANEL_LAYOUT = {
+    "image": ("u", 4),
+    "sparse": ("f", 3),
+    "prediction": ("f", 3),
+    "target": ("f", 3),
+    "label": ("U", 1),
+    "depth_range": ("f", 1),
+}
+# What reading a damaged or foreign archive raises (RuntimeError: an encrypted member).
+_ARCHIVE_ERRORS = (
+    ValueError,
+    zipfile.BadZipFile,
+    zlib.error,
+    EOFError,
+    NotImplementedError,
+    RuntimeError,
+)
+
+
+def _npz_headers(archive: zipfile.ZipFile) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of each array of :data:`_PANEL_LAYOUT` that ``archive`` (an ``.npz``)
+    holds, from the member's ``.npy`` header alone (nothing of the array is read)."""
+    readers = {
+        (1, 0): np.lib.format.read_array_header_1_0,
+        (2, 0): np.lib.format.read_array_header_2_0,
+    }
+    members = set(archive.namelist())
+    headers = {}
+    for name in _PANEL_LAYOUT:
+        if f"{name}.npy" not in members:
+            continue
+        with archive.open(f"{name}.npy") as f:
+            version = np.lib.format.read_magic(f)
+            if version not in readers:
+                raise ValueError(f"{name}: .npy format version {version}")
+            shape, _, dtype = readers[version](f)
+        headers[name] = (tuple(int(n) for n in shape), dtype)
+    return headers
+
+
+def _check_panel_headers(
+    path: str | os.PathLike, headers: dict[str, tuple[tuple[int, ...], np.dtype]]
+) -> None:
+    """Refuse, from the arrays' headers (:func:`_npz_headers`), a record that is not a
+    panel-frames file, holds no frame, or whose figure would pass the limits above.
+
+    Raises:
+        ValueError: naming ``path``, what was found and what was expected (or the limit).
+    """
+    missing = [name for name in _PANEL_LAYOUT if name not in headers]
+    if missing:
+        raise ValueError(f"{path}: not a panel-frames file (no array {missing[0]!r})")
+    for name, (kind, ndim) in _PANEL_LAYOUT.items():
+        shape, dtype = headers[name]
+        if dtype.kind != kind or len(shape) != ndim or (name == "image" and dtype.itemsize != 1):
+            raise ValueError(
+                f"{path}: not a panel-frames file ({name}: {dtype} of {len(shape)} axes)"
+            )
+    (count, channels, height, width), _ = headers["image"]
+    _, pred_height, pred_width = headers["prediction"][0]
+    if (
+        channels != 3
+        or any(headers[n][0][0] != count for n in _PANEL_ARRAYS)
+        or any(headers[n][0][1:] != (height, width) for n in ("sparse", "target"))
+        or headers["depth_range"][0] != (2,)
+    ):
+        raise ValueError(f"{path}: not a panel-frames file (arrays of mismatched shapes)")
+    if count == 0:
+        raise ValueError(f"{path}: no frames (its arrays hold none); expected at least one")
+    if min(height, width, pred_height, pred_width) < 1:
+        raise ValueError(
+            f"{path}: frames of {height}x{width} pixels, predictions of {pred_height}x"
+            f"{pred_width}; expected at least 1x1"
+        )
+    chars = headers["label"][1].itemsize // 4  # numpy's str holds 4 bytes a character
+    if chars > MAX_PANEL_LABEL_CHARS:
+        raise ValueError(
+            f"{path}: labels of up to {chars} characters; expected at most "
+            f"{MAX_PANEL_LABEL_CHARS} characters (the limit of a row's label)"
+        )
+    if pred_height * pred_width > MAX_PREDICTION_SCALE * height * width:
+        raise ValueError(
+            f"{path}: predictions of {pred_height}x{pred_width} pixels for images of "
+            f"{height}x{width}; the limit is {MAX_PREDICTION_SCALE}x the image's pixels"
+        )
+    rows, columns = panel_figure_bound(count, height, width, chars)
+    if rows * columns > MAX_PANEL_PIXELS or max(rows, columns) > MAX_PANEL_SIDE:
+        raise ValueError(
+            f"{path}: {count} frame{'s' if count != 1 else ''} of {height}x{width} pixels "
+            "would make a figure of up to "
+            f"{rows}x{columns} pixels; the limit is {MAX_PANEL_PIXELS:,} pixels and "
+            f"{MAX_PANEL_SIDE:,} a side"
+        )
+
+
+def _not_panel_frames(path: str | os.PathLike, err: BaseException) -> ValueError:
+    return ValueError(f"{path}: not a panel-frames file ({type(err).__name__})")
+
+
+def _read_panel_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The arrays of the panel-frames file at ``path``, each read only once every header has
+    passed :func:`_check_panel_headers` (``allow_pickle=False``: nothing becomes code)."""
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, ValueError, EOFError) as err:
+        raise _not_panel_frames(path, err) from None
+    with archive:
+        try:
+            headers = _npz_headers(archive)
+        except _ARCHIVE_ERRORS as err:
+            raise _not_panel_frames(path, err) from None
+        _check_panel_headers(path, headers)
+        arrays = {}
+        for name, (shape, _) in headers.items():
+            try:
+                with archive.open(f"{name}.npy") as f:
+                    arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
+            except _ARCHIVE_ERRORS as err:
+                raise _not_panel_frames(path, err) from None
+            if arrays[name].shape != shape:  # the file changed while it was read
+                raise ValueError(f"{path}: not a panel-frames file ({name} changed its shape)")
+    return arrays
+
+
 def read_panel_frames(path: str | os.PathLike) -> tuple[list[PanelFrame], float, float]:
     """The frames and depth range :func:`write_panel_frames` wrote at ``path``, read as plain
     arrays (``allow_pickle=False``: nothing in the file becomes code). A frame whose ``target``
     is all zero gets ``target=None``.
+
+    What the figure of the frames would cost is checked from the arrays' headers before any of
+    them is read: at most :data:`MAX_PANEL_PIXELS` pixels (:func:`panel_figure_bound`) and
+    :data:`MAX_PANEL_SIDE` a side, labels of at most :data:`MAX_PANEL_LABEL_CHARS` characters,
+    predictions of at most :data:`MAX_PREDICTION_SCALE` times their image's pixels.
 
     Returns:
         (frames, min_depth, max_depth), depths in metres.
 
     Raises:
         ValueError: ``path`` is not such a file (a missing array, mismatched shapes, or not an
-            ``.npz`` at all), naming the file.
+            ``.npz`` at all), holds no frame or frames of no pixels, a depth range that
+            :func:`check_depth_range` refuses, or passes a limit; in one line naming the file.
         OSError: reading failed.
     """
-    names = (*_PANEL_ARRAYS, "depth_range")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {name: data[name] for name in names if name in data.files}
-    except (ValueError, zipfile.BadZipFile) as err:  # not an .npz, or an array needing pickle
-        raise ValueError(f"{path}: not a panel-frames file ({type(err).__name__})") from None
-    missing = [name for name in names if name not in arrays]
-    if missing:
-        raise ValueError(f"{path}: not a panel-frames file (no array {missing[0]!r})")
-    count = len(arrays["label"])
-    image = arrays["image"]
-    if (
-        image.dtype != np.uint8
-        or image.ndim != 4
-        or image.shape[1] != 3
-        or any(len(arrays[n]) != count for n in _PANEL_ARRAYS)
-        or arrays["sparse"].shape[1:] != image.shape[2:]
-        or arrays["target"].shape[1:] != image.shape[2:]
-        or arrays["prediction"].ndim != 3
-        or arrays["depth_range"].shape != (2,)
-    ):
-        raise ValueError(f"{path}: not a panel-frames file (arrays of mismatched shapes)")
+    arrays = _read_panel_arrays(path)
+    min_depth, max_depth = (float(v) for v in arrays["depth_range"])
+    check_depth_range(min_depth, max_depth, f"{path}: depth_range")
+
+    def plain(array: np.ndarray) -> torch.Tensor:
+        with np.errstate(over="ignore"):  # a float64 beyond float32 becomes inf: no depth
+            return torch.from_numpy(array.astype(np.float32))
+
+    image, target = arrays["image"], arrays["target"]
     frames = [
         PanelFrame(
             image=torch.from_numpy(image[i].astype(np.float32) / 255),
-            sparse=torch.from_numpy(arrays["sparse"][i].astype(np.float32)),
-            prediction=torch.from_numpy(arrays["prediction"][i].astype(np.float32)),
-            target=(
-                torch.from_numpy(arrays["target"][i].astype(np.float32))
-                if arrays["target"][i].any()
-                else None
-            ),
+            sparse=plain(arrays["sparse"][i]),
+            prediction=plain(arrays["prediction"][i]),
+            target=plain(target[i]) if target[i].any() else None,
             label=str(arrays["label"][i]),
         )
-        for i in range(count)
+        for i in range(len(image))
     ]
-    min_depth, max_depth = (float(v) for v in arrays["depth_range"])
     return frames, min_depth, max_depth

@@ -196,6 +196,80 @@ def evaluate_model_file(
     return evaluate_loaded(cfg, load_exported(model_file, **_guards(cfg)), output_dir)
 
 
+def _split_reader(
+    block: dict, chosen: dict | None, loaded: LoadedModel, frames: Callable | None
+) -> Callable[..., Dataset]:
+    """The reader of the dataset ``block`` (built from the package's table of readers, also for
+    a block from the checkpoint or sidecar), each split it reads wrapped by ``frames``."""
+    read = make_reader(block, None if chosen is not None else loaded.path, loaded.key)
+    if frames is None:
+        return read
+
+    def reader(**kwargs: Any) -> Dataset:
+        return frames(read(**kwargs))
+
+    return reader
+
+
+def _evaluation_trainer(
+    cfg: DictConfig, loaded: LoadedModel, output_dir: Path, logger: Any
+) -> L.Trainer:
+    """The Trainer that tests ``loaded``: an exported file runs on the CPU, in its engine's
+    precision (so the Trainer's is fp32); a checkpoint in :func:`evaluation_precision`."""
+    exported = isinstance(loaded.net, ExportedModel)
+    progress = cfg.trainer.enable_progress_bar
+    placement = {"accelerator": "cpu", "devices": 1} if exported else {}
+    precision = (
+        "32-true"
+        if exported
+        else evaluation_precision(cfg.trainer.precision, loaded, cfg.trainer.accelerator)
+    )
+    return instantiate(
+        cfg.trainer,
+        default_root_dir=str(output_dir),
+        callbacks=[ProgressLog()],
+        logger=logger,
+        precision=precision,
+        enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
+        enable_model_summary=False,
+        **placement,
+    )
+
+
+def _resolved_settings(cfg: DictConfig, loaded: LoadedModel, dataset: DictConfig) -> dict:
+    """What ``config_resolved.yaml`` records: the evaluate config (its fusion and backbone as
+    the model has them: the guards only name a choice, their other keys refer to a training
+    config), the dataset scored and the checkpoint's own config."""
+    settings = OmegaConf.masked_copy(cfg, [k for k in cfg if k not in ("fusion", "backbone")])
+    return {
+        "evaluate": {
+            **OmegaConf.to_container(settings, resolve=True),
+            "fusion": loaded.fusion,
+            "backbone": loaded.backbone,
+        },
+        "dataset": OmegaConf.to_container(dataset, resolve=True),
+        "checkpoint_config": loaded.config,
+    }
+
+
+def _scored_source(loaded: LoadedModel, frames: Callable | None) -> dict:
+    """Where the scores come from, as the record keeps it: the checkpoint (and the model file
+    exported from it, as its sidecar records it), and an aligned prior's fit counts."""
+    source = {"checkpoint": str(loaded.path.resolve())}
+    if isinstance(loaded.net, ExportedModel):
+        source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
+    if isinstance(loaded.net, FallbackCount):
+        source["alignment"] = loaded.net.fit_summary()
+        ceiling = frames is GroundTruthAsSparse
+        source["alignment"]["target"] = "ground_truth" if ceiling else "sparse"
+        log.info(
+            "alignment: %(fallbacks)d of %(fits)d frame fits fell back (fewer than 2 "
+            "returns, or a fit that would reverse the order of depths)",
+            source["alignment"],
+        )
+    return source
+
+
 def evaluate_loaded(
     cfg: DictConfig,
     loaded: LoadedModel,
@@ -214,14 +288,7 @@ def evaluate_loaded(
     # Resolved here: once detached from the root config its ${...} references could not be.
     chosen = OmegaConf.to_container(cfg.dataset, resolve=True) if cfg.get("dataset") else None
     block = dataset_config(loaded, chosen)
-    # A block from the checkpoint (or sidecar) is built from the package's table of readers.
-    reader = make_reader(block, None if chosen is not None else loaded.path, loaded.key)
-    if frames is not None:
-        read = reader
-
-        def reader(**kwargs: Any) -> Dataset:
-            return frames(read(**kwargs))
-
+    reader = _split_reader(block, chosen, loaded, frames)
     dataset = OmegaConf.create(block)
     check_dataset(dataset, loaded.fusion)
     L.seed_everything(cfg.seed, workers=True)
@@ -242,60 +309,21 @@ def evaluate_loaded(
         test_split=cfg.split,
     )
     logger = instantiate(cfg.logger) if cfg.logger.get("_target_") else False
-    progress = cfg.trainer.enable_progress_bar
-    # An exported file runs on the CPU, in its engine's precision.
-    placement = {"accelerator": "cpu", "devices": 1} if exported else {}
-    precision = (
-        "32-true"
-        if exported
-        else evaluation_precision(cfg.trainer.precision, loaded, cfg.trainer.accelerator)
-    )
-    trainer = instantiate(
-        cfg.trainer,
-        default_root_dir=str(output_dir),
-        callbacks=[ProgressLog()],
-        logger=logger,
-        precision=precision,
-        enable_progress_bar=sys.stdout.isatty() if progress is None else progress,
-        enable_model_summary=False,
-        **placement,
-    )
-    # The fusion/backbone guards only name a choice; their other keys refer to a training config.
-    settings = OmegaConf.masked_copy(cfg, [k for k in cfg if k not in ("fusion", "backbone")])
-    resolved = {
-        "evaluate": {
-            **OmegaConf.to_container(settings, resolve=True),
-            "fusion": loaded.fusion,
-            "backbone": loaded.backbone,
-        },
-        "dataset": OmegaConf.to_container(dataset, resolve=True),
-        "checkpoint_config": loaded.config,
-    }
+    trainer = _evaluation_trainer(cfg, loaded, output_dir, logger)
+    resolved = _resolved_settings(cfg, loaded, dataset)
     write_text_atomic(output_dir / RESOLVED_CONFIG_FILE, OmegaConf.to_yaml(resolved))
     # Before the work: a malformed record fails first.
     identity = rescored_identity(loaded.run, loaded.config, dataset, engine_identity(loaded.net))
     if served:
         identity = replace(identity, overrides=sorted({*(identity.overrides or []), *served}))
     check_scorable(datamodule, protocol, cfg.trainer, dataset.name, stages=("test",))
-    counts = isinstance(loaded.net, FallbackCount)
     with closing(logger):
         if logger:
             logger.log_hyperparams(resolved)
-        if counts:
+        if isinstance(loaded.net, FallbackCount):
             loaded.net.reset_fits()
         result = module.run_test(trainer, datamodule, verbose=False)
-        source = {"checkpoint": str(loaded.path.resolve())}
-        if exported:  # the checkpoint it was exported from, as its sidecar records it
-            source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
-        if counts:
-            source["alignment"] = loaded.net.fit_summary()
-            ceiling = frames is GroundTruthAsSparse
-            source["alignment"]["target"] = "ground_truth" if ceiling else "sparse"
-            log.info(
-                "alignment: %(fallbacks)d of %(fits)d frame fits fell back (fewer than 2 "
-                "returns, or a fit that would reverse the order of depths)",
-                source["alignment"],
-            )
+        source = _scored_source(loaded, frames)
         record = RunRecord.from_result(identity, result, cfg.split, **source, seed=cfg.seed)
         title = (
             f"{cfg.split} metrics of {loaded.path} ({result.overall['num_images']} images, "

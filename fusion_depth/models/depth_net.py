@@ -51,6 +51,30 @@ class DepthNet(DepthModel):
     and ``enabled: false`` serves it so (the prior is not built; its channel gets zeros). The
     prior's weights stay in their own files: a checkpoint holds the network's, and names the
     prior's file, from which the prior is built again when the checkpoint is loaded.
+
+    Args:
+        backbone: the encoder, a timm model name (``densenet169``, ``resnet50``, ``resnet10t``,
+            ...; :class:`~fusion_depth.models.encoder.Encoder`).
+        fusion: how the sparse depth enters: ``rgb`` (not at all), ``concat`` (as a further
+            channel, mixed in by a 1×1 conv) or ``add`` (added to the image's channels).
+        pretrained: start the encoder from its ImageNet weights (the local cache, else a
+            download).
+        weights: a local file of ImageNet weights for the encoder (``.safetensors`` or
+            ``.pth``), instead of the cache or a download.
+        min_depth: the smallest depth in metres the network predicts; predictions are clipped
+            to ``[min_depth, max_depth]``.
+        max_depth: the largest depth in metres the network predicts.
+        depth_scale: the network predicts ``depth_scale / depth`` (the paper's 10).
+        sparse_encoding: how a return at depth ``d`` enters: ``log``,
+            ``log(d / min_depth) / log(max_depth / min_depth)``, or ``linear``,
+            ``d / max_depth`` (0: no return, either way).
+        backbone_taps: which encoder features feed the decoder: ``paper`` (the paper's
+            DenseNet and ResNet layers) or ``pyramid`` (any timm model's own feature pyramid).
+        prior: the ``prior`` config node (above); None or ``name: none``: no prior.
+
+    Raises:
+        ArgumentError: ``prior.dropout`` outside [0, 1], or an argument the encoder or the
+            prior refuses, naming it.
     """
 
     def __init__(

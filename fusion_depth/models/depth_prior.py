@@ -9,14 +9,19 @@ downloaded: a transformers folder (``config.json`` and ``model.safetensors``, as
 as its conversion script ``convert_depth_anything_to_hf.py`` does. Licences: the Small weights
 are Apache-2.0; Base and Large are CC-BY-NC-4.0 (the authors' README).
 
-``transformers`` is an optional extra (``pip install "fusion-depth[prior]"``), imported on first
-use.
+``transformers`` is an optional extra (``pip install -e ".[prior]"`` in a clone), imported on
+first use.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
+import logging
+import os
 import re
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +35,10 @@ from fusion_depth.errors import (
     MissingDependencyError,
     check_choice,
 )
+from fusion_depth.utils.checkpoint_file import CheckpointError
 from fusion_depth.utils.schema import BOOLEAN, POSITIVE_INT, PROBABILITY, Rule, Schema
+
+log = logging.getLogger(__name__)
 
 PATCH = 14  # DINOv2's patch: the prior's input is resized to a multiple of it
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -74,6 +82,58 @@ _IN_MEMORY = {
 }
 
 
+_CHUNK = 1 << 24  # bytes read at a time while hashing weights
+# Digests computed in this process, by the weights' path and its files' identity (inode, size,
+# modification and change times): a prior, its cache and its checkpoint record hash once.
+_DIGESTS: dict[tuple, str] = {}
+
+
+def _weight_files(path: Path) -> list[Path]:
+    """A prior's files: ``path`` itself, or a folder's files in name order (hidden files and
+    folders left out: a Hub download's ``.cache``)."""
+    if path.is_file():
+        return [path]
+    return sorted(
+        p
+        for p in path.rglob("*")
+        if p.is_file() and not any(part.startswith(".") for part in p.relative_to(path).parts)
+    )
+
+
+def weights_digest(weights: str | Path) -> str:
+    """SHA-256 of a prior's weights: a file's bytes, or a folder's files (names and bytes, in
+    name order; hidden files and folders left out). Hashed once per process while the files
+    keep their inode, size and times (about 0.3 s per 100 MB).
+
+    Returns:
+        64 hex digits.
+
+    Raises:
+        ArgumentError: ``weights`` does not exist (naming ``weights``).
+    """
+    path = Path(weights).expanduser()
+    if not path.exists():
+        raise ArgumentError(
+            f"{{weights}}={weights}: no such file or folder", "weights", owner=__name__
+        )
+    files = _weight_files(path)
+    identity = []
+    for file in files:
+        stat = file.stat()
+        identity.append((str(file), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns))
+    key = (str(path.resolve()), path.is_file(), tuple(identity))
+    if key not in _DIGESTS:
+        digest = hashlib.sha256()
+        for file in files:
+            if file != path:
+                digest.update(file.relative_to(path).as_posix().encode() + b"\0")
+            with file.open("rb") as f:
+                while chunk := f.read(_CHUNK):
+                    digest.update(chunk)
+        _DIGESTS[key] = digest.hexdigest()
+    return _DIGESTS[key]
+
+
 def _network_size(
     height: int, width: int, short_side: int | None, multiple: int
 ) -> tuple[int, int]:
@@ -92,10 +152,82 @@ def _transformers() -> Any:
     except ImportError as err:
         raise MissingDependencyError(
             "prior=depth_anything_v2 needs transformers, which is not installed: "
-            'pip install "fusion-depth[prior]"'
+            'pip install -e ".[prior]" in a clone of fusion-depth'
         ) from err
     transformers.utils.logging.disable_progress_bar()  # its per-load bars, in every run's log
     return transformers
+
+
+@contextlib.contextmanager
+def _hub_offline() -> Iterator[None]:
+    """Every download path of ``huggingface_hub`` (and so of transformers) off while the prior
+    loads: its offline switch set, in the environment and in the module that read it at import,
+    so that a request anything makes raises instead of reaching the network."""
+    names = ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")
+    saved_env = {name: os.environ.get(name) for name in names}
+    try:
+        from huggingface_hub import constants
+    except ImportError:  # pragma: no cover - transformers depends on it
+        constants = None
+    saved = getattr(constants, "HF_HUB_OFFLINE", None)
+    os.environ.update(dict.fromkeys(names, "1"))
+    if constants is not None:
+        constants.HF_HUB_OFFLINE = True
+    try:
+        yield
+    finally:
+        if constants is not None:
+            constants.HF_HUB_OFFLINE = saved
+        for name, value in saved_env.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+# A Depth Anything config.json's keys that would have transformers fetch a backbone (its config
+# or weights) from the Hub or timm by name, and the values that keep it local.
+_HUB_KEYS = {
+    "backbone": "null (the backbone is described by backbone_config)",
+    "use_pretrained_backbone": "false (the folder's own weights are loaded)",
+    "use_timm_backbone": "false (the backbone is transformers' DINOv2)",
+}
+
+
+def _check_local_config(folder: Path, weights: Any) -> None:
+    """Refuse a ``config.json`` that names a backbone to fetch by name (:data:`_HUB_KEYS`, or a
+    ``backbone_config`` that is not a mapping, e.g. a Hub id), at its top level or inside
+    ``backbone_config``: transformers would look it up on the network.
+
+    Raises:
+        ArgumentError: naming the file and the key, and the value that keeps loading local.
+    """
+    file = folder / "config.json"
+    try:
+        config = json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise _weights_error(weights, f"{file} is not readable JSON ({_problem(err)})") from None
+    if not isinstance(config, dict):
+        raise _weights_error(weights, f"{file} holds a {type(config).__name__}; expected a mapping")
+    nested = config.get("backbone_config")
+    for where, node in (("", config), ("backbone_config.", nested)):
+        if not isinstance(node, dict):
+            continue
+        for key, allowed in _HUB_KEYS.items():
+            if node.get(key) not in (None, False):
+                raise _weights_error(
+                    weights,
+                    f"{file} sets {where}{key}={json.dumps(node[key])}, which has transformers "
+                    f"fetch a backbone by name from the network; the prior is read from local "
+                    f"files only: expected {where}{key}: {allowed}",
+                )
+    if nested is not None and not isinstance(nested, dict):
+        raise _weights_error(
+            weights,
+            f"{file} sets backbone_config={json.dumps(nested)}, a name transformers would look "
+            "up on the network; the prior is read from local files only: expected "
+            "backbone_config to be the backbone's config (a mapping), as transformers saves it",
+        )
 
 
 def _problem(err: BaseException) -> str:
@@ -244,7 +376,10 @@ def _load_checkpoint_file(path: Path) -> nn.Module:
 
 def load_depth_anything_v2(weights: str | Path) -> nn.Module:
     """Depth Anything V2 (relative) from local files: a transformers folder or the authors'
-    ``.pth``. Nothing is downloaded (``local_files_only``).
+    ``.pth``. Nothing is downloaded, whatever the folder says: a ``config.json`` that names a
+    backbone to fetch by name (``backbone``, ``use_pretrained_backbone``,
+    ``use_timm_backbone``, a ``backbone_config`` that is a Hub id) is refused, and the folder is
+    read with the Hub's offline switch on (``HF_HUB_OFFLINE``) and ``local_files_only``.
 
     Args:
         weights: the folder (with ``config.json``) or the ``.pth`` file.
@@ -254,8 +389,9 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
 
     Raises:
         ArgumentFileError: ``weights`` does not exist.
-        ArgumentError: a folder without ``config.json`` or of another architecture, or a file
-            that is not a Depth Anything V2 checkpoint, naming ``weights``.
+        ArgumentError: a folder without ``config.json``, with one that names a backbone to
+            fetch (naming the file and key) or of another architecture, or a file that is not
+            a Depth Anything V2 checkpoint, naming ``weights``.
         MissingDependencyError: transformers is not installed.
     """
     path = Path(weights).expanduser()
@@ -272,22 +408,26 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
     if not (path / "config.json").is_file():
         problem = "a folder without config.json (expected a transformers folder)"
         raise _weights_error(weights, problem)
-    try:
-        config = transformers.AutoConfig.from_pretrained(path, local_files_only=True)
-    except Exception as err:  # noqa: BLE001 - any failure means "not a readable config"
-        problem = f"config.json is not readable ({type(err).__name__})"
-        raise _weights_error(weights, problem) from None
-    if config.model_type != "depth_anything":
-        raise _weights_error(weights, f"a {config.model_type} model (expected depth_anything)")
-    if getattr(config, "depth_estimation_type", "relative") != "relative":
-        problem = "a metric Depth Anything (expected a relative one, e.g. Depth-Anything-V2-Small)"
-        raise _weights_error(weights, problem)
-    try:
-        model, info = transformers.DepthAnythingForDepthEstimation.from_pretrained(
-            path, local_files_only=True, output_loading_info=True
-        )
-    except Exception as err:  # noqa: BLE001 - missing or corrupt weights file
-        raise _weights_error(weights, f"cannot be loaded ({_problem(err)})") from None
+    _check_local_config(path, weights)
+    with _hub_offline():
+        try:
+            config = transformers.AutoConfig.from_pretrained(path, local_files_only=True)
+        except Exception as err:  # noqa: BLE001 - any failure means "not a readable config"
+            problem = f"config.json is not readable ({type(err).__name__})"
+            raise _weights_error(weights, problem) from None
+        if config.model_type != "depth_anything":
+            raise _weights_error(weights, f"a {config.model_type} model (expected depth_anything)")
+        if getattr(config, "depth_estimation_type", "relative") != "relative":
+            problem = (
+                "a metric Depth Anything (expected a relative one, e.g. Depth-Anything-V2-Small)"
+            )
+            raise _weights_error(weights, problem)
+        try:
+            model, info = transformers.DepthAnythingForDepthEstimation.from_pretrained(
+                path, config=config, local_files_only=True, output_loading_info=True
+            )
+        except Exception as err:  # noqa: BLE001 - missing or corrupt weights file
+            raise _weights_error(weights, f"cannot be loaded ({_problem(err)})") from None
     missing = [*info.get("missing_keys", ()), *info.get("mismatched_keys", ())]
     if missing:
         raise _weights_error(weights, f"weights do not fit its config.json ({missing[0]})")
@@ -311,6 +451,11 @@ class DepthAnythingPrior(nn.Module):
         - image: (B, 3, H, W) RGB in [0, 1].
         - output: (B, 1, H, W) relative inverse depth, ≥ 0 (larger is nearer; affine-invariant).
 
+    Attributes:
+        weights: the file or folder it was built from, as given.
+        weights_sha256: :func:`weights_digest` of it, recorded with the checkpoints of a network
+            that takes this prior (:data:`PRIOR_KEY`).
+
     Raises:
         ArgumentError: ``weights`` cannot be loaded (see :func:`load_depth_anything_v2`), or
             ``input_size`` is below 14.
@@ -326,6 +471,8 @@ class DepthAnythingPrior(nn.Module):
             )
         self.network = load_depth_anything_v2(weights)
         self.network.requires_grad_(False)
+        self.weights = str(weights)
+        self.weights_sha256 = weights_digest(weights)  # what it was built from (PRIOR_KEY)
         self.input_size = input_size
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
@@ -348,6 +495,35 @@ class DepthAnythingPrior(nn.Module):
         return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)
 
 
+def _read_prior_checkpoint(path: Path, weights: Any) -> tuple[dict, dict[str, torch.Tensor]]:
+    """The network config (``model.net``) and the network's weights of a checkpoint ``train``
+    wrote, read weights-only, every part checked before it is used.
+
+    Raises:
+        ArgumentError: one line naming ``weights``: a file that is not a readable checkpoint,
+            that holds no run config with a ``model.net`` mapping, or whose ``state_dict`` is
+            not a mapping of names to tensors.
+    """
+    from fusion_depth.models._registry import network_state
+    from fusion_depth.utils.checkpoint_file import CONFIG_KEY, read_checkpoint
+
+    def refuse(problem: str) -> ArgumentError:
+        return _weights_error(weights, problem, CheckpointPrior)
+
+    try:  # read_checkpoint also checks the state_dict: names to tensors
+        checkpoint = read_checkpoint(path)
+    except CheckpointError as err:  # "ckpt_path=<file>: <problem>": this file is prior.weights
+        raise refuse(_problem(ValueError(str(err).partition(": ")[2] or str(err)))) from None
+    model = checkpoint[CONFIG_KEY].get("model")
+    net_config = model.get("net") if isinstance(model, dict) else None
+    if not isinstance(net_config, dict):
+        raise refuse(
+            f"its run config ({CONFIG_KEY}) names no network; expected a checkpoint written "
+            "by fusion_depth.train"
+        )
+    return net_config, network_state(checkpoint["state_dict"])
+
+
 class CheckpointPrior(nn.Module):
     """A network of this platform as a frozen prior (``prior=checkpoint``): the RGB network of a
     checkpoint ``train`` wrote, rebuilt by its name from the package's table, whose raw output
@@ -365,16 +541,20 @@ class CheckpointPrior(nn.Module):
         - output: (B, 1, H, W) relative inverse depth (a network trained with ``loss=ssi`` may
           give values below 0: only its affine shape is meaningful).
 
+    Attributes:
+        weights, weights_sha256: as :class:`DepthAnythingPrior`'s (the digest of the file).
+
     Raises:
         ArgumentFileError: ``weights`` does not exist.
-        ArgumentError: not a checkpoint written by ``train``, a network that takes sparse
-            input, or weights that do not fit the network its config names.
+        ArgumentError: not a checkpoint written by ``train`` (unreadable, no run config, or a
+            ``state_dict`` that is not a mapping of names to tensors), a network that takes
+            sparse input, or weights that do not fit the network its config names; one line
+            naming ``weights``.
     """
 
     def __init__(self, weights: str | Path, input_size: int | None = None) -> None:
         super().__init__()
-        from fusion_depth.models._registry import network_from_checkpoint, network_state
-        from fusion_depth.utils.checkpoint_file import CONFIG_KEY, read_checkpoint
+        from fusion_depth.models._registry import network_from_checkpoint
 
         path = Path(weights).expanduser()
         if not path.is_file():
@@ -384,12 +564,7 @@ class CheckpointPrior(nn.Module):
                 "weights",
                 owner=CheckpointPrior,
             )
-        try:
-            checkpoint = read_checkpoint(path)
-            net_config = dict(checkpoint[CONFIG_KEY]["model"]["net"])
-        except (ValueError, KeyError, TypeError) as err:
-            why = str(err).partition(": ")[2] or f"no {err}"
-            raise _weights_error(weights, why, CheckpointPrior) from None
+        net_config, state = _read_prior_checkpoint(path, weights)
         if net_config.get("fusion", "rgb") != "rgb":  # checked before anything is built
             raise _weights_error(
                 weights,
@@ -399,7 +574,7 @@ class CheckpointPrior(nn.Module):
             )
         try:
             self.network = network_from_checkpoint(net_config)
-            self.network.load_state_dict(network_state(checkpoint["state_dict"]))
+            self.network.load_state_dict(state)
         except (ValueError, TypeError, RuntimeError) as err:
             problem = f"cannot be rebuilt ({_problem(err)})"
             raise _weights_error(weights, problem, CheckpointPrior) from None
@@ -412,6 +587,8 @@ class CheckpointPrior(nn.Module):
             )
         self.network.eval().requires_grad_(False)
         self.input_size = input_size
+        self.weights = str(weights)
+        self.weights_sha256 = weights_digest(path)  # what it was built from (PRIOR_KEY)
 
     def train(self, mode: bool = True) -> CheckpointPrior:
         super().train(mode)
@@ -493,3 +670,64 @@ def _without_prior(module: nn.Module, state: dict, prefix: str, metadata: Any) -
 def _with_own_prior(module: nn.Module, state: dict, prefix: str, *args: Any) -> None:
     for key, value in module.prior.state_dict().items():
         state.setdefault(f"{prefix}prior.{key}", value)
+
+
+# The checkpoint entry that records which prior a network was trained with (written by
+# fusion_depth.runner.module.DepthModule, checked wherever a checkpoint is loaded).
+PRIOR_KEY = "fusion_depth_prior"
+
+
+def prior_record(net: nn.Module) -> dict[str, str] | None:
+    """What a checkpoint of ``net`` records of its prior: ``{"name", "weights", "sha256"}``
+    (the prior's file or folder and :func:`weights_digest` of it, taken when the prior was
+    built); None for a network without a prior built from files."""
+    prior = getattr(net, "prior", None)
+    digest = getattr(prior, "weights_sha256", None)
+    if not isinstance(digest, str):
+        return None
+    name = next((n for n, cls in PRIORS.items() if type(prior) is cls), type(prior).__name__)
+    return {"name": name, "weights": str(prior.weights), "sha256": digest}
+
+
+def check_prior_record(net: nn.Module, record: Any, where: str) -> None:
+    """Refuse to serve a checkpoint's network with another prior than it was trained with:
+    ``record`` (the checkpoint's :data:`PRIOR_KEY`, :func:`prior_record`) against the prior
+    ``net`` has just built from its files. A checkpoint written before digests were recorded
+    (no ``record``) is served with a warning: nothing can be checked. Nothing is checked for a
+    network served without its prior.
+
+    Args:
+        net: the rebuilt network (its ``prior`` built from the weights now on disk).
+        record: what the checkpoint records, or None.
+        where: the checkpoint, for messages (``ckpt_path=<file>``).
+
+    Raises:
+        CheckpointError: one line naming the prior's file and both digests (the one trained
+            with, the one found), or a record that is not what :func:`prior_record` writes.
+    """
+    found = prior_record(net)
+    if found is None:
+        return
+    if record is None:
+        log.warning(
+            "%s records no digest of its prior (written before they were recorded); cannot "
+            "check that %s holds the prior it was trained with",
+            where,
+            found["weights"],
+        )
+        return
+    if not isinstance(record, dict) or not isinstance(record.get("sha256"), str):
+        raise CheckpointError(
+            f"{where}: its {PRIOR_KEY} entry is {type(record).__name__} without a sha256 "
+            "string; expected the mapping fusion_depth.train writes (name, weights, sha256)"
+        )
+    if record["sha256"] != found["sha256"]:
+        trained = record.get("weights")
+        trained = f" (from {trained})" if isinstance(trained, str) else ""
+        raise CheckpointError(
+            f"{where}: its network was trained with the prior of sha256 {record['sha256'][:16]}"
+            f"{trained}, but {found['weights']} now holds sha256 {found['sha256'][:16]}; "
+            "refused, as another prior gives the network inputs it was not trained on: give "
+            f"prior={found['name']} prior.weights=<a copy of the weights it was trained with>, "
+            "or train again"
+        )

@@ -108,17 +108,29 @@ def predict_depth(
     points: torch.Tensor | None = None,
     prior: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Depth in metres ``(B, 1, H, W)`` for images ``(B, 3, H, W)`` in [0, 1].
+    """Depth in metres ``(B, 1, *size)`` for images ``(B, 3, H, W)`` in [0, 1]. Sides that are
+    not multiples of 32 are padded at the bottom/right (edges replicated; sparse maps with 0)
+    and cut back, so any image size works.
 
-    ``flip_tta`` averages the prediction with the mirrored prediction of the mirrored input
-    (DenseDepth's test-time augmentation). The network's output is resized to ``size``
-    (default: the input's) with ``upsample``. Inputs whose sides are not multiples of 32 are
-    padded at the bottom/right by edge replication (sparse maps with 0 = no return) and the
-    padding is cut off again, so any image size works. ``points`` (B, P, 6), the batch's
-    ``radar_points`` (columns :data:`~fusion_depth.data.RADAR_POINT_FIELDS`), reach a network
-    that takes them (``model=radarnet``), mirrored with the image under ``flip_tta``.
-    ``prior`` (B, 1, H, W), the batch's cached prior, reaches a network built with one in place
-    of running it (padded and mirrored as the image is).
+    Args:
+        net: a checkpoint's network (:func:`~fusion_depth.runner.checkpoints.load_model`) or an
+            exported model's (:func:`~fusion_depth.export.runtime.load_exported`), in eval mode;
+            call this under ``torch.no_grad()``.
+        image: float ``(B, 3, H, W)``, RGB in [0, 1]; an exported model takes only its size.
+        sparse: float ``(B, 1, H, W)`` depth in metres, 0 = no return; a fusion model needs it,
+            an RGB one (``fusion=rgb``) ignores it.
+        flip_tta: average with the mirrored prediction of the mirrored input (DenseDepth's
+            test-time augmentation).
+        size: ``(height, width)`` of the output; None: the input's.
+        upsample: how the output is resized, one of :data:`UPSAMPLING`.
+        points: float ``(B, P, 6)``, the batch's ``radar_points`` (columns
+            :data:`~fusion_depth.data.RADAR_POINT_FIELDS`), for a network that takes them
+            (``model=radarnet``); mirrored with the image under ``flip_tta``.
+        prior: float ``(B, 1, H, W)``, the batch's cached prior, for a network built with one,
+            in place of running it (padded and mirrored as the image); None: it runs its prior.
+
+    Raises:
+        ArgumentError: ``upsample`` is not one of :data:`UPSAMPLING`.
     """
     _check_upsample(upsample)
     sparse = sparse if net.fusion.uses_sparse else None

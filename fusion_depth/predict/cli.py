@@ -21,6 +21,11 @@ splits), ``output_dir`` receives ``<stem>.png`` (uint16 depth in 1/256 m), ``<st
 (float32 metres) with ``npy=true`` and ``<stem>.viz.png`` with ``visualize=true`` (the default);
 :mod:`fusion_depth.predict.files` describes the files.
 
+An image of more than ``max_pixels`` pixels (default 4096 × 4096; null: any) is refused from its
+header, before it is decoded: the network's memory grows with the pixels. No output replaces
+another output or an input of the same run: in a folder, an input whose outputs an input before
+it would write (``x.viz.png`` after ``x.png``, whose visualisation is ``x.viz.png``) is skipped.
+
 In a folder or split run an input that fails is skipped (``skipped <path>: <reason>``), the others
 are still written, the run ends with the summary line ``predicted N of M inputs into <dir>;
 skipped K: <paths>`` and the command exits with status 1 if anything was skipped. Failures that
@@ -43,6 +48,7 @@ from fusion_depth.data import SPLITS
 from fusion_depth.errors import ConfigError
 from fusion_depth.export.runtime import check_source, load_exported
 from fusion_depth.predict.files import (
+    MAX_PIXELS,
     SPLIT_PREFIX,
     PredictSummary,
     predict_file,
@@ -64,6 +70,7 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
     source = str(cfg.input)
     sparse, ground_truth = cfg.get("sparse"), cfg.get("ground_truth")
     options = {"npy": cfg.npy, "visualize": cfg.visualize, "flip_tta": cfg.flip_tta}
+    files = {"max_pixels": cfg.get("max_pixels", MAX_PIXELS)}  # image files only: splits are sized
     if source.startswith(SPLIT_PREFIX):
         for key, value in (("sparse", sparse), ("ground_truth", ground_truth)):
             if value is not None:
@@ -105,9 +112,9 @@ def predict(cfg: DictConfig) -> PredictSummary | np.ndarray:
             )
         if path.is_dir():
             return predict_folder(
-                loaded, path, output_dir, sparse, ground_truth, **options, **batching
+                loaded, path, output_dir, sparse, ground_truth, **options, **batching, **files
             )
-        return predict_file(loaded, path, output_dir, sparse, ground_truth, **options)
+        return predict_file(loaded, path, output_dir, sparse, ground_truth, **options, **files)
 
 
 @hydra_main("predict")

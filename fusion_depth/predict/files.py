@@ -14,12 +14,20 @@
   colour bar in metres, with ``visualize=True`` (the default).
 
 Depth is predicted at each image's own resolution (a visualisation less than 32 rows tall is
-padded with black rows so its colour bar stays legible). Every file is written under a temporary
-name and renamed, so nothing half-written is left.
+padded with black rows so its colour bar stays legible), up to ``max_pixels`` an image
+(:data:`MAX_PIXELS` by default: the network's memory grows with the pixels, about 0.9 KB a pixel
+for DenseNet-169 in fp32), checked from the file's header before it is decoded. Every file is
+written under a temporary name and renamed, so nothing half-written is left.
+
+No output replaces another output or an input of the same run: in a folder, an input whose
+output names are taken by an input before it (by name: ``x.viz.png`` after ``x.png``, whose
+visualisation is ``x.viz.png``; ``x.jpg`` after ``x.png``) is skipped, naming the other, and
+an ``output_dir`` that is an input folder, or would receive a file the run reads, is refused.
 
 Failures. In a folder or split run, whatever goes wrong with one input makes it a skip, reported
 as ``skipped <path>: <reason>`` (one line), and the other inputs are still predicted and written:
-an input that cannot be read, a sparse map that is missing or of another size, the network
+an input that cannot be read or has more than ``max_pixels`` pixels, an input whose outputs
+would replace another's, a sparse map that is missing or of another size, the network
 failing on that image (a batch that fails is retried one image at a time, so only the culprit is
 skipped), or writing its outputs failing (its files already written are removed again, so a
 skipped input has no outputs from this run). The run ends with the summary line ``predicted N of
@@ -44,11 +52,18 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from PIL import Image
 
 from fusion_depth.config import check_output_dir
 from fusion_depth.data import SPLITS
 from fusion_depth.data.cache import one_line
-from fusion_depth.data.depth_io import read_depth_png, read_rgb, write_depth_png, write_rgb_png
+from fusion_depth.data.depth_io import (
+    DataFileError,
+    read_depth_png,
+    read_rgb,
+    write_depth_png,
+    write_rgb_png,
+)
 from fusion_depth.data.visualize import depth_panel, with_colorbar
 from fusion_depth.models.inference import predict_depth
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, make_reader
@@ -59,6 +74,11 @@ from fusion_depth.utils.progress import Progress
 log = logging.getLogger("fusion_depth.predict")
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+# What an input <stem> writes: the depth PNG, and with npy=true / visualize=true these.
+DEPTH_SUFFIX, NPY_SUFFIX, VIZ_SUFFIX = ".png", ".npy", ".viz.png"
+# The most pixels an image predicts at by default: 4096 × 4096 (a 12 MP photo passes), about
+# 14 GiB for DenseNet-169 in fp32 on a CPU (0.87 KB a pixel; ResNet-18: 0.42 KB).
+MAX_PIXELS = 4096 * 4096
 SPLIT_PREFIX = "split:"
 # The network failing on this many inputs in a row means the model or device is broken.
 MAX_FAILED_IN_A_ROW = 3
@@ -127,6 +147,32 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     )
 
 
+def check_pixels(path: Path, max_pixels: int | None) -> None:
+    """Refuse an image of more than ``max_pixels`` pixels (None: any), from its header alone:
+    Pillow reads the size without decoding, so nothing of the image is allocated. A file whose
+    header cannot be read passes, for the reader to name what is wrong with it.
+
+    Raises:
+        DataFileError: ``<path>: an image of <W>×<H> pixels (<n> MP), more than
+            max_pixels=<m> ...``, one line.
+    """
+    if max_pixels is None:
+        return
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except Exception:  # noqa: BLE001 - unreadable: read_rgb says why, naming the file
+        return
+    if width * height > max_pixels:
+        raise DataFileError(
+            path,
+            f"an image of {width}×{height} pixels ({width * height / 1e6:.1f} MP), more than "
+            f"max_pixels={max_pixels} ({max_pixels / 1e6:.1f} MP) that predict takes at full "
+            "resolution, where the network's memory grows with the pixels; downscale the image, "
+            "or raise max_pixels where the memory allows",
+        )
+
+
 def _read_image(path: Path) -> torch.Tensor:
     return torch.from_numpy(read_rgb(path).copy()).permute(2, 0, 1).float() / 255.0
 
@@ -153,8 +199,11 @@ def _load_frame(
     sparse: Path | None,
     ground_truth: Path | None,
     needs_sparse: bool,
+    max_pixels: int | None = MAX_PIXELS,
 ) -> Frame:
-    """Image, sparse map and ground truth of one file input (errors name the file)."""
+    """Image, sparse map and ground truth of one file input (errors name the file); an image
+    of more than ``max_pixels`` pixels is refused before it is decoded (:func:`check_pixels`)."""
+    check_pixels(image_path, max_pixels)
     image = _read_image(image_path)
     frame = Frame(name=image_path.stem, source=str(image_path), image=image)
     sparse_path = _companion(sparse, image_path)
@@ -185,6 +234,67 @@ def _check_sparse(loaded: LoadedModel, sparse: Path | None, where: str) -> None:
             loaded.fusion,
             sparse,
         )
+
+
+def output_names(stem: str, npy: bool, visualize: bool) -> list[str]:
+    """The files an input ``<stem>`` writes into ``output_dir``: ``<stem>.png``, with ``npy``
+    ``<stem>.npy`` and with ``visualize`` ``<stem>.viz.png``."""
+    wanted = ((DEPTH_SUFFIX, True), (NPY_SUFFIX, npy), (VIZ_SUFFIX, visualize))
+    return [f"{stem}{suffix}" for suffix, on in wanted if on]
+
+
+def _colliding(
+    images: list[Path], output_dir: Path, npy: bool, visualize: bool, read: set[Path]
+) -> dict[Path, str]:
+    """The images whose outputs would replace those of an image before them (in the given
+    order: the first keeps its names), or a file the run reads (``read``, resolved), each with
+    the one-line reason it is skipped."""
+    claimed: dict[str, Path] = {}
+    refused: dict[Path, str] = {}
+    for path in images:
+        names = output_names(path.stem, npy, visualize)
+        taken = next((name for name in names if name in claimed), None)
+        if taken is not None:
+            other = claimed[taken]
+            refused[path] = (
+                f"its output {taken} would replace the {_what(taken, other.stem)} of "
+                f"{other.name} (an input before it); rename one of them"
+            )
+            continue
+        inputs = [name for name in names if (output_dir / name).resolve() in read]
+        if inputs:
+            refused[path] = (
+                f"its output {output_dir / inputs[0]} would replace a file this run reads; "
+                "choose another output_dir"
+            )
+            continue
+        claimed.update(dict.fromkeys(names, path))
+    return refused
+
+
+def _files_read(images: list[Path], *folders: Path | None) -> set[Path]:
+    """What a folder run reads, resolved: ``images`` and their ``<stem>.png`` in each of
+    ``folders`` (sparse, ground truth) that is given."""
+    companions = [_companion(folder, path) for folder in folders for path in images]
+    return {path.resolve() for path in [*images, *companions] if path is not None}
+
+
+def _what(name: str, stem: str) -> str:
+    """What output ``name`` is of an input ``stem``: its depth PNG, depth array or
+    visualisation."""
+    return {DEPTH_SUFFIX: "depth PNG", NPY_SUFFIX: "depth array", VIZ_SUFFIX: "visualisation"}[
+        name[len(stem) :]
+    ]
+
+
+def _check_companion_folders(sparse: Path | None, ground_truth: Path | None) -> None:
+    """With a folder input, ``sparse`` and ``ground_truth`` are folders (or None)."""
+    for key, path in (("sparse", sparse), ("ground_truth", ground_truth)):
+        if path is not None and not path.is_dir():
+            raise ValueError(
+                f"{key}={path}: with a folder input, expected a folder of <image stem>.png "
+                "depth maps"
+            )
 
 
 def _check_outputs_apart(output_dir: Path, *inputs: Path | None) -> None:
@@ -226,13 +336,13 @@ def _write_outputs(
         ValueError, RuntimeError: drawing the visualisation failed.
         OSError: writing a file failed.
     """
-    depth_path = output_dir / f"{frame.name}.png"
+    depth_path = output_dir / f"{frame.name}{DEPTH_SUFFIX}"
     writes: list[tuple[Path, Callable[[], None]]] = [
         (depth_path, lambda: write_depth_png(depth_path, depth))
     ]
     if npy:
         array = depth.astype(np.float32)
-        npy_path = output_dir / f"{frame.name}.npy"
+        npy_path = output_dir / f"{frame.name}{NPY_SUFFIX}"
 
         def save(tmp: Path) -> None:
             np.save(tmp, array)
@@ -249,7 +359,7 @@ def _write_outputs(
             net.max_depth,
         )
         viz = with_colorbar(panel, net.min_depth, net.max_depth)
-        viz_path = output_dir / f"{frame.name}.viz.png"
+        viz_path = output_dir / f"{frame.name}{VIZ_SUFFIX}"
         writes.append((viz_path, lambda: write_rgb_png(viz_path, viz)))
     written: list[Path] = []
     try:
@@ -391,6 +501,12 @@ def _check_limit(limit: int | None) -> None:
         raise ValueError(f"limit={limit}: expected null (everything) or an integer ≥ 1")
 
 
+def _check_max_pixels(max_pixels: int | None) -> None:
+    whole = isinstance(max_pixels, int) and not isinstance(max_pixels, bool)
+    if max_pixels is not None and (not whole or max_pixels < 1):
+        raise ValueError(f"max_pixels={max_pixels!r}: expected null (any size) or an integer ≥ 1")
+
+
 # --------------------------------------------------------------------------- files, folders, splits
 
 
@@ -404,26 +520,38 @@ def predict_file(
     npy: bool = False,
     visualize: bool = True,
     flip_tta: bool = False,
+    max_pixels: int | None = MAX_PIXELS,
 ) -> np.ndarray:
     """Predict one image file; returns the depth (H, W) float32 metres that was written.
 
     ``sparse``/``ground_truth``: a depth PNG, or a folder holding ``<image stem>.png``. Unlike a
-    folder run, an unreadable input raises (naming the file) instead of being skipped.
+    folder run, an input that cannot be predicted raises (naming the file) instead of being
+    skipped. ``max_pixels``: the most pixels the image may have (None: any), checked before it
+    is decoded.
+
+    Raises:
+        FileNotFoundError: ``image`` (or a sparse map the checkpoint needs) is missing.
+        ValueError: an ``output_dir`` where an output would replace an input; a ``max_pixels``
+            that is not None or an integer ≥ 1.
+        DataFileError: an image that cannot be read, or of more than ``max_pixels`` pixels; a
+            sparse or ground-truth map that cannot be read or is of another size.
     """
     image, output_dir = Path(image).expanduser(), Path(output_dir).expanduser()
     sparse = None if sparse is None else Path(sparse).expanduser()
     ground_truth = None if ground_truth is None else Path(ground_truth).expanduser()
     if not image.is_file():
         raise FileNotFoundError(f"input={image}: no such file")
+    _check_max_pixels(max_pixels)
     _check_sparse(loaded, sparse, "a depth PNG of the same size as the image")
-    targets = {(output_dir / f"{image.stem}{s}").resolve() for s in (".png", ".npy", ".viz.png")}
+    targets = {(output_dir / n).resolve() for n in output_names(image.stem, npy, visualize)}
     for path in (image, sparse, ground_truth):
         if path is not None and path.resolve() in targets:
             raise ValueError(
                 f"output_dir={output_dir}: writing the outputs of {image} there would overwrite "
                 f"the input {path}: choose another output_dir"
             )
-    frame = _load_frame(image, sparse, ground_truth, loaded.net.fusion.uses_sparse)
+    uses_sparse = loaded.net.fusion.uses_sparse
+    frame = _load_frame(image, sparse, ground_truth, uses_sparse, max_pixels)
     (depth,) = _predict_frames(loaded.net.eval(), [frame], flip_tta)
     _write_outputs(output_dir, frame, depth, loaded.net, npy, visualize)
     log.info("predicted 1 of 1 inputs (%s) into %s", image, output_dir)
@@ -443,15 +571,23 @@ def predict_folder(
     batch_size: int = 1,
     limit: int | None = None,
     progress: bool | None = None,
+    max_pixels: int | None = MAX_PIXELS,
 ) -> PredictSummary:
     """Predict every image of ``folder`` (sorted by name; the first ``limit`` when given).
 
     ``sparse``/``ground_truth`` are folders of ``<image stem>.png`` depth maps. An input that
-    fails (reading it, predicting it, writing its outputs) is logged as ``skipped <path>:
-    <reason>`` and listed in the summary, and the others are still written (module docstring,
-    "Failures", for what stops the run instead); images of the same size are batched
-    ``batch_size`` at a time. ``progress``: a bar on stderr (True), a log line a minute (False),
-    or None: the bar when stderr is a terminal, else the lines.
+    fails (reading it, more than ``max_pixels`` pixels, predicting it, writing its outputs), or
+    whose output names an input before it takes (``x.viz.png`` after ``x.png``), is logged as
+    ``skipped <path>: <reason>`` and listed in the summary; the others are still written (module
+    docstring, "Failures"). Images of the same size are batched ``batch_size`` at a time.
+    ``progress``: a bar on stderr (True), a log line a minute (False), or None: the bar when
+    stderr is a terminal, else the lines.
+
+    Raises:
+        FileNotFoundError: ``folder`` is missing.
+        ValueError: a folder without images, an ``output_dir`` that is an input folder, a
+            ``limit``, ``max_pixels`` or ``batch_size`` out of range.
+        OSError, RuntimeError: what stops the run at once (module docstring, "Failures").
     """
     folder, output_dir = Path(folder).expanduser(), Path(output_dir).expanduser()
     sparse = None if sparse is None else Path(sparse).expanduser()
@@ -459,13 +595,9 @@ def predict_folder(
     if not folder.is_dir():
         raise FileNotFoundError(f"input={folder}: no such folder")
     _check_limit(limit)
+    _check_max_pixels(max_pixels)
     _check_sparse(loaded, sparse, "a folder of <image stem>.png depth maps")
-    for key, path in (("sparse", sparse), ("ground_truth", ground_truth)):
-        if path is not None and not path.is_dir():
-            raise ValueError(
-                f"{key}={path}: with a folder input, expected a folder of <image stem>.png "
-                "depth maps"
-            )
+    _check_companion_folders(sparse, ground_truth)
     _check_outputs_apart(output_dir, folder, sparse, ground_truth)
     images = list_images(folder)
     if not images:
@@ -475,19 +607,17 @@ def predict_folder(
         )
     images = images[:limit]
     needs_sparse = loaded.net.fusion.uses_sparse
+    refused = _colliding(
+        images, output_dir, npy, visualize, _files_read(images, sparse, ground_truth)
+    )
 
     def items() -> Iterator[Frame | Skipped]:
-        used: dict[str, Path] = {}
         for path in images:
-            if path.stem in used:
-                yield Skipped(
-                    str(path),
-                    f"same name as {used[path.stem].name}; outputs {path.stem}.png would collide",
-                )
+            if path in refused:
+                yield Skipped(str(path), refused[path])
                 continue
-            used[path.stem] = path
             try:
-                yield _load_frame(path, sparse, ground_truth, needs_sparse)
+                yield _load_frame(path, sparse, ground_truth, needs_sparse, max_pixels)
             except (ValueError, OSError) as err:
                 yield Skipped(str(path), _reason(err, str(path)))
 

@@ -2,8 +2,11 @@
 
 Takes the same configuration as ``fusion_depth.train`` and builds every split the dataset's
 reader would build on first use (projection, filling, resizing), so training epochs only read
-small files. Running it again with the same settings does nothing; an interrupted run continues
-where it stopped (see :mod:`fusion_depth.data.cache`).
+small files. The dataset is the one training with the same overrides reads: a model's dataset
+recipe (``prepare model=radarnet``) and ``experiment=`` apply as they do there
+(:func:`~fusion_depth.config.recipes.register_dataset_recipes`). Running it again with the
+same settings does nothing; an interrupted run continues where it stopped (see
+:mod:`fusion_depth.data.cache`).
 
 Unlike training, which stops at the first frame whose files cannot be read, prepare goes on: it
 logs ``skipped <frame id>: <reason>`` for each broken frame (a corrupt, truncated or missing

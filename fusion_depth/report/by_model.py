@@ -88,7 +88,7 @@ def _merged_csv(
     header.append("level")
     rows = []
     for g, cells in zip(groups, stats, strict=True):
-        row = identity_cells(g, extra) + [str(g["n"])]
+        row = identity_cells(g, extra, full=True) + [str(g["n"])]
         for col in columns:
             cell = cells[col]
             row += (

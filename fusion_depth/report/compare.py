@@ -476,9 +476,10 @@ def csv_cells(result: BootstrapResult | None) -> list[str]:
 
 
 def _interval_text(preset: Preset, metric: str, result: BootstrapResult) -> str:
-    """``+mean [+low, +high]`` in the preset's units, 3 decimals."""
+    """``+mean [+low, +high]`` in the preset's units and decimals (:meth:`Preset.decimals`)."""
     mean, low, high = (preset.value(metric, v) for v in (result.mean, result.low, result.high))
-    return f"{mean:+.3f} [{low:+.3f}, {high:+.3f}]"
+    p = preset.decimals(metric)  # whole millimetres, else 3
+    return f"{mean:+.{p}f} [{low:+.{p}f}, {high:+.{p}f}]"
 
 
 def build_comparison_table(
@@ -518,7 +519,7 @@ def build_comparison_table(
         header.append("Significant")
     rows, bold = [], set()
     for i, c in enumerate(comparisons):
-        row = identity_cells(c.group, extra)
+        row = identity_cells(c.group, extra, full=fmt != "markdown")
         row += [c.baseline_label, c.pairing, str(c.num_images)]
         significant = []
         for j, column in enumerate(columns):

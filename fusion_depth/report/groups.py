@@ -50,6 +50,11 @@ class Preset:
         """The column header of ``metric``: its table name with this preset's unit."""
         return metric_header(metric, self.units, latex)
 
+    def decimals(self, metric: str) -> int:
+        """The decimals a cell of ``metric`` is printed with: a length in millimetres to the
+        millimetre (0), everything else to 3 (metres to the millimetre, ratios, 1/km)."""
+        return 0 if self.value(metric, 1.0) == 1000.0 else 3
+
     def cell(
         self, metric: str, cell: tuple[float, float | None] | None
     ) -> tuple[float, float | None] | None:
@@ -86,6 +91,45 @@ def runs_preset(runs: Sequence[RunRecord]) -> Preset:
     return next(iter(found), Preset())
 
 
+def _format_name(version: object) -> str:
+    return "unknown (a record from before records named it)" if version is None else str(version)
+
+
+def check_format_versions(runs: Sequence[RunRecord], mixed: bool = False) -> str | None:
+    """Refuse runs of one dataset whose frames were prepared by different format versions
+    (:func:`fusion_depth.runner.record.format_version`; a record that names none is unknown):
+    their scores are not comparable (nuScenes' placement change moved RMSE by up to 3.5 %).
+
+    Args:
+        mixed: report them anyway (``--mixed-formats``): return the note to print instead.
+
+    Returns:
+        None where every dataset's runs share one version; with ``mixed``, a line naming the
+        versions and a record of each.
+
+    Raises:
+        ValueError: (without ``mixed``) the versions of a dataset differ; names each version,
+            a record of each, and what to do.
+    """
+    found: dict[object, dict[object, RunRecord]] = {}
+    for run in runs:
+        found.setdefault(run.run.dataset, {}).setdefault(run.run.format_version, run)
+    mixes = {dataset: versions for dataset, versions in found.items() if len(versions) > 1}
+    if not mixes:
+        return None
+    named = "; ".join(
+        f"{dataset}: " + ", ".join(f"{_format_name(v)} ({r.path})" for v, r in versions.items())
+        for dataset, versions in mixes.items()
+    )
+    if mixed:
+        return f"note: --mixed-formats: runs of different data format versions together: {named}"
+    raise ValueError(
+        f"the runs read frames of different data format versions ({named}), whose scores "
+        "are not comparable: score them again on this version (python -m fusion_depth.evaluate "
+        "ckpt_path=<folder>), keep one version (move the others out), or pass --mixed-formats"
+    )
+
+
 # Overrides that already have a column or are averaged over (``model=`` chooses the network,
 # as does ``model.net.name=``; other ``model.*`` keys are settings).
 _IDENTITY_KEYS = {"dataset", "model", "model.net.name", "backbone", "fusion", "loss", "seed"}
@@ -120,6 +164,65 @@ def _setting(run: RunRecord) -> str:
         o for o in run.run.overrides or [] if o.split("=", 1)[0].lstrip("+~") not in _IDENTITY_KEYS
     ]
     return " ".join(sorted(keys))
+
+
+def short_settings(settings: Collection[str]) -> tuple[dict[str, str], tuple[str, ...]]:
+    """Short labels for the ``setting`` of a table's groups (space-separated overrides), and the
+    overrides they leave out.
+
+    An override whose key has one value in every setting that names it is left out (a prior's
+    weights, a fit's threshold that only RANSAC rows give): it tells none of those rows apart.
+    Where that would give two settings one label, such overrides are kept again, the shortest
+    first, until the labels differ. A dotted key is cut to its last part where no other key
+    of the table ends so (``alignment.target=sparse`` → ``target=sparse``).
+
+    Returns:
+        setting → label, and the overrides left out (sorted; empty when none was).
+    """
+    parsed = {s: s.split() for s in settings}
+    values: dict[str, set[str]] = {}
+    for overrides in parsed.values():
+        for override in overrides:
+            key, _, value = override.partition("=")
+            values.setdefault(key, set()).add(value)
+    uniform = {key for key, found in values.items() if len(found) == 1}
+    # Kept again in this order where labels would collide: the shortest overrides first.
+    restore = sorted(uniform, key=lambda key: (len(key) + len(next(iter(values[key]))), key))
+
+    # A key's last part names it where no other key of the table, shown or not, ends so.
+    ends = [key.lstrip("+~").rsplit(".", 1)[-1] for key in values]
+
+    def labels_without(left_out: set[str]) -> dict[str, str]:
+
+        def short(override: str) -> str:
+            key, sep, value = override.partition("=")
+            name = key.lstrip("+~")
+            end = name.rsplit(".", 1)[-1]
+            shown = end if ends.count(end) == 1 else name
+            return f"{key[: len(key) - len(name)]}{shown}{sep}{value}"
+
+        return {
+            s: " ".join(short(o) for o in overrides if o.partition("=")[0] not in left_out)
+            for s, overrides in parsed.items()
+        }
+
+    left_out = set(uniform)
+    labels = labels_without(left_out)
+    while len(set(labels.values())) < len(labels):
+        left_out.discard(restore.pop(0))
+        labels = labels_without(left_out)
+    every = {o for overrides in parsed.values() for o in overrides}
+    return labels, tuple(sorted(o for o in every if o.partition("=")[0] in left_out))
+
+
+def settings_note(groups: Sequence[dict]) -> str:
+    """A Markdown line under a table whose Setting column is shown short
+    (:func:`short_settings`) naming the overrides it leaves out; "" when none."""
+    shared = groups[0].get("setting_shared", ()) if groups else ()
+    if not shared:
+        return ""
+    named = ", ".join(f"`{o}`" for o in shared)
+    return f"\n\nLeft out of Setting, the same in every row that sets them: {named}."
 
 
 # Protocol keys that only shape the breakdowns, not the headline scores a row averages.
@@ -183,6 +286,7 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
         )
 
     result = []
+    labels, shared = short_settings({key[6] for key in groups})
     for key in sorted(groups, key=order):
         members = groups[key]
         _check_same_scoring(members)
@@ -197,6 +301,8 @@ def group_runs(runs: Sequence[RunRecord]) -> list[dict]:
                 "loss": loss,
                 "fusion": fusion,
                 "setting": setting,
+                "setting_label": labels[setting],  # the Setting column's short form
+                "setting_shared": shared,  # what the short forms leave out
                 "engine": engine,
                 "n": len(members),
                 "seeds": sorted(m.run.seed for m in members),
@@ -224,10 +330,17 @@ def identity_columns(groups: Sequence[dict], show: Collection[str] = ()) -> list
     ]
 
 
-def identity_cells(group: dict, extra: Sequence[tuple[str, str]]) -> list[str]:
+def identity_cells(group: dict, extra: Sequence[tuple[str, str]], full: bool = False) -> list[str]:
     """The cells naming a group: the varying identity fields, then Modality and Loss (models,
-    fusion modes and losses by their labels, :func:`key_label`)."""
-    return [key_label(key, group[key]) for _, key in extra] + [
+    fusion modes and losses by their labels, :func:`key_label`). The setting is its short label
+    (:func:`short_settings`) unless ``full`` (CSV and LaTeX: every override)."""
+
+    def cell(key: str) -> str:
+        if key == "setting" and not full:
+            return group.get("setting_label", group["setting"])
+        return key_label(key, group[key])
+
+    return [cell(key) for _, key in extra] + [
         key_label("fusion", group["fusion"]),
         key_label("loss", group["loss"]),
     ]
@@ -244,19 +357,21 @@ def _metric_stats(sections: Sequence[dict]) -> dict[str, tuple[float, float | No
 
 
 def _cell_text(preset: Preset, metric: str, cell: tuple[float, float | None]) -> str:
-    """``mean ± std`` (or the mean of a single seed) in the preset's units, 3 decimals."""
+    """``mean ± std`` (or the mean of a single seed) in the preset's units and decimals
+    (:meth:`Preset.decimals`)."""
     mean, std = preset.cell(metric, cell)
-    return f"{mean:.3f}" if std is None else f"{mean:.3f} ± {std:.3f}"
+    places = preset.decimals(metric)
+    return f"{mean:.{places}f}" if std is None else f"{mean:.{places}f} ± {std:.{places}f}"
 
 
-def _best_rows(metric: str, values: Sequence[tuple[int, float]]) -> set[int]:
-    """The rows holding the best of ``(row, value)`` pairs at 3 decimals; none when fewer than
-    two values compete (a best needs something to beat)."""
+def _best_rows(metric: str, values: Sequence[tuple[int, float]], places: int = 3) -> set[int]:
+    """The rows holding the best of ``(row, value)`` pairs at the ``places`` decimals printed;
+    none when fewer than two values compete (a best needs something to beat)."""
     if len(values) < 2:
         return set()
     better = max if higher_is_better(metric) else min
-    target = round(better(v for _, v in values), 3)
-    return {i for i, v in values if round(v, 3) == target}
+    target = round(better(v for _, v in values), places)
+    return {i for i, v in values if round(v, places) == target}
 
 
 def _table_caps(groups: Sequence[dict]) -> list[str]:
@@ -323,7 +438,7 @@ def build_table(
     for g in groups:
         for cap in caps or [None]:
             stats = _cap_stats(g, cap)
-            row = identity_cells(g, extra)
+            row = identity_cells(g, extra, full=fmt != "markdown")
             if show_n:
                 row.append(str(g["n"]))
             if time:
@@ -359,8 +474,10 @@ def build_table(
                     for i, (c, st) in enumerate(row_stats)
                     if c == cap and metric in st
                 ]
-                bold |= {(i, first_metric + j) for i in _best_rows(metric, cells)}
-    return format_table(header, rows, fmt, bold)
+                best = _best_rows(metric, cells, preset.decimals(metric))
+                bold |= {(i, first_metric + j) for i in best}
+    note = settings_note(groups) if fmt == "markdown" and ("Setting", "setting") in extra else ""
+    return format_table(header, rows, fmt, bold) + note
 
 
 # --- Per-column tables: --by condition / distance / cap ---------------------------------------
@@ -486,7 +603,8 @@ def build_by_table(
         header += [f"{label} ({tex_escape(c) if latex else c})" for c in columns]
     rows = []
     for g, cells in zip(groups, stats, strict=True):
-        row = identity_cells(g, extra) + ([str(g["n"])] if show_n else [])
+        row = identity_cells(g, extra, full=fmt != "markdown")
+        row += [str(g["n"])] if show_n else []
         for column in columns:
             cell = cells[column]
             if fmt == "csv":
@@ -504,8 +622,9 @@ def build_by_table(
                 for i, s in enumerate(stats)
                 if s[column] is not None
             ]
-            bold |= {(i, first + j) for i in _best_rows(metric, means)}
-    return format_table(header, rows, fmt, bold)
+            bold |= {(i, first + j) for i in _best_rows(metric, means, preset.decimals(metric))}
+    note = settings_note(groups) if fmt == "markdown" and ("Setting", "setting") in extra else ""
+    return format_table(header, rows, fmt, bold) + note
 
 
 def _fmt_std(std: float | None) -> str:

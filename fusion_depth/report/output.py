@@ -20,7 +20,8 @@ from __future__ import annotations
 import errno
 import os
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from fusion_depth.report.plots import read_figure_description
@@ -141,7 +142,8 @@ def write_output(path: str | os.PathLike, text: str) -> None:
 
     Raises:
         ValueError: the target is refused (:func:`check_target`).
-        OSError: the write failed (``path`` unchanged); a full disk names ``path``.
+        OSError: the write failed (``path`` unchanged); a full disk names ``path``
+            (:func:`naming_a_full_disk`).
     """
     head = text.split("\n", 1)[0]
 
@@ -150,8 +152,17 @@ def write_output(path: str | os.PathLike, text: str) -> None:
         return first.startswith(_TABLE_HEADS) or first == head
 
     path = check_target(path, "--output", made_by_report)
-    try:
+    with naming_a_full_disk(path):
         write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+@contextmanager
+def naming_a_full_disk(path: str | os.PathLike) -> Iterator[None]:
+    """Around the writing of ``path`` (``--output``, ``--plot``, ``--panels``): an OSError for a
+    full disk or quota (ENOSPC, EDQUOT) is raised again as one naming ``path``, with the same
+    errno; other errors pass unchanged."""
+    try:
+        yield
     except OSError as err:
         if err.errno in _FULL:
             raise OSError(

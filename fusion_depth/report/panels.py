@@ -16,7 +16,7 @@ from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
 from fusion_depth.data.visualize import panel_figure, read_panel_frames
-from fusion_depth.report.output import check_target
+from fusion_depth.report.output import check_target, naming_a_full_disk
 from fusion_depth.runner.run_folder import TEST_PANEL_FRAMES_FILE
 from fusion_depth.utils.atomic import write_atomic
 
@@ -63,8 +63,11 @@ def draw_recorded_panels(
     Raises:
         ValueError: ``out`` is not a ``.png``, or is a file report may not replace (a run's
             record, a folder, a PNG this command did not draw: :func:`check_target`); no single
-            record; the record is not a panel-frames file.
-        OSError: reading or writing failed.
+            record; the record is not a panel-frames file, holds no frame, has a depth range
+            that cannot be drawn, or would make a figure beyond the limits of
+            :func:`~fusion_depth.data.visualize.read_panel_frames` (checked before any array
+            is read).
+        OSError: reading or writing failed; a full disk names ``out``.
     """
     out = Path(out)
     if out.suffix.lower() != ".png":
@@ -86,5 +89,6 @@ def draw_recorded_panels(
     def write(tmp: Path) -> None:
         Image.fromarray(figure, "RGB").save(tmp, format="PNG", pnginfo=info)
 
-    write_atomic(out, write, suffix=".png")
+    with naming_a_full_disk(out):
+        write_atomic(out, write, suffix=".png")
     return out

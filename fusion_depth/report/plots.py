@@ -278,6 +278,12 @@ def plot_groups(
     return _save_figure_atomic(fig, out, panels, command)
 
 
+def _series_name(cells: Sequence[str]) -> str:
+    """A legend entry: a group's identity cells (its setting short,
+    :func:`~fusion_depth.report.groups.short_settings`), the empty ones and "–" left out."""
+    return " / ".join(cell for cell in cells if cell and cell != "–")
+
+
 def plot_by(
     groups: Sequence[dict],
     out: str | os.PathLike,
@@ -300,7 +306,7 @@ def plot_by(
     for g, cells in zip(groups, stats, strict=True):
         row = [preset.cell(metric, cells[c]) for c in columns]
         heights = [np.nan if c is None else c[0] for c in row]
-        series.append((" / ".join(identity_cells(g, extra)), heights, _std_errors(row)))
+        series.append((_series_name(identity_cells(g, extra)), heights, _std_errors(row)))
     title = f"{preset.label(metric)} by {by} ({_direction(metric)})"
     xlabel = {"distance": "ground-truth distance (m)", "cap": "depth cap (m)"}.get(by, by)
     panel = _grouped_bars(ax, title, columns, series, axis_label(metric, preset), xlabel)
@@ -323,6 +329,8 @@ def plot_comparisons(
         raise ValueError("no comparisons to plot")
     columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
     extra = comparison_identity_columns(comparisons)
+    # One baseline for all (--by model): the title names it, not each legend entry.
+    one_baseline = len({id(c.baseline) for c in comparisons}) == 1
     fig = Figure(figsize=(min(16.0, 2.5 + 0.4 * len(columns) * max(1, len(comparisons))), 3.8))
     ax = fig.add_subplot()
     series = []
@@ -332,12 +340,15 @@ def plot_comparisons(
         heights = [np.nan if r is None else preset.value(m, r.mean) for r in results]
         low = [0.0 if r is None else preset.value(m, r.mean - r.low) for r in results]
         high = [0.0 if r is None else preset.value(m, r.high - r.mean) for r in results]
-        name = " / ".join(identity_cells(c.group, extra))
-        name += f" vs {c.baseline_label}"
+        name = _series_name(identity_cells(c.group, extra))
+        if not one_baseline:
+            name += f" vs {c.baseline_label}"
         series.append((name, heights, np.array([low, high])))
     c0 = comparisons[0]
+    # Its shortest name: the compared keys' values alone.
+    against = min((c.baseline_label for c in comparisons), key=len) if one_baseline else "baseline"
     title = (
-        f"Δ{preset.label(c0.metric)} vs baseline, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
+        f"Δ{preset.label(c0.metric)} vs {against}, {100 * c0.level:g}% CI ({_direction(c0.metric)})"
     )
     ylabel = f"Δ{axis_label(c0.metric, preset)}, other − baseline"
     # A difference is read against 0: a linear axis always.

@@ -21,7 +21,7 @@ from hydra.utils import instantiate
 from fusion_depth.data import READERS, cache_dir, reader_class
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models import DepthModel, network_from_checkpoint, network_state
-from fusion_depth.models.depth_prior import NO_PRIOR
+from fusion_depth.models.depth_prior import NO_PRIOR, PRIOR_KEY, check_prior_record
 from fusion_depth.utils.checkpoint_file import (
     CONFIG_KEY,
     RUN_KEY,
@@ -48,10 +48,13 @@ class LoadedModel:
 
     @property
     def fusion(self) -> str:
+        """The fusion mode it was trained with (``fusion=``): ``rgb`` (the image alone),
+        ``concat`` or ``add`` (the image and sparse depth)."""
         return self.config["fusion"]["mode"]
 
     @property
     def backbone(self) -> str:
+        """The encoder it was trained with (``backbone.name``), e.g. ``resnet10t``."""
         return self.config["backbone"]["name"]
 
 
@@ -113,8 +116,9 @@ def load_model(
 
     Raises:
         CheckpointError: not a training checkpoint, another fusion, backbone or prior than
-            asked for, or weights that do not fit the network its config names (naming the
-            file and key).
+            asked for, a prior whose files now hold other weights than it was trained with
+            (:func:`~fusion_depth.models.depth_prior.check_prior_record`), or weights that do
+            not fit the network its config names (naming the file and key).
     """
     path = Path(path).expanduser()
     checkpoint = read_checkpoint(path)
@@ -139,6 +143,8 @@ def load_model(
         raise CheckpointError(
             f"ckpt_path={path}: its model.net config cannot be built ({why})"
         ) from err
+    # the prior just built from its files must be the one it was trained with (its digest)
+    check_prior_record(net, checkpoint.get(PRIOR_KEY), f"ckpt_path={path}")
     state = network_state(checkpoint["state_dict"])
     expected = net.state_dict()
     missing = sorted(set(expected) - set(state))

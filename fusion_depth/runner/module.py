@@ -18,6 +18,7 @@ from fusion_depth.data.visualize import PanelFrame
 from fusion_depth.losses.depth_loss import NONFINITE_ACTIONS, DepthLoss
 from fusion_depth.metrics.depth import DepthMetrics
 from fusion_depth.models import DepthModel
+from fusion_depth.models.depth_prior import PRIOR_KEY, check_prior_record, prior_record
 from fusion_depth.models.inference import depth_at_points, predict_depth, resize_depth
 from fusion_depth.optim.schedules import schedule_interval
 from fusion_depth.runner.protocol import EvalProtocol, EvaluationResult, latency_summary
@@ -181,6 +182,9 @@ class DepthModule(L.LightningModule):
             checkpoint[CONFIG_KEY] = self.run_config
         if self.run_identity is not None:
             checkpoint[RUN_KEY] = self.run_identity.to_json()
+        prior = prior_record(self.net)  # which prior it trains with: its digest, checked on load
+        if prior is not None:
+            checkpoint[PRIOR_KEY] = prior
         # The augmentation draws from torch's global generators: a resumed run continues their
         # streams, so it trains on the same augmented batches as an uninterrupted one.
         rng = {"cpu": torch.get_rng_state()}
@@ -194,6 +198,10 @@ class DepthModule(L.LightningModule):
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # A resumed run, or the test stage's best checkpoint, goes on with the prior it had.
+        path = getattr(self._trainer, "ckpt_path", None) if self._trainer is not None else None
+        where = f"ckpt_path={path}" if path else "the checkpoint loaded"
+        check_prior_record(self.net, checkpoint.get(PRIOR_KEY), where)
         state = checkpoint.get(TRAINING_STATE_KEY)
         if state is not None:
             self.nonfinite_skips = state["nonfinite_skips"]

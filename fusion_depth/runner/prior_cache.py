@@ -17,9 +17,10 @@ networks read it in (an affine-invariant prior carries its shape in the frame, n
 
 So the cache is keyed by the weights, the input size and the data itself, and needs no index to
 go stale. Files are written under a temporary name and renamed (two processes filling one folder
-write the same bytes); ``meta.json`` records what made the folder. float16 keeps three
-significant digits of each value in [0, 1]; a network trained on the cache sees the prior of the
-un-jittered image (the colour jitter reaches the image only), where
+write the same bytes), and the temporaries of killed writers are removed when the cache is
+opened (:meth:`PriorCache.sweep`); ``meta.json`` records what made the folder. float16 keeps
+three significant digits of each value in [0, 1]; a network trained on the cache sees the prior
+of the un-jittered image (the colour jitter reaches the image only), where
 ``prior.cache=false`` runs it on the jittered one.
 """
 
@@ -42,49 +43,13 @@ from fusion_depth.data import cache_dir
 from fusion_depth.data.cache import check_settings_file
 from fusion_depth.data.depth_io import DataFileError, read_npy, write_npy
 from fusion_depth.data.encoding import decode_sample
-from fusion_depth.errors import ArgumentError
-from fusion_depth.models.depth_prior import normalized_prior
+from fusion_depth.models.depth_prior import normalized_prior, weights_digest
+from fusion_depth.utils.atomic import remove_orphaned_temporaries
 
 log = logging.getLogger(__name__)
 
 PRIOR_CACHE_VERSION = 2  # bump when what a cached prior holds changes (2: normalised per frame)
 PRIOR_DTYPE = np.float16
-_CHUNK = 1 << 24  # bytes read at a time while hashing weights
-
-
-def _file_digest(path: Path, digest: Any) -> None:
-    with path.open("rb") as f:
-        while chunk := f.read(_CHUNK):
-            digest.update(chunk)
-
-
-def weights_digest(weights: str | Path) -> str:
-    """SHA-256 of a prior's weights: a file's bytes, or a folder's files (names and bytes, in
-    name order; hidden files and folders left out).
-
-    Raises:
-        ArgumentError: ``weights`` does not exist (naming ``weights``).
-    """
-    path = Path(weights).expanduser()
-    digest = hashlib.sha256()
-    if path.is_file():
-        _file_digest(path, digest)
-    elif path.is_dir():
-        files = sorted(
-            p
-            for p in path.rglob("*")
-            if p.is_file() and not any(part.startswith(".") for part in p.relative_to(path).parts)
-        )
-        for file in files:
-            digest.update(file.relative_to(path).as_posix().encode() + b"\0")
-            _file_digest(file, digest)
-    else:
-        raise ArgumentError(
-            f"{{weights}}={weights}: no such file or folder",
-            "weights",
-            owner="fusion_depth.models.depth_prior",
-        )
-    return digest.hexdigest()
 
 
 def frame_digest(image: torch.Tensor) -> str:
@@ -119,6 +84,22 @@ class PriorCache:
         self.folder = Path(root if root is not None else cache_dir()) / "priors" / key
         self.folder.mkdir(parents=True, exist_ok=True)
         check_settings_file(self.folder / "meta.json", settings, self.folder)
+        self.sweep()
+
+    def sweep(self) -> list[Path]:
+        """Remove the temporary files that killed writers left in the folder
+        (``<digest[:2]>/.<digest>.npy.p<pid>h<host>.<random>.npy``: a kill while it filled),
+        by the platform's one rule (:func:`~fusion_depth.utils.atomic.remove_orphaned_temporaries`:
+        a process of this machine that is gone, or another machine's older than 10 min). One
+        that a live process is writing stays. Called when the cache is opened.
+
+        Returns:
+            The files removed.
+        """
+        removed = remove_orphaned_temporaries(self.folder, recursive=True)
+        if removed:
+            log.info("prior: removed %d temporary files of killed writers", len(removed))
+        return removed
 
     def path(self, digest: str) -> Path:
         """Where the prior of the frame with ``digest`` is stored."""

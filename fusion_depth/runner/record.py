@@ -11,14 +11,17 @@ are keyed by :data:`fusion_depth.metrics.depth.METRIC_KEYS`.)
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import os
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from fusion_depth.data.base import PreparedDataset
 from fusion_depth.models._registry import DEFAULT_MODEL
 from fusion_depth.runner.protocol import (
     EvaluationResult,
@@ -106,6 +109,10 @@ class RunIdentity(_Stored):
     # engine (:func:`fusion_depth.export.runtime.engine_identity`: onnxruntime, torchscript,
     # openvino-fp32|bf16|int8); None (training runs): torch.
     engine: str | None = _written_by(_IF_SET)
+    # The format version of the dataset's frames scored (:func:`format_version`): frames of
+    # another version (nuScenes' 2 placed points half a pixel off) give other scores. None: a
+    # dataset without prepared frames, or a record from before records named it (unknown).
+    format_version: int | None = _written_by(_IF_SET)
 
     def to_json(self) -> dict[str, Any]:
         """The identity as plain data (``wandb_id`` and ``trained_on`` only where set; an
@@ -118,13 +125,47 @@ class RunIdentity(_Stored):
         return cls(**cls._values(data))
 
 
+def _reader_class(dataset: Any) -> type | None:
+    """The reader class a dataset config block names (``reader._target_``): one already
+    loaded, or one of :mod:`fusion_depth.data`'s (imported: the package's own code); None for
+    any other, which is never imported (a checkpoint's config names it)."""
+    reader = dataset.get("reader") if isinstance(dataset, Mapping) else None
+    target = reader.get("_target_") if isinstance(reader, Mapping) else None
+    if not isinstance(target, str):
+        return None
+    module_name, _, name = target.rpartition(".")
+    module = sys.modules.get(module_name)
+    if module is None and module_name.startswith("fusion_depth.data."):
+        try:
+            module = importlib.import_module(module_name)
+        except ImportError:
+            return None
+    found = getattr(module, name, None) if module is not None else None
+    return found if isinstance(found, type) else None
+
+
+def format_version(dataset: Any) -> int | None:
+    """The format version of the frames that ``dataset`` (a dataset config block) reads: its
+    reader's :attr:`~fusion_depth.data.base.PreparedDataset.format_version`, which names the
+    prepared cache's folder, so frames of another version are prepared again, never read. The
+    cache's own layout version (:data:`~fusion_depth.data.cache.PREPARED_VERSION`) changes how
+    values are stored, not the values, and is not part of it. None: a reader without prepared
+    frames (the built-in dataset, made in memory), or one that is not loaded and not the
+    package's."""
+    reader = _reader_class(dataset)
+    if reader is None or not issubclass(reader, PreparedDataset):
+        return None
+    return int(reader.format_version)
+
+
 def run_identity(
     config: Mapping[str, Any], overrides: Sequence[str] = (), wandb_id: str | None = None
 ) -> RunIdentity:
     """The identity of the run that ``config`` (a run config: Hydra's, or the plain copy a
     checkpoint holds) configures: its dataset, sensor, model, backbone, fusion mode, pixel loss
-    and seed; None where the config lacks one. ``overrides``: those that made the run (already
-    filtered and redacted by the caller); ``wandb_id``: the run's W&B run."""
+    and seed, and its frames' :func:`format_version`; None where the config lacks one.
+    ``overrides``: those that made the run (already filtered and redacted by the caller);
+    ``wandb_id``: the run's W&B run."""
 
     def choice(group: str, key: str) -> Any:
         block = config.get(group)
@@ -142,6 +183,7 @@ def run_identity(
         seed=config.get("seed"),
         overrides=list(overrides),
         wandb_id=wandb_id,
+        format_version=format_version(config.get("dataset")),
     )
 
 
@@ -162,11 +204,13 @@ def rescored_identity(
     engine: str = "torch",
 ) -> RunIdentity:
     """The identity of a checkpoint re-scored on ``dataset`` (a dataset config block): the
-    training run's identity (:func:`training_identity`), with the dataset and sensor scored
-    now, ``trained_on`` the dataset it was trained on and ``engine`` what ran the network
-    (``torch`` for a checkpoint, an exported model's engine identity)."""
+    training run's identity (:func:`training_identity`), with the dataset, sensor and
+    :func:`format_version` scored now, ``trained_on`` the dataset it was trained on and
+    ``engine`` what ran the network (``torch`` for a checkpoint, an exported model's engine
+    identity)."""
     identity = training_identity(recorded, config)
-    # Written: the keys it had, and those set here (even where None).
+    version = format_version(dataset)
+    # Written: the keys it had, and those set here (even where None; the version where known).
     keys = frozenset(identity.to_json()) | {"dataset", "sensor", "trained_on", "engine"}
     return replace(
         identity,
@@ -174,7 +218,8 @@ def rescored_identity(
         dataset=dataset.get("name"),
         sensor=dataset.get("sensor"),
         engine=engine,
-        file_keys=keys,
+        format_version=version,
+        file_keys=keys | ({"format_version"} if version is not None else set()),
     )
 
 

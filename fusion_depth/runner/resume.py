@@ -32,6 +32,7 @@ from fusion_depth.runner.run_folder import (
     RESOLVED_CONFIG_FILE,
     TRACEBACK_FILE,
 )
+from fusion_depth.utils.atomic import remove_orphaned_temporaries
 from fusion_depth.utils.checkpoint_file import (
     CONFIG_KEY,
     RUN_KEY,
@@ -47,7 +48,6 @@ RESUME_MODES = ("auto", "never")
 LAST_CHECKPOINT = "last.ckpt"
 LAST_CHECKPOINT_STATE = "LastCheckpoint"  # its callback state's key in a checkpoint
 LOCK_FILE = ".run.lock"
-TEMPORARY_GLOB = ".*.tmp"  # fusion_depth.utils.atomic.write_atomic's temporary names
 
 
 @dataclass
@@ -140,15 +140,17 @@ def remove_leftovers(output_dir: Path, checkpoint_dir: Path | None, keep: Collec
     ``last.ckpt``, by work that is about to be redone."""
     if not is_lead_process():  # the lead process holds the lock and cleans up
         return
-    folders = [output_dir, *([checkpoint_dir] if checkpoint_dir else [])]
-    stale = [p for folder in folders if folder.is_dir() for p in folder.glob(TEMPORARY_GLOB)]
+    for folder in dict.fromkeys([output_dir, *([checkpoint_dir] if checkpoint_dir else [])]):
+        # Every temporary below the run folder (test_panels.npz's, a checkpoint's, a
+        # predict's), by the one rule of fusion_depth.utils.atomic.is_temporary.
+        for path in remove_orphaned_temporaries(folder, recursive=True, folder_locked=True):
+            log.info("removed %s, left by an interrupted attempt", path)
     if checkpoint_dir is not None and checkpoint_dir.is_dir():
         # By name: a recorded path may be relative to another working directory.
         known = {Path(p).name for p in keep}
-        stale += [p for p in checkpoint_dir.glob("*.ckpt") if p.name not in known]
-    for path in sorted(set(stale)):
-        log.info("removing %s, left by an interrupted attempt", path)
-        path.unlink(missing_ok=True)
+        for path in sorted(p for p in checkpoint_dir.glob("*.ckpt") if p.name not in known):
+            log.info("removing %s, left by an interrupted attempt", path)
+            path.unlink(missing_ok=True)
 
 
 def override_key(override: str) -> str:

@@ -16,7 +16,7 @@ python -m fusion_depth.score_sparse dataset=kitti dataset.root=/data/kitti
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -42,10 +42,37 @@ class SparseInputScore:
     num_frames: int
 
 
+def sparse_at_points(
+    sparse: torch.Tensor, points: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A sparse map read at full-resolution ground-truth points, as the metrics take maps: each
+    point gets the value of the map's pixel that holds it (nearest; interpolating would blend
+    returns with the zeros around them), edges replicated.
+
+    Shape:
+        - sparse: (1, H, W) or (H, W) metres, 0 = no return.
+        - points: (Q, 3) rows ``y, x, depth`` in the map's pixel coordinates (pixel centres at
+          integers; depth 0: a padding row, never scored), a sample's ``depth_points``.
+        - output: ``(sparse at the points, their depth)``, each (1, 1, 1, Q) metres.
+    """
+    height, width = sparse.shape[-2:]
+    sparse = sparse.reshape(height, width)
+    points = torch.as_tensor(points, dtype=torch.float32)
+    rows = torch.floor(points[:, 0] + 0.5).long().clamp(0, height - 1)
+    columns = torch.floor(points[:, 1] + 0.5).long().clamp(0, width - 1)
+    return sparse[rows, columns].reshape(1, 1, 1, -1), points[:, 2].reshape(1, 1, 1, -1)
+
+
 def score_sparse_input(
     dataset: Any, protocol: EvalProtocol, conditions: list[str] | None = None
 ) -> SparseInputScore:
     """Score each sample's ``sparse`` map (1×H×W metres, 0 = no return) against its ``depth``.
+
+    Under ``eval.resolution=full`` (``eval=radarnet``) a sample that keeps its ground truth at
+    the dataset's full resolution (``depth_points``: nuScenes' val and test) is scored there,
+    as ``evaluate`` scores a prediction: each point against the map's pixel that holds it
+    (:func:`sparse_at_points`); the result's protocol says ``resolution: network`` where no
+    sample had them (the frames themselves were scored).
 
     Args:
         dataset: a split of any reader (samples as :class:`~fusion_depth.data.Sample`).
@@ -56,17 +83,25 @@ def score_sparse_input(
         ValueError: the sparse input covers no ground-truth pixel the protocol scores.
     """
     covered, every = protocol.scorer(conditions), protocol.scorer(conditions)
+    scored_full = False
     for index in range(len(dataset)):
         sample = dataset[index]
-        sparse, depth = sample["sparse"][None], sample["depth"][None]
+        points = sample.get("depth_points") if protocol.resolution == "full" else None
+        box = sample.get("frame_box")
+        if points is not None:  # a box crops the frame's pixels, not the points
+            sparse, depth = sparse_at_points(sample["sparse"], points)
+            scored_full, box = True, None
+        else:
+            sparse, depth = sample["sparse"][None], sample["depth"][None]
         condition = [sample["condition"]] if conditions else None
         at = torch.tensor([index])
-        box = sample.get("frame_box")
         box = None if box is None else torch.as_tensor(box)[None]
         # Ground truth where there is no return is 0, i.e. not scored (as a partial prediction).
         only_covered = torch.where(sparse > 0, depth, torch.zeros_like(depth))
         covered.update(sparse, only_covered, condition, index=at, frame_box=box)
         every.update(depth, depth, condition, index=at, frame_box=box)
+    if protocol.resolution == "full" and not scored_full:
+        protocol = replace(protocol, resolution="network")  # as evaluate records it
     try:
         result = EvaluationResult.from_metrics(protocol, covered, latency={})
     except ValueError:
@@ -85,6 +120,18 @@ def score_sparse_input(
     return SparseInputScore(result=result, coverage=coverage, num_frames=len(dataset))
 
 
+def _resolution_note(asked: EvalProtocol, scored: EvalProtocol) -> str:
+    """Where the ground truth was scored, for the command's first line."""
+    if scored.resolution == "full":
+        return "scored at the dataset's full resolution (eval.resolution=full), as evaluate does"
+    if asked.resolution == "full":
+        return (
+            "scored at the frames' resolution: eval.resolution=full asks for the full "
+            "resolution, and this split keeps no full-resolution ground truth (as evaluate)"
+        )
+    return "scored at the frames' resolution (eval.resolution=network)"
+
+
 def score_sparse(cfg: DictConfig) -> SparseInputScore:
     """The command: read ``cfg.split`` of ``cfg.dataset``, score it, print the tables."""
     if cfg.split not in SPLITS:
@@ -101,6 +148,7 @@ def score_sparse(cfg: DictConfig) -> SparseInputScore:
         f"dataset={cfg.dataset.name} split={cfg.split}: the sparse input ({cfg.dataset.sensor}) "
         f"scored as the prediction on the {score.result.overall['num_pixels']} ground-truth "
         f"pixels it covers in {score.num_frames} frames (coverage of the scored pixels: {shares})"
+        f"; {_resolution_note(protocol, score.result.protocol)}"
     )
     print(results_tables(score.result))
     return score

@@ -53,21 +53,58 @@ def temporary_orphaned(path: Path, max_age_s: float = FOREIGN_STALE_S) -> bool:
         return False
 
 
-def remove_orphaned_temporaries(folder: Path, names: Sequence[str]) -> list[Path]:
-    """Removes the temporary files (or folders) of ``folder/<name>`` (for each of ``names``:
-    ``.<name>.*``) whose writer is gone (:func:`temporary_orphaned`); returns them. One another
-    live process is writing stays."""
+def is_temporary(path: Path) -> bool:
+    """Whether ``path`` is named as :func:`write_atomic` names its temporary files
+    (``.<name>.p<pid>h<host>.<random><suffix>``, or ``.<name>.tmp-<pid>-<random>`` and
+    ``.<name>.<random>.tmp`` as versions up to 0.2.0 wrote them): the one rule every sweep of
+    the platform's leftovers goes by."""
+    name = path.name
+    return name.startswith(".") and (_OWNER.search(name) is not None or ".tmp" in name)
+
+
+def remove_orphaned_temporaries(
+    folder: Path,
+    names: Sequence[str] | None = None,
+    recursive: bool = False,
+    folder_locked: bool = False,
+) -> list[Path]:
+    """Removes the temporary files (or folders, :func:`is_temporary`) in ``folder`` whose
+    writer is gone (:func:`temporary_orphaned`); returns them. One another live process is
+    writing stays.
+
+    Args:
+        folder: where to look; nothing happens if it does not exist.
+        names: only the temporaries of ``folder/<name>`` for each name (``.<name>.*``); None:
+            every temporary.
+        recursive: also in every folder below ``folder``.
+        folder_locked: the caller holds ``folder``'s lock (a run folder's), so no other
+            process writes there: every temporary but this process's own is a leftover, even
+            where its owner's process id now names another process.
+    """
+    if not folder.is_dir():
+        return []
+    if names is None:
+        found = folder.rglob(".*") if recursive else folder.glob(".*")
+    else:
+        patterns = [f".{glob.escape(name)}.*" for name in names]
+        search = folder.rglob if recursive else folder.glob
+        found = (path for pattern in patterns for path in search(pattern))
     removed = []
-    for name in names:
-        for path in folder.glob(f".{glob.escape(name)}.*"):
-            if not temporary_orphaned(path):
-                continue
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
-            removed.append(path)
+    for path in sorted(set(found)):
+        if not is_temporary(path) or not _left_over(path, folder_locked):
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+        removed.append(path)
     return removed
+
+
+def _left_over(path: Path, folder_locked: bool) -> bool:
+    if folder_locked:
+        return f".{owner_tag()}." not in path.name
+    return temporary_orphaned(path)
 
 
 def _file_mode() -> int:

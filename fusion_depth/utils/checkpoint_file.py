@@ -110,8 +110,11 @@ def load_weights_only(
             f"ckpt_path={path}: refused to load; it holds a {', '.join(objects)} object, and "
             "weights-only loading never runs code from a file to rebuild objects"
         ) from err
-    except (RuntimeError, EOFError, OSError) as err:
+    except Exception as err:  # noqa: BLE001 - bytes no checkpoint holds: any parse failure
+        # (RuntimeError, EOFError, OSError; KeyError, ValueError, ... of a text file's bytes)
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        if isinstance(err, LookupError | ValueError | TypeError):
+            reason = type(err).__name__  # KeyError: 101 says nothing to a user
         raise CheckpointError(
             f"ckpt_path={path}: not a readable PyTorch checkpoint ({reason})"
         ) from err
@@ -158,7 +161,24 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
                 f"ckpt_path={path}: {where} is not plain data (expected strings, numbers, "
                 "lists and mappings with string keys)"
             )
+    problem = state_dict_problem(checkpoint["state_dict"])
+    if problem is not None:
+        raise CheckpointError(f"ckpt_path={path}: {problem}")
     return checkpoint
+
+
+def state_dict_problem(state: Any, where: str = "state_dict") -> str | None:
+    """What makes ``state`` no state dict (a mapping of parameter names to tensors), in words
+    naming the entry, or None when it is one."""
+    expected = "expected a mapping of parameter names to tensors"
+    if not isinstance(state, dict):
+        return f"its {where} holds a {type(state).__name__}; {expected}"
+    for key, value in state.items():
+        if not isinstance(key, str):
+            return f"its {where} has the key {key!r}; {expected}"
+        if not isinstance(value, torch.Tensor):
+            return f"its {where}[{key!r}] holds a {type(value).__name__}; {expected}"
+    return None
 
 
 def not_plain(data: Any, where: str) -> str | None:

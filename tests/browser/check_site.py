@@ -9,15 +9,22 @@ not collect this file: it needs a built site and a browser):
 On each page it fails on:
 
 - an image that did not load (a missing or unreadable file);
-- a Sphinx role shown as text (``:class:`X```) instead of a link (this one on every page of the
-  site, in its HTML);
+- a Sphinx role shown as text (``:class:`X```, or a labelled ``:meth:`title <target>```, which
+  Markdown renders as the role's name before a code span) instead of a link (this one on every
+  page of the site, in its HTML);
+- a list item shown as a paragraph that starts a line with ``- ``: a list broken by a block
+  indented too little (also on every page, in its HTML);
+- a name in code font in a table's first column broken over two lines (a config group cut
+  mid-word);
 - a table wider than the page's content that does not scroll inside its box with a visible cue
   (the edge shadows of ``docs/stylesheets/extra.css``);
 - on the pages readers copy commands from, a code line cut off at the box's edge.
 
 ``--self-test`` then copies the site, breaks one thing at a time on a copy of the quick start
 (an image's file removed, a raw role in the text, the stylesheet that draws the cue dropped with
-a wide table added, a long command line) and checks that each fault, and only it, is reported.
+a wide table added, a long command line, a name in a table's first column squeezed with the
+stylesheet dropped) and checks that each fault, and only it, is reported; and that the scans of
+the HTML find a labelled role and a broken list.
 Exit status 0: every page is clean (and every fault was caught); 1 otherwise.
 """
 
@@ -42,6 +49,7 @@ PAGES = (
     ("get-started/quickstart/index.html", True),
     ("get-started/python/index.html", True),
     ("guides/evaluation/index.html", False),
+    ("guides/configuration/index.html", False),
     ("guides/loss/index.html", False),
     ("results/fusion-weather/index.html", False),
     ("results/speed/index.html", False),
@@ -65,8 +73,13 @@ window.addEventListener("load", () => setTimeout(() => {
     }
   }
   const role = article.innerText.match(
-    /:(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj):`[^`]*`/);
+    /:(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):(?:`[^`]*`|[~.]?[A-Za-z_][\\w.]*)/);
   if (role) found.push("raw Sphinx role in the text: " + role[0]);
+  for (const code of article.querySelectorAll("table td:first-child code")) {
+    if (code.getClientRects().length > 1) {
+      found.push("name broken over lines in a table's first column: " + code.innerText);
+    }
+  }
   article.querySelectorAll("table").forEach((table, i) => {
     const width = table.getBoundingClientRect().width;
     if (width <= box.width + 1) return;
@@ -96,8 +109,14 @@ window.addEventListener("load", () => setTimeout(() => {
 </script>
 """
 _RESULT = re.compile(r'data-site-check="([^"]*)"')
-_ROLE = re.compile(r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj):`[^`]*`")
+# A role as text: with its backquotes, or (a labelled role, :meth:`title <target>`) its name
+# right before the code span Markdown made of the rest.
+_ROLE = re.compile(r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):`[^`]*`")
+_ROLE_BEFORE_CODE = re.compile(r":(?:py:)?(?:class|func|data|meth|mod|attr|exc|obj|const):<code>")
 _TAG = re.compile(r"<script.*?</script>|<style.*?</style>|<[^>]+>", re.S)
+_PARAGRAPH = re.compile(r"<p>(.*?)</p>", re.S)
+# A line of a paragraph that starts like a list item: "- ", "* ", "+ ".
+_LIST_LINE = re.compile(r"(?:^|\n)[ \t]*[-*+] \S")
 
 
 def browser() -> str:
@@ -142,20 +161,35 @@ def raw_roles(site: Path) -> list[str]:
     """Every page of ``site`` whose text (tags stripped) shows a Sphinx role, with the first."""
     found = []
     for page in sorted(site.rglob("*.html")):
-        text = html.unescape(_TAG.sub(" ", page.read_text(encoding="utf-8")))
-        role = _ROLE.search(text)
+        source = page.read_text(encoding="utf-8")
+        text = html.unescape(_TAG.sub(" ", source))
+        role = _ROLE.search(text) or _ROLE_BEFORE_CODE.search(source)
         if role:
             found.append(f"{page.relative_to(site)}: raw Sphinx role in the text: {role[0]}")
+    return found
+
+
+def broken_lists(site: Path) -> list[str]:
+    """Every page of ``site`` with a paragraph holding a line that starts like a list item
+    (``- ``): a list that a block indented too little (a fenced block inside a list item needs
+    the item's four spaces) ended, leaving the next item as text."""
+    found = []
+    for page in sorted(site.rglob("*.html")):
+        for paragraph in _PARAGRAPH.finditer(page.read_text(encoding="utf-8")):
+            if _LIST_LINE.search(paragraph.group(1)):
+                text = html.unescape(_TAG.sub("", paragraph.group(1)))[:60]
+                found.append(f"{page.relative_to(site)}: a list item shown as text: {text!r}")
+                break
     return found
 
 
 def check(site: Path, chromium: str) -> int:
     """Each of :data:`PAGES` of ``site`` in the browser, and every page's text for raw roles;
     prints what is broken. Returns how many faults."""
-    roles = raw_roles(site)
-    for fault in roles:
+    static = raw_roles(site) + broken_lists(site)
+    for fault in static:
         print(fault)
-    faults = len(roles)
+    faults = len(static)
     for name, code_must_fit in PAGES:
         page = site / name
         if not page.is_file():
@@ -179,6 +213,14 @@ def _quickstart_faults(page: Path) -> dict[str, tuple[str, str]]:
     assert image, f"{page}: the quick start shows no picture to break"
     wide = "<table><tr>" + "".join(f"<th>column {i}</th>" for i in range(30)) + "</tr></table>"
     long_line = "python -m fusion_depth.train " + " ".join(f"key{i}=value{i}" for i in range(30))
+    # A group name in a first column that the text of the second squeezes (as the
+    # configuration guide's table did before its stylesheet kept such names whole).
+    words = " ".join(["a long description that takes the width"] * 12)
+    squeezed = (
+        '<div class="md-typeset__table"><table><tr><th>group</th><th>notes</th></tr>'
+        f"<tr><td><code>hydra/launcher_of_the_cluster</code></td><td>{words}</td></tr>"
+        "</table></div>"
+    )
     return {
         "missing image": (
             text.replace(image.group(1), "no-such-picture.png"),
@@ -198,6 +240,12 @@ def _quickstart_faults(page: Path) -> dict[str, tuple[str, str]]:
             text.replace("<pre>", f"<pre><code>{long_line}</code></pre><pre>", 1),
             "code line cut off at the box's edge",
         ),
+        "broken name": (
+            re.sub(r'<link[^>]*href="[^"]*extra\.css"[^>]*>', "", text).replace(
+                "</h1>", "</h1>" + squeezed, 1
+            ),
+            "name broken over lines in a table's first column",
+        ),
     }
 
 
@@ -214,6 +262,26 @@ def self_test(site: Path, chromium: str) -> int:
             broken.write_text(text, encoding="utf-8")
             found = look(broken, True, chromium)
             caught = len(found) == 1 and expected in found[0]
+            print(f"self-test, {name}: {'caught' if caught else 'MISSED'} ({found})")
+            missed += not caught
+        # The scans of the HTML: a labelled role as Markdown renders it, and a broken list.
+        scans = {
+            "labelled role": (
+                "<p>returns (:meth:<code>RunRecord.to_json &lt;x.RunRecord.to_json&gt;</code>)</p>",
+                raw_roles,
+            ),
+            "broken list": (
+                "<p>(the others);\n- <strong>the second item</strong></p>",
+                broken_lists,
+            ),
+        }
+        for name, (paragraph, scan) in scans.items():
+            page.write_text(
+                page.read_text(encoding="utf-8").replace("</h1>", "</h1>" + paragraph, 1),
+                encoding="utf-8",
+            )
+            found = [f for f in scan(copy) if f.startswith("get-started/quickstart/")]
+            caught = len(found) == 1
             print(f"self-test, {name}: {'caught' if caught else 'MISSED'} ({found})")
             missed += not caught
     return missed
