@@ -317,6 +317,28 @@ def test_the_prior_results_have_short_labels_and_whole_millimetres() -> None:
     assert not any(" vs " in label or "/  /" in label for label in labels), labels
 
 
+def test_the_generated_tables_put_the_metrics_first() -> None:
+    """A report table on a results page names its rows, then gives the metrics: the
+    bookkeeping columns (Seeds, Training (min), Images) come last, and a Modality, Loss or
+    Baseline holding one value in every row of several is named under the table instead."""
+    bookkeeping = {"Seeds", "Training (min)", "Images"}
+    checked = 0
+    for path in _generated_tables():
+        text = path.read_text()
+        if "--bench" in text.splitlines()[0]:
+            continue  # bench's tables: measurements, not runs grouped by their setting
+        for table in _markdown_tables(text):
+            header, rows = table[0], table[1:]
+            at = [j for j, column in enumerate(header) if column in bookkeeping]
+            assert at == list(range(len(header) - len(at), len(header))), (path.name, header)
+            for name in ("Modality", "Loss", "Baseline"):
+                if name in header and len(rows) > 1:
+                    values = {row[header.index(name)] for row in rows}
+                    assert len(values) > 1, (path.name, name, values)
+            checked += bool(at)
+    assert checked > 20
+
+
 def test_the_site_builds_from_the_docs_group_alone() -> None:
     """The site's tools install without the package (and its torch): the ``docs`` dependency
     group lists what the ``docs`` extra does, Black among them (mkdocstrings wraps signatures

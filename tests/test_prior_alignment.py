@@ -96,12 +96,14 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
     # Each fit is its own row in report: its settings are the record's overrides.
     assert "alignment.space=inverse" in records[0]["run"]["overrides"]
     assert "alignment.space=depth" in records[1]["run"]["overrides"]
-    # report tabulates them: one row per fit, named by its settings, no training loss or time ("–").
+    # report tabulates them: one row per fit, named by its settings, no training time ("–", the
+    # last column) and no training loss (one value in every row: "none", under the table).
     assert report_main([str(tmp_path / "sweep"), "--time"]) == 0
     # (its settings shortened: space=inverse; what both fits share is named under the table)
-    out = capsys.readouterr().out.splitlines()
-    rows = [line for line in out if line.startswith("|") and " space=" in line]
-    assert len(rows) == 2 and all(row.count("–") >= 2 for row in rows), rows
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("|") and " space=" in line]
+    assert len(rows) == 2 and all(row.rstrip(" |").endswith("–") for row in rows), rows
+    assert "Loss none" in out
     ceiling = _evaluate(
         tmp_path, "experiment=smoke", "dataset=procedural", *prior,
         "alignment.target=ground_truth", f"hydra.run.dir={tmp_path}/gt",

@@ -53,13 +53,16 @@ def test_seeds_are_averaged_and_best_is_marked(tmp_path, capsys) -> None:
     _write_run(tmp_path, "b", "rgb", "l1", 2, rmse=2.0)
     _write_run(tmp_path, "c", "concat", "l1", 1, rmse=0.5, delta1=0.9)
     assert main([str(tmp_path)]) == 0
-    lines = capsys.readouterr().out.strip().splitlines()
+    table, note = capsys.readouterr().out.strip().split("\n\n")
+    lines = table.splitlines()
     assert len(lines) == 4  # header, separator, two groups
+    assert note == "The same in every row, so not a column: Loss L1."
     rgb = next(line for line in lines if "| RGB " in line)
     assert "1.500 ± 0.707" in rgb and "| 2 " in rgb  # mean ± sample std over 2 seeds
     fusion = next(line for line in lines if "RGB-Fusion" in line)
     assert "**0.500**" in fusion and "**0.900**" in fusion
-    assert "**" not in rgb.split("|")[4]  # rgb's RMSE is not the best
+    rmse = [c.strip() for c in lines[0].split("|")].index("RMSE")
+    assert "**" not in rgb.split("|")[rmse]  # rgb's RMSE is not the best
 
 
 def test_time_gives_each_groups_training_minutes(tmp_path, capsys) -> None:
@@ -311,7 +314,11 @@ def test_compare_gives_hand_computed_differences(grid, capsys) -> None:
     concat_line = next(line for line in lines if "RGB-Fusion" in line)
     add_line = next(line for line in lines if "RGB-Add" in line)
     assert "all, day, night" in concat_line and "**-0.3" in concat_line
-    assert add_line.rstrip(" |").endswith("none") and "**" not in add_line
+    # The differences and Significant first; the bookkeeping (pairing, images) after them.
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert header[-3:] == ["Significant", "Seeds", "Images"]
+    add_cells = [c.strip() for c in add_line.strip("|").split("|")]
+    assert add_cells[header.index("Significant")] == "none" and "**" not in add_line
 
 
 def test_compare_without_shared_seeds_uses_seed_means(tmp_path, capsys) -> None:
@@ -497,9 +504,12 @@ def test_a_preset_prints_in_its_units_and_order_one_row_per_cap(tmp_path, capsys
     _write_radarnet_run(tmp_path, "a2", "rgb", 2, {"50": 2.2, "70": 3.2, "80": 4.2})
     _write_radarnet_run(tmp_path, "b1", "concat", 1, {"50": 1.5, "70": 3.5, "80": 4.5})
     assert main([str(tmp_path)]) == 0
-    lines = capsys.readouterr().out.strip().splitlines()
+    lines = capsys.readouterr().out.strip().split("\n\n")[0].splitlines()  # the table
     header = [c.strip() for c in lines[0].strip("|").split("|")]
-    assert header[-5:] == ["Cap (m)", "MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)"]
+    # The cap names a row (before the metrics); Seeds follows them.
+    assert header[-6:] == [
+        "Cap (m)", "MAE (mm)", "RMSE (mm)", "iMAE (1/km)", "iRMSE (1/km)", "Seeds"
+    ]  # fmt: skip
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
     assert [(r[0], r[header.index("Cap (m)")]) for r in rows] == [
         ("RGB", "50"), ("RGB", "70"), ("RGB", "80"),
@@ -672,9 +682,12 @@ def test_model_column_appears_when_models_vary(tmp_path, capsys) -> None:
         ("zz_net", 1),
     ]
     assert main([str(tmp_path)]) == 0
-    header, _, *lines = capsys.readouterr().out.strip().splitlines()
+    table, note = capsys.readouterr().out.strip().split("\n\n")
+    header, _, *lines = table.splitlines()
     cells = [c.strip() for c in header.strip("|").split("|")]
-    assert cells[:4] == ["Model", "Backbone", "Modality", "Loss"]
+    # Modality and Loss are one value in every row: named under the table, not columns.
+    assert cells[:3] == ["Model", "Backbone", "RMSE"]
+    assert note == "The same in every row, so not a column: Modality RGB, Loss L1."
     assert [line.split("|")[1].strip() for line in lines] == [
         "DenseDepth",
         MODELS["sparse_to_dense"].label,
@@ -692,7 +705,9 @@ def test_by_model_gives_means_per_model_and_differences_to_densedepth(models_gri
     argv = [str(root), "--by", "model", "--resamples", "1000"]
     assert main(argv) == 0
     out = capsys.readouterr().out.strip()
-    means, differences = out.split("\n\n")
+    parts = out.split("\n\n")
+    means, differences = [part for part in parts if part.startswith("|")]
+    below = parts[parts.index(differences) + 1 :]  # the note under the differences
     header, _, *rows = means.splitlines()
     assert [c.strip() for c in header.strip("|").split("|")][:3] == [
         "Model",
@@ -706,10 +721,11 @@ def test_by_model_gives_means_per_model_and_differences_to_densedepth(models_gri
     assert [r.split("|")[1].strip() for r in rows] == ["DenseDepth"] * 2 + ["Sparse-to-Dense"] * 2
     assert all("±" in r for r in rows)
     header, _, *rows = differences.splitlines()
-    assert "Baseline" in header and "ΔRMSE (night, 95% CI)" in header
+    assert "ΔRMSE (night, 95% CI)" in header
     assert header.index("(night,") < header.index("(fog,") < header.index("(day,")
     assert len(rows) == 2 and all("Sparse-to-Dense" in r for r in rows)
-    assert all("DenseDepth / densenet169" in r for r in rows)  # the baseline and its encoder
+    # One baseline for both rows (named with its encoder): under the table, not a column.
+    assert "Baseline" not in header and "Baseline DenseDepth / densenet169" in below[0]
 
     assert main([*argv, "--format", "csv"]) == 0
     rows = _csv(capsys)
@@ -746,7 +762,8 @@ def test_by_model_of_one_model_prints_the_table(grid, capsys) -> None:
     root, _ = grid
     assert main([str(root), "--by", "model"]) == 0
     captured = capsys.readouterr()
-    assert "\n\n" not in captured.out.strip() and "Model" in captured.out.splitlines()[0]
+    tables = [part for part in captured.out.strip().split("\n\n") if part.startswith("|")]
+    assert len(tables) == 1 and "Model" in captured.out.splitlines()[0]
     assert "DenseDepth" in captured.out and "one model" in captured.err
 
 

@@ -23,17 +23,18 @@ import numpy as np
 from fusion_depth.metrics.bootstrap import BootstrapResult, paired_bootstrap
 from fusion_depth.report.groups import (
     ALL,
+    Parts,
     Preset,
     identity_cells,
     identity_columns,
     key_label,
+    lay_out,
     put_first,
     tex_escape,
 )
 from fusion_depth.runner.protocol import protocol_differences
 from fusion_depth.runner.record import RunRecord
 from fusion_depth.runner.run_folder import PER_IMAGE_FILE
-from fusion_depth.utils.tables import format_table
 
 # --- Paired comparisons: --compare KEY=VALUE[,KEY=VALUE...] -----------------------------------
 
@@ -492,6 +493,9 @@ def build_comparison_table(
 
     A cell is significant (bold, and listed in the ``Significant`` column) when its interval
     excludes 0. The sign is other − baseline: negative is better for errors, positive for δ.
+    The columns are laid out by :func:`~fusion_depth.report.groups.lay_out`: what a row is and
+    its Baseline, the differences and Significant, then Seeds (the pairing) and Images (CSV:
+    Seeds and Images before the differences).
     ``show``: identity columns to show even when every compared group has the same value;
     ``preset``: the units of the cells (:func:`~fusion_depth.report.groups.runs_preset`; CSV
     keeps the recorded units).
@@ -502,40 +506,39 @@ def build_comparison_table(
     columns = list(dict.fromkeys(col for c in comparisons for col in c.results))
     metric, level = comparisons[0].metric, comparisons[0].level
     extra = comparison_identity_columns(comparisons, show)
-    header = [name for name, _ in extra] + ["Modality", "Loss", "Baseline", "Seeds", "Images"]
-    first = len(header)
     latex = fmt == "latex"
     if fmt == "csv":
-        header += [
+        measured = [
             f"{metric}_{col}_{part}"
             for col in columns
             for part in ("diff", "low", "high", "significant")
         ]
-        header.append("level")
+        measured.append("level")
     else:
         label = ("$\\Delta$" if latex else "Δ") + preset.label(metric, latex)
         pct = f"{100 * level:g}\\%" if latex else f"{100 * level:g}%"
-        header += [f"{label} ({tex_escape(c) if latex else c}, {pct} CI)" for c in columns]
-        header.append("Significant")
-    rows, bold = [], set()
+        measured = [f"{label} ({tex_escape(c) if latex else c}, {pct} CI)" for c in columns]
+        measured.append("Significant")
+    rows: list[Parts] = []
+    bold = set()
     for i, c in enumerate(comparisons):
-        row = identity_cells(c.group, extra, full=fmt != "markdown")
-        row += [c.baseline_label, c.pairing, str(c.num_images)]
-        significant = []
+        naming = identity_cells(c.group, extra, full=fmt != "markdown") + [c.baseline_label]
+        cells, significant = [], []
         for j, column in enumerate(columns):
             r = c.results.get(column)
             if r is not None and r.excludes_zero:
                 significant.append(column)
-                bold.add((i, first + j))
+                bold.add((i, j))
             if fmt == "csv":
-                row += csv_cells(r)
+                cells += csv_cells(r)
             else:
-                row.append("–" if r is None else _interval_text(preset, metric, r))
+                cells.append("–" if r is None else _interval_text(preset, metric, r))
         if fmt == "csv":
-            row.append(f"{level:g}")
+            cells.append(f"{level:g}")
         elif columns == [ALL]:
-            row.append("yes" if significant else "no")
+            cells.append("yes" if significant else "no")
         else:
-            row.append(", ".join(significant) or "none")
-        rows.append(row)
-    return format_table(header, rows, fmt, bold if fmt != "csv" else frozenset())
+            cells.append(", ".join(significant) or "none")
+        rows.append((naming, [c.pairing, str(c.num_images)], cells))
+    naming = [name for name, _ in extra] + ["Modality", "Loss", "Baseline"]
+    return lay_out(fmt, (naming, ["Seeds", "Images"], measured), rows, bold)

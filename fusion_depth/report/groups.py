@@ -225,6 +225,61 @@ def settings_note(groups: Sequence[dict]) -> str:
     return f"\n\nLeft out of Setting, the same in every row that sets them: {named}."
 
 
+# Columns naming a row that a Markdown table leaves out where every row holds one value (named
+# under the table instead): they tell no row apart. The varying identity columns
+# (:func:`identity_columns`) are shown only where they vary already.
+SAME_LEFT_OUT = ("Modality", "Loss", "Baseline")
+
+# A table's header and each of its rows in three parts: the cells naming the row (identity,
+# Modality, Loss; a compared group's Baseline), its bookkeeping (Seeds, Training (min), Images)
+# and what it measured (a Cap, the metrics, Significant).
+Parts = tuple[Sequence[str], Sequence[str], Sequence[str]]
+
+
+def _note_value(value: str) -> str:
+    return "none" if value == "–" else value
+
+
+def lay_out(
+    fmt: str,
+    header: Parts,
+    rows: Sequence[Parts],
+    bold: Collection[tuple[int, int]] = (),
+    note: str = "",
+) -> str:
+    """A table from its parts (:data:`Parts`), metrics first.
+
+    Markdown and LaTeX: the cells naming a row, then what it measured, then its bookkeeping, so
+    the numbers start right after what a row is. Markdown leaves out a column of
+    :data:`SAME_LEFT_OUT` holding one value in every row of a table of several rows, and names
+    it in the note under the table, after ``note`` (:func:`settings_note`). CSV is data, read by
+    name: naming, bookkeeping, then what was measured, every column, no note.
+
+    Args:
+        bold: (row, index among the measured cells) of the cells to mark.
+    """
+    naming, book, measured = header
+    if fmt == "csv":
+        return format_table([*naming, *book, *measured], [[*n, *b, *m] for n, b, m in rows], fmt)
+    keep = list(range(len(naming)))
+    same = []
+    if fmt == "markdown" and len(rows) > 1:
+        for j, name in enumerate(naming):
+            values = {row[0][j] for row in rows}
+            if name in SAME_LEFT_OUT and len(values) == 1:
+                same.append(f"{name} {_note_value(values.pop())}")
+                keep.remove(j)
+    cells = [[*(n[j] for j in keep), *m, *b] for n, b, m in rows]
+    marked = {(i, len(keep) + j) for i, j in bold}
+    table = format_table([*(naming[j] for j in keep), *measured, *book], cells, fmt, marked)
+    if fmt != "markdown":
+        return table
+    notes = [note.strip()] if note.strip() else []
+    if same:
+        notes.append(f"The same in every row, so not a column: {', '.join(same)}.")
+    return table + ("\n\n" + " ".join(notes) if notes else "")
+
+
 # Protocol keys that only shape the breakdowns, not the headline scores a row averages.
 _BREAKDOWN_ONLY = frozenset({"distance_bins", "bin_width"})
 
@@ -402,6 +457,28 @@ def training_minutes(group: dict) -> tuple[float, float | None] | None:
     return mean_std([t / 60 for t in times])
 
 
+def _metric_cells(
+    preset: Preset, metric: str, cell: tuple[float, float | None] | None, fmt: str
+) -> list[str]:
+    """A metric's cells: CSV its mean and std in the recorded units (empty where it is
+    missing), else ``mean ± std`` in the preset's units (:func:`_cell_text`; "–" if missing)."""
+    if fmt == "csv":
+        return ["", ""] if cell is None else [f"{cell[0]:.6g}", _fmt_std(cell[1])]
+    return ["–" if cell is None else _cell_text(preset, metric, cell)]
+
+
+def _minutes_cells(group: dict, fmt: str) -> list[str]:
+    """The training-time cells of a group (:func:`training_minutes`): CSV its mean and std
+    (empty where a run records none), else ``mean ± std`` to a tenth of a minute ("–")."""
+    minutes = training_minutes(group)
+    if fmt == "csv":
+        return ["", ""] if minutes is None else [f"{minutes[0]:.4g}", _fmt_std(minutes[1])]
+    if minutes is None:
+        return ["–"]
+    spread = "" if minutes[1] is None else f" ± {minutes[1]:.1f}"
+    return [f"{minutes[0]:.1f}{spread}"]
+
+
 def build_table(
     groups: Sequence[dict],
     fmt: str = "markdown",
@@ -410,63 +487,39 @@ def build_table(
 ) -> str:
     """The paper's table for grouped runs: Modality, Loss, then the preset's metrics in its
     order and units (``paper``: RMSE, ARD, SRD, MAE, δ1–δ3 in metres; ``radarnet``: MAE, RMSE in
-    mm, iMAE, iRMSE in 1/km). When the runs scored several caps in one pass, a Cap column and
-    one row per cap, as RadarNet's tables have; the best of each column is marked per cap.
-    ``time``: a column of each group's training wall time (:func:`training_minutes`; "–" for
-    records without one), where the machine and the seeds' runs compare."""
+    mm, iMAE, iRMSE in 1/km), then Seeds. When the runs scored several caps in one pass, a Cap
+    column and one row per cap, as RadarNet's tables have; the best of each column is marked per
+    cap. ``time``: a column of each group's training wall time (:func:`training_minutes`; "–"
+    for records without one), where the machine and the seeds' runs compare. The columns are
+    laid out by :func:`lay_out` (CSV: Seeds and the time before the cap and the metrics)."""
     if not groups:
         raise ValueError("no runs to tabulate")
     preset = preset or Preset()
     extra = identity_columns(groups)
     show_n = any(g["n"] > 1 for g in groups)
     caps = _table_caps(groups)
-    latex = fmt == "latex"
-    header = [name for name, _ in extra] + ["Modality", "Loss"]
-    if show_n:
-        header.append("Seeds")
+    book = ["Seeds"] if show_n else []
     if time:
-        header += ["train_min_mean", "train_min_std"] if fmt == "csv" else ["Training (min)"]
-    if caps:
-        header.append("Cap (m)")
-    first_metric = len(header)
+        book += ["train_min_mean", "train_min_std"] if fmt == "csv" else ["Training (min)"]
+    measured = ["Cap (m)"] if caps else []
     if fmt == "csv":  # CSV is data: recorded units (metres, 1/km), as metrics.json
-        header += [f"{k}_{s}" for k in preset.metrics for s in ("mean", "std")]
+        measured += [f"{k}_{s}" for k in preset.metrics for s in ("mean", "std")]
     else:
-        header += [preset.label(k, latex) for k in preset.metrics]
-    rows: list[list[str]] = []
+        measured += [preset.label(k, fmt == "latex") for k in preset.metrics]
+    rows: list[Parts] = []
     row_stats: list[tuple[str | None, dict]] = []
     for g in groups:
         for cap in caps or [None]:
             stats = _cap_stats(g, cap)
-            row = identity_cells(g, extra, full=fmt != "markdown")
-            if show_n:
-                row.append(str(g["n"]))
-            if time:
-                minutes = training_minutes(g)
-                if fmt == "csv":
-                    row += (
-                        ["", ""] if minutes is None else [f"{minutes[0]:.4g}", _fmt_std(minutes[1])]
-                    )
-                elif minutes is None:
-                    row.append("–")
-                else:
-                    spread = "" if minutes[1] is None else f" ± {minutes[1]:.1f}"
-                    row.append(f"{minutes[0]:.1f}{spread}")
-            if cap is not None:
-                row.append(cap)
+            kept = ([str(g["n"])] if show_n else []) + (_minutes_cells(g, fmt) if time else [])
+            cells = [] if cap is None else [cap]
             for metric in preset.metrics:
-                cell = stats.get(metric)
-                if cell is None:
-                    row += ["", ""] if fmt == "csv" else ["–"]
-                    continue
-                if fmt == "csv":
-                    row += [f"{cell[0]:.6g}", _fmt_std(cell[1])]
-                else:
-                    row.append(_cell_text(preset, metric, cell))
-            rows.append(row)
+                cells += _metric_cells(preset, metric, stats.get(metric), fmt)
+            rows.append((identity_cells(g, extra, full=fmt != "markdown"), kept, cells))
             row_stats.append((cap, stats))
     bold = set()
     if fmt != "csv":
+        lead = 1 if caps else 0  # the Cap column
         for j, metric in enumerate(preset.metrics):
             for cap in caps or [None]:
                 cells = [
@@ -475,9 +528,10 @@ def build_table(
                     if c == cap and metric in st
                 ]
                 best = _best_rows(metric, cells, preset.decimals(metric))
-                bold |= {(i, first_metric + j) for i in best}
-    note = settings_note(groups) if fmt == "markdown" and ("Setting", "setting") in extra else ""
-    return format_table(header, rows, fmt, bold) + note
+                bold |= {(i, lead + j) for i in best}
+    note = settings_note(groups) if ("Setting", "setting") in extra else ""
+    header = ([name for name, _ in extra] + ["Modality", "Loss"], book, measured)
+    return lay_out(fmt, header, rows, bold, note)
 
 
 # --- Per-column tables: --by condition / distance / cap ---------------------------------------
@@ -585,7 +639,8 @@ def build_by_table(
 
     ``first``: columns to put first (after ``all``); ``show``: identity columns to show even
     when every group has the same value (``("model",)`` for ``--by model``); ``preset``: the
-    units the cells are in (:func:`runs_preset`; CSV keeps the recorded units).
+    units the cells are in (:func:`runs_preset`; CSV keeps the recorded units). The columns are
+    laid out by :func:`lay_out`: the metric's columns, then Seeds (CSV: Seeds first).
     """
     preset = preset or Preset()
     if not groups:
@@ -593,27 +648,17 @@ def build_by_table(
     columns, stats = by_column_stats(groups, by, metric, first)
     extra = identity_columns(groups, show)
     show_n = any(g["n"] > 1 for g in groups)
-    header = [name for name, _ in extra] + ["Modality", "Loss"] + (["Seeds"] if show_n else [])
-    first = len(header)
     if fmt == "csv":
-        header += [f"{metric}_{c}_{s}" for c in columns for s in ("mean", "std")]
+        measured = [f"{metric}_{c}_{s}" for c in columns for s in ("mean", "std")]
     else:
         latex = fmt == "latex"
         label = preset.label(metric, latex)
-        header += [f"{label} ({tex_escape(c) if latex else c})" for c in columns]
-    rows = []
+        measured = [f"{label} ({tex_escape(c) if latex else c})" for c in columns]
+    rows: list[Parts] = []
     for g, cells in zip(groups, stats, strict=True):
-        row = identity_cells(g, extra, full=fmt != "markdown")
-        row += [str(g["n"])] if show_n else []
-        for column in columns:
-            cell = cells[column]
-            if fmt == "csv":
-                row += ["", ""] if cell is None else [f"{cell[0]:.6g}", _fmt_std(cell[1])]
-            elif cell is None:
-                row.append("–")
-            else:
-                row.append(_cell_text(preset, metric, cell))
-        rows.append(row)
+        values = [v for c in columns for v in _metric_cells(preset, metric, cells[c], fmt)]
+        kept = [str(g["n"])] if show_n else []
+        rows.append((identity_cells(g, extra, full=fmt != "markdown"), kept, values))
     bold = set()
     if fmt != "csv":
         for j, column in enumerate(columns):
@@ -622,9 +667,10 @@ def build_by_table(
                 for i, s in enumerate(stats)
                 if s[column] is not None
             ]
-            bold |= {(i, first + j) for i in _best_rows(metric, means, preset.decimals(metric))}
-    note = settings_note(groups) if fmt == "markdown" and ("Setting", "setting") in extra else ""
-    return format_table(header, rows, fmt, bold) + note
+            bold |= {(i, j) for i in _best_rows(metric, means, preset.decimals(metric))}
+    note = settings_note(groups) if ("Setting", "setting") in extra else ""
+    header = ([name for name, _ in extra] + ["Modality", "Loss"], ["Seeds"] if show_n else [])
+    return lay_out(fmt, (*header, measured), rows, bold, note)
 
 
 def _fmt_std(std: float | None) -> str:
