@@ -24,6 +24,7 @@ from fusion_depth.runner.checkpoint_io import AtomicCheckpointIO, CheckpointWrit
 from fusion_depth.runner.datamodule import EpochSampler, ResumableLoader
 from fusion_depth.runner.resume import OtherRunError, config_changes, plan_start
 from fusion_depth.train.fit import train
+from fusion_depth.utils.atomic import host_tag
 from fusion_depth.utils.checkpoint_file import CONFIG_KEY, RUN_KEY, CheckpointError
 
 # The built-in recipe's per-step schedule (warm-up + cosine), so that a learning rate restored
@@ -410,9 +411,9 @@ write_atomic(Path(sys.argv[1]), killed, suffix=sys.argv[2])
 
 
 def test_a_new_start_removes_every_temporary_a_killed_writer_left(tmp_path) -> None:
-    """Writers killed mid-write (test_panels.npz, a prior map, a predict PNG) leave their real
-    temporary names, whatever their suffix, in the run folder and below: a new start removes
-    them all, and leaves the files a run keeps."""
+    """Writers killed mid-write (test_panels.npz, a panel, a map in a folder of the run) leave
+    their real temporary names, whatever their suffix, in the run folder and the folders right
+    inside it: a new start removes them all, and leaves the files a run keeps."""
     run = tmp_path / "run"
     targets = [
         (run / "test_panels.npz", ".npz"),
@@ -427,8 +428,12 @@ def test_a_new_start_removes_every_temporary_a_killed_writer_left(tmp_path) -> N
     assert len(left) == len(targets), left
     kept = run / "predictions" / "x.png"
     kept.write_bytes(b"a finished output")
+    # Deeper than the folders right inside the run folder is not the run's (W&B's, a user's).
+    deep = run / "wandb" / "offline-run" / f".x.p1h{host_tag()}.tmp"
+    deep.parent.mkdir(parents=True)
+    deep.write_bytes(b"not the run's")
     assert plan_start(run, None, "auto", True, ["experiment=smoke"]).checkpoint is None
-    assert [p for p in run.rglob(".*") if p.is_file()] == []
+    assert [p for p in run.rglob(".*") if p.is_file()] == [deep]
     assert kept.read_bytes() == b"a finished output"
 
 

@@ -133,6 +133,17 @@ def is_lead_process() -> bool:
     return True
 
 
+def _run_folders(output_dir: Path, checkpoint_dir: Path | None) -> list[Path]:
+    """Where a run writes: its folder, the folders right inside it (checkpoints, val_panels)
+    and ``checkpoint_dir``; not deeper (a run folder may be a user's folder, with trees of
+    their own below it, such as W&B's)."""
+    inside = []
+    if output_dir.is_dir():
+        inside = sorted(p for p in output_dir.iterdir() if p.is_dir() and not p.is_symlink())
+    folders = [output_dir, *inside, *([checkpoint_dir] if checkpoint_dir else [])]
+    return list(dict.fromkeys(folders))
+
+
 def remove_leftovers(output_dir: Path, checkpoint_dir: Path | None, keep: Collection[Path]) -> None:
     """Remove what an interrupted attempt left (the caller holds the run lock): temporary files
     of writes it never finished, and checkpoints its resumed state does not know (``keep``:
@@ -140,10 +151,10 @@ def remove_leftovers(output_dir: Path, checkpoint_dir: Path | None, keep: Collec
     ``last.ckpt``, by work that is about to be redone."""
     if not is_lead_process():  # the lead process holds the lock and cleans up
         return
-    for folder in dict.fromkeys([output_dir, *([checkpoint_dir] if checkpoint_dir else [])]):
-        # Every temporary below the run folder (test_panels.npz's, a checkpoint's, a
-        # predict's), by the one rule of fusion_depth.utils.atomic.is_temporary.
-        for path in remove_orphaned_temporaries(folder, recursive=True, folder_locked=True):
+    for folder in _run_folders(output_dir, checkpoint_dir):
+        # Every temporary the run writes (test_panels.npz's, a checkpoint's, a panel's), by
+        # the one rule of fusion_depth.utils.atomic.is_temporary.
+        for path in remove_orphaned_temporaries(folder, folder_locked=True):
             log.info("removed %s, left by an interrupted attempt", path)
     if checkpoint_dir is not None and checkpoint_dir.is_dir():
         # By name: a recorded path may be relative to another working directory.
