@@ -223,6 +223,9 @@ def user_message(err: BaseException, cfg: DictConfig | None = None) -> str | Non
     return None
 
 
+HYDRA_JOB_LINE = "Error executing job with overrides:"
+
+
 class _WithoutJobLine:
     """``sys.stderr`` while a failed job's error travels up through Hydra: drops the ``Error
     executing job with overrides: [...]`` line Hydra writes before re-raising it (the error
@@ -240,7 +243,6 @@ class _WithoutJobLine:
         return getattr(self.stream, name)
 
 
-HYDRA_JOB_LINE = "Error executing job with overrides:"
 # Whether a command of hydra_main reports the job's errors itself (not with HYDRA_FULL_ERROR=1
 # set by the user, nor for a config passed in by a caller).
 _reporting = False
