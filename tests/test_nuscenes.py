@@ -1247,3 +1247,99 @@ def test_radar_points_carry_the_radial_velocity(fresh_root, tmp_path) -> None:
         (row,) = radar_rows(train[index], 128)
         assert row[2] == pytest.approx(12.0, abs=1e-3)
         assert row[4] == pytest.approx(expected[frame["id"]], abs=1e-4)
+
+
+# --- RadarNet's derived files (dataset=radarnet_layout) against this preparation ------------------
+
+
+def _radarnets_radar_points(nusc, token: str) -> np.ndarray:
+    """RadarNet's stored test radar for one keyframe, by its own steps (merge_radar_point_clouds
+    with no frames before or after, setup/setup_dataset_nuscenes_test.py): the devkit's
+    map_pointcloud_to_image of RADAR_FRONT with every return (its loops have called
+    RadarPointCloud.disable_filters() by then), each on np.round (the last written winning),
+    np.nonzero of that map as (x, y, z), float64."""
+    sample = nusc.get("sample", token)
+    RadarPointCloud.disable_filters()
+    try:
+        points, depth, image = NuScenesExplorer(nusc).map_pointcloud_to_image(
+            sample["data"]["RADAR_FRONT"], sample["data"]["CAM_FRONT"]
+        )
+    finally:
+        RadarPointCloud.default_filters()
+    radar_map = _pixels_last_wins(points, depth, (image.size[1], image.size[0]))
+    rows, cols = np.nonzero(radar_map)
+    return np.stack([cols, rows, radar_map[rows, cols]], axis=1).astype(np.float64)
+
+
+def test_radarnets_derived_files_give_this_preparations_frames(nusc_root, tmp_path) -> None:
+    """The fixture's test frames written as RadarNet's setup writes them (its radar points, its
+    lidar PNG, the nuScenes image; lists of relative paths), read by dataset=radarnet_layout,
+    against dataset=nuscenes with the authors' radar settings at the camera's own size: the
+    same image, scored ground truth (the full-resolution points eval=radarnet reads) and radar
+    returns. What differs, by design: this reader keeps returns within a pixel of the border,
+    which their setup drops (so the sparse maps differ on exactly those pixels), and the depth
+    maps (not what eval=radarnet scores) differ on a few pixels."""
+    from fusion_depth.data.radarnet_layout import RadarNetLayout
+    from fusion_depth.models.released import RADARNET_MARGIN, radarnet_frame_points
+
+    root, _ = nusc_root
+    nusc = NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+    options = {"height": CAM_H, "width": CAM_W, "size_multiple": 1, "radar_filters": "off"}
+    ours = make_reader(root, tmp_path / "cache", "test", **options)
+    layout = tmp_path / "radarnet"
+    lists: dict[str, list[str]] = {"image": [], "radar": [], "lidar": []}
+    for index in range(len(ours)):
+        token = ours.frames[index]["id"]
+        camera = nusc.get("sample_data", nusc.get("sample", token)["data"]["CAM_FRONT"])
+        derived = layout / "data/nuscenes_derived_test"
+        for role in ("radar_points", "lidar"):
+            (derived / role).mkdir(parents=True, exist_ok=True)
+        np.save(derived / "radar_points" / f"{token}.npy", _radarnets_radar_points(nusc, token))
+        _radarnets_ground_truth(nusc, token, derived / "lidar" / f"{token}.png")
+        lists["image"].append(str(root / camera["filename"]))  # an absolute path: also read
+        lists["radar"].append(f"data/nuscenes_derived_test/radar_points/{token}.npy")
+        lists["lidar"].append(f"data/nuscenes_derived_test/lidar/{token}.png")
+    (layout / "testing/nuscenes").mkdir(parents=True)
+    for role, paths in lists.items():
+        (layout / f"testing/nuscenes/nuscenes_test_{role}.txt").write_text("\n".join(paths))
+    theirs = RadarNetLayout("test", layout, tmp_path / "cache", CAM_H, CAM_W, size_multiple=1)
+    assert len(theirs) == len(ours) == 4
+    margin_points = shared_pixels = 0
+    for index in range(len(ours)):
+        mine, derived = ours[index], theirs[index]
+        np.testing.assert_array_equal(mine["image"].numpy(), derived["image"].numpy())
+        # The maps (eval.resolution=network's) are each reader's own drawing: this one projects
+        # the lidar itself (nearest on a shared pixel, 1/256 m steps rounded), theirs is the PNG
+        # (256·z truncated, the last point written). They are not compared: eval=radarnet
+        # scores the points above, which are the same; the count is printed.
+        shared_pixels += int((mine["depth"].numpy() != derived["depth"].numpy()).sum())
+        a, b = (s["depth_points"].numpy() for s in (mine, derived))
+        as_set = [sorted(map(tuple, p[p[:, 2] > 0].tolist())) for p in (a, b)]
+        assert as_set[0] == as_set[1] and as_set[0]
+        # The returns, as the released RadarNet numbers them, from each reader's rows.
+        mine_pts, their_pts = (
+            radarnet_frame_points(s["radar_points"], CAM_H, CAM_W) for s in (mine, derived)
+        )
+        assert len(their_pts) > 0
+        torch_testing_equal(mine_pts, their_pts)
+        # sparse: the same but on the pixels of returns their setup's margin drops
+        rows = mine["radar_points"].numpy()
+        rows = rows[rows[:, 5] > 0]
+        u, v = rows[:, 0], rows[:, 1]
+        outside = (u <= RADARNET_MARGIN) | (u >= CAM_W - RADARNET_MARGIN)
+        outside |= (v <= RADARNET_MARGIN) | (v >= CAM_H - RADARNET_MARGIN)
+        differ = np.argwhere(mine["sparse"][0].numpy() != derived["sparse"][0].numpy())
+        dropped = {
+            (int(np.rint(y)), int(np.rint(x))) for x, y in zip(u[outside], v[outside], strict=True)
+        }
+        assert {tuple(p) for p in differ.tolist()} <= dropped
+        margin_points += int(outside.sum())
+    print(f"returns within a pixel of the border (kept here, dropped by RadarNet): {margin_points}")
+    print(f"depth-map pixels that differ (not the scored points): {shared_pixels}")
+
+
+def torch_testing_equal(a, b) -> None:
+    """Equal (K, 3) point tensors: pixels exactly, depths to float32."""
+    assert a.shape == b.shape, (a, b)
+    np.testing.assert_array_equal(a[:, :2].numpy(), b[:, :2].numpy())
+    np.testing.assert_allclose(a[:, 2].numpy(), b[:, 2].numpy(), rtol=1e-6)

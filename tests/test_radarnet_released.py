@@ -75,9 +75,15 @@ def test_the_fixtures_and_their_script_name_the_authors_commit(record: dict) -> 
 @torch.no_grad()
 @pytest.mark.parametrize("frame", ["border", "tall"])
 def test_stage_1_confidences_equal_the_authors(association, cases, frame) -> None:
+    """Within 1e-5 relative to each window's largest confidence. Element by element, relative
+    to itself, a small confidence can round further: on a Xeon without AMX (not the fixtures'
+    machine) 1.14e-5 at a confidence of 0.157 (1.8e-6 absolute) on the border
+    frame; bitwise on the fixtures' machine."""
     case = cases[frame]
     ours = window_confidences(association, _image(case), case["points"])
-    torch.testing.assert_close(ours, case["confidences"], rtol=RTOL, atol=0)
+    theirs = case["confidences"]
+    scale = theirs.abs().amax(dim=(1, 2, 3), keepdim=True)
+    assert ((ours - theirs).abs() <= RTOL * scale).all(), (ours - theirs).abs().max()
 
 
 @pytest.mark.parametrize("frame", ["border", "tall"])

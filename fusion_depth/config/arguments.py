@@ -42,6 +42,12 @@ ARGUMENT_KEYS: dict[str, str | Mapping[str, str]] = {
     "fusion_depth.models.encoder": _ENCODER,
     "fusion_depth.models.fusion.InputFusion": {"mode": "fusion.mode"},
     "fusion_depth.models.inference": {"upsample": "eval.upsample"},
+    # evaluate's released=<name>: the authors' files and settings (conf/released/)
+    "fusion_depth.models.radarnet_released.load_released": {
+        "association_weights": "released.association_weights",
+        "fusion_weights": "released.fusion_weights",
+    },
+    "fusion_depth.models.released": "released",
     "fusion_depth.models": "model.net",  # a network's own arguments (model.net.<argument>)
     "fusion_depth.metrics.depth": "eval",
     "fusion_depth.optim.schedules": "scheduler",

@@ -19,7 +19,12 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 
 from fusion_depth.config.arguments import config_message, where_set
 from fusion_depth.config.keys import check_known_keys
-from fusion_depth.data.base import check_depth_range, check_size
+from fusion_depth.data.base import (
+    SIZE_MULTIPLE,
+    check_depth_range,
+    check_size,
+    check_size_multiple,
+)
 from fusion_depth.errors import ArgumentError, ConfigError, MissingDependencyError
 from fusion_depth.utils.config_values import ABSENT, config_value
 from fusion_depth.utils.overrides import show
@@ -96,10 +101,18 @@ def check_dataset(ds: Any, fusion: str) -> None:
             command that installs it).
     """
     try:
-        check_size(ds.height, ds.width)
+        multiple = check_size_multiple((ds.get("reader") or {}).get("size_multiple", SIZE_MULTIPLE))
+        check_size(ds.height, ds.width, multiple)
     except ArgumentError as err:
         raise ConfigError(
-            config_message(err, {"height": "dataset.height", "width": "dataset.width"})
+            config_message(
+                err,
+                {
+                    "height": "dataset.height",
+                    "width": "dataset.width",
+                    "size_multiple": "dataset.reader.size_multiple",
+                },
+            )
         ) from None
     for key in ("min_depth", "max_depth", "depth_scale"):
         if not is_number(ds[key]) or not ds[key] > 0:

@@ -103,6 +103,7 @@ READERS: dict[str, tuple[str, str]] = {
     "carla": ("fusion_depth.data.carla", "CarlaDepth"),
     "topview": ("fusion_depth.data.topview", "TopViewDepth"),
     "nuscenes": ("fusion_depth.data.nuscenes", "NuScenesDepth"),
+    "radarnet_layout": ("fusion_depth.data.radarnet_layout", "RadarNetLayout"),
 }
 """The package's own table of dataset readers, by the name a dataset config and a checkpoint
 record (``dataset.name``): module and class. A checkpoint names its dataset; its reader is looked

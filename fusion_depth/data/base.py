@@ -56,19 +56,34 @@ def check_split(split: str) -> str:
     return split
 
 
-def check_size(height: int, width: int) -> tuple[int, int]:
+def check_size(height: int, width: int, multiple: int = SIZE_MULTIPLE) -> tuple[int, int]:
     """``(height, width)`` as ints, or an ArgumentError naming ``height`` or ``width`` when one is
-    not a positive multiple of :data:`SIZE_MULTIPLE` (the encoder downsamples by 32)."""
+    not a positive multiple of ``multiple`` (:data:`SIZE_MULTIPLE`: the encoder downsamples by
+    32; 1 for frames served at any size, as a released network that is not padded takes them:
+    ``dataset.reader.size_multiple``)."""
     for name, size in (("height", height), ("width", width)):
         whole = isinstance(size, numbers.Integral) and not isinstance(size, bool)
-        if not whole or size <= 0 or size % SIZE_MULTIPLE:
-            raise ArgumentError(
-                f"{{{name}}}={size!r}: expected a positive multiple of {SIZE_MULTIPLE} (the "
-                f"encoder downsamples by {SIZE_MULTIPLE})",
-                name,
-                owner=check_size,
+        if not whole or size <= 0 or size % multiple:
+            expected = (
+                f"a positive multiple of {multiple} (the encoder downsamples by {multiple})"
+                if multiple > 1
+                else "a positive integer"
             )
+            raise ArgumentError(f"{{{name}}}={size!r}: expected {expected}", name, owner=check_size)
     return int(height), int(width)
+
+
+def check_size_multiple(value: int) -> int:
+    """``value`` as an int: the multiple of 32 (the default) or 1 (any size) that a dataset's
+    ``height`` and ``width`` must be."""
+    if value not in (1, SIZE_MULTIPLE) or isinstance(value, bool):
+        raise ArgumentError(
+            f"{{size_multiple}}={value!r}: expected {SIZE_MULTIPLE} (what the encoders need) or "
+            "1 (frames at any size, for a network that takes them unpadded: released=radarnet)",
+            "size_multiple",
+            owner=check_size_multiple,
+        )
+    return int(value)
 
 
 def check_depth_range(min_depth: float, max_depth: float, owner: object = None) -> None:
@@ -134,6 +149,8 @@ class PreparedDataset(PreparedSplit):
         max_radar_points: ``P``, the rows of ``radar_points`` each sample serves (the nearest
             returns, zero rows after) when :meth:`load_frame` gives radar points (a radar
             dataset); it changes nothing in the cache.
+        size_multiple: what ``height`` and ``width`` must be multiples of
+            (:func:`check_size_multiple`): 32, or 1 for frames at any size.
 
     Raises:
         ValueError: a bad split, ``on_error``, size or ``max_radar_points`` (naming the key), or
@@ -158,10 +175,11 @@ class PreparedDataset(PreparedSplit):
         width: int,
         on_error: OnError = "raise",
         max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
+        size_multiple: int = SIZE_MULTIPLE,
     ) -> None:
         self.split = check_split(split)
         self.on_error = check_on_error(on_error)
-        self.height, self.width = check_size(height, width)
+        self.height, self.width = check_size(height, width, check_size_multiple(size_multiple))
         max_radar_points = check_max_points(max_radar_points)
         self.root = self.resolve_root(root)
         self.cache = self.prepare(Path(cache_root).expanduser())

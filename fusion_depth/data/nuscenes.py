@@ -104,7 +104,7 @@ import numpy as np
 from PIL import Image
 
 from fusion_depth.data import SPLITS
-from fusion_depth.data.base import PreparedDataset, check_conditions
+from fusion_depth.data.base import SIZE_MULTIPLE, PreparedDataset, check_conditions
 from fusion_depth.data.cache import (
     OnError,
     PreparedFrame,
@@ -958,6 +958,7 @@ class NuScenesDepth(PreparedDataset):
         test_split: str = "val",
         on_error: OnError = "raise",
         max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
+        size_multiple: int = SIZE_MULTIPLE,
     ) -> None:
         require_devkit()  # first: without it nothing else can work
         for name, value, allowed in (
@@ -999,7 +1000,9 @@ class NuScenesDepth(PreparedDataset):
         self.min_distance = float(min_distance)
         self.stride = int(stride)
         self.test_split = test_split
-        super().__init__(split, root, cache_root, height, width, on_error, max_radar_points)
+        super().__init__(
+            split, root, cache_root, height, width, on_error, max_radar_points, size_multiple
+        )
 
     def split_folder(self, split: str) -> str:
         # test_split=val: the test split is the val split, the same frames prepared once.

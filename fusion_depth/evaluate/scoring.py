@@ -31,6 +31,7 @@ from fusion_depth.export.runtime import ExportedModel, check_source, engine_iden
 from fusion_depth.models.alignment import FallbackCount
 from fusion_depth.models.depth_prior import NO_PRIOR
 from fusion_depth.models.prior_alignment import GlobalAlignment, prior_alignment_config
+from fusion_depth.models.released import build_released, record_model_name
 from fusion_depth.runner.callbacks import ProgressLog
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
@@ -129,6 +130,50 @@ def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
     served = [f"alignment.{key}={value}" for key, value in fit.items()]
     frames = GroundTruthAsSparse if target == "ground_truth" else None
     return evaluate_loaded(cfg, loaded, output_dir, served=served, frames=frames)
+
+
+def evaluate_released(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
+    """Score a published method's released checkpoint (``released=<name>``, built from its
+    authors' files by :func:`~fusion_depth.models.released.build_released`) on ``cfg.dataset``;
+    writes ``metrics.json`` and ``per_image.csv`` into ``output_dir`` and returns the record
+    written. It runs in fp32 (as its authors' code), whatever the machine supports.
+
+    Raises:
+        ConfigError: no ``dataset=`` was chosen, or ``ckpt_path``/``model_file``/``prior`` was
+            given too.
+        ArgumentError: a released file is missing or is not that network as released (naming
+            the ``released.`` key).
+    """
+    if cfg.split not in SPLITS:
+        raise ValueError(f"split={cfg.split!r}: expected one of {list(SPLITS)}")
+    settings = OmegaConf.to_container(cfg.released, resolve=True)
+    given = [k for k in ("ckpt_path", "model_file") if cfg.get(k) is not None]
+    if given or _given_prior(cfg) is not None:
+        other = f"{given[0]}=" if given else "prior="
+        raise ConfigError(
+            f"released={settings['name']} with {other}: a released model is scored from its "
+            "authors' files alone; give one of released=, ckpt_path=, model_file="
+        )
+    if cfg.get("dataset") is None or "reader" not in cfg.dataset:
+        raise ConfigError(
+            f"released={settings['name']} scores its authors' checkpoint: choose the frames with "
+            "dataset=nuscenes (prepared here) or dataset=radarnet_layout (their setup's files)"
+        )
+    net = build_released(settings)
+    name = record_model_name(settings["name"])
+    config = {
+        "model": {"net": {**settings, "name": name}},
+        "fusion": {"mode": net.fusion.mode},
+        "backbone": {"name": name},  # its authors' own encoders
+        "dataset": OmegaConf.to_container(cfg.dataset, resolve=True),
+        "seed": cfg.seed,
+        "trainer": {"precision": "32-true"},  # as their code runs it: bf16 moves its depths
+    }
+    first = next(k for k in settings if k != "name")
+    loaded = LoadedModel(
+        net=net, config=config, path=Path(settings[first]), key=f"released.{first}"
+    )
+    return evaluate_loaded(cfg, loaded, output_dir)
 
 
 # alignment.target: fit each frame to its sparse returns (what a deployed model has), or to its
@@ -359,15 +404,17 @@ def find_checkpoints(folder: Path) -> list[tuple[Path, Path]]:
 
 
 def evaluate(cfg: DictConfig) -> list[dict]:
-    """Score ``cfg.ckpt_path`` (one checkpoint, or every run below a folder) or
-    ``cfg.model_file`` (an exported model file). Returns the contents of each ``metrics.json``
-    written (:meth:`RunRecord.to_json`)."""
+    """Score ``cfg.ckpt_path`` (one checkpoint, or every run below a folder),
+    ``cfg.model_file`` (an exported model file) or ``cfg.released`` (a published checkpoint).
+    Returns the contents of each ``metrics.json`` written (:meth:`RunRecord.to_json`)."""
     return [record.to_json() for record in evaluate_records(cfg)]
 
 
 def evaluate_records(cfg: DictConfig) -> list[RunRecord]:
     """:func:`evaluate`, returning the records written."""
     output_dir = Path(cfg.paths.output_dir)
+    if cfg.get("released") is not None:
+        return [evaluate_released(cfg, output_dir)]
     if cfg.get("ckpt_path") is None and cfg.get("model_file") is None and _chosen_prior(cfg):
         return [evaluate_alignment(cfg, output_dir)]
     check_source(cfg.get("ckpt_path"), cfg.get("model_file"), prior=True)

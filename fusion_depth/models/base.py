@@ -49,6 +49,9 @@ class DepthModel(nn.Module):
     # A network that also takes the radar returns as points: forward(image, sparse, points),
     # points (B, P, 6) with the columns of fusion_depth.data.RADAR_POINT_FIELDS or None.
     takes_points: ClassVar[bool] = False
+    # The sides' multiple the network needs: predict_depth pads an image to it (and cuts the
+    # output back). 1: any size as given (a released network run as its authors run it).
+    input_multiple: ClassVar[int] = 32
     fusion: nn.Module
 
     @property

@@ -109,8 +109,9 @@ def predict_depth(
     prior: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Depth in metres ``(B, 1, *size)`` for images ``(B, 3, H, W)`` in [0, 1]. Sides that are
-    not multiples of 32 are padded at the bottom/right (edges replicated; sparse maps with 0)
-    and cut back, so any image size works.
+    not multiples of 32 (the network's :attr:`~fusion_depth.models.DepthModel.input_multiple`)
+    are padded at the bottom/right (edges replicated; sparse maps with 0) and cut back, so any
+    image size works.
 
     Args:
         net: a checkpoint's network (:func:`~fusion_depth.runner.checkpoints.load_model`) or an
@@ -135,7 +136,8 @@ def predict_depth(
     _check_upsample(upsample)
     sparse = sparse if net.fusion.uses_sparse else None
     height, width = image.shape[-2:]
-    pad_h, pad_w = -height % 32, -width % 32
+    multiple = getattr(net, "input_multiple", 32)  # an exported model's wrapper: 32
+    pad_h, pad_w = -height % multiple, -width % multiple
     if pad_h or pad_w:
         image = F.pad(image, (0, pad_w, 0, pad_h), mode="replicate")
         if sparse is not None:

@@ -75,6 +75,10 @@ Options:
                                  without it is unknown), with a note naming them on stderr.
                                  Refused by default: nuScenes' placement change (format 3) moved
                                  RMSE by up to 3.5 %.
+  --published                    a released model's records (evaluate released=<name>) beside
+                                 the numbers its paper prints, per depth cap: MAE and RMSE in
+                                 mm, ours, published and the difference, with the source
+                                 (:mod:`fusion_depth.report.published`).
   --wandb                        also log the table as a W&B Table (project fusion-depth, job
                                  type report, named after the directory, written below it);
                                  offline unless you are logged in (``wandb sync`` uploads it).
@@ -135,6 +139,7 @@ from fusion_depth.report.plots import (
     plot_groups,
     plot_speed,
 )
+from fusion_depth.report.published import build_published_table
 from fusion_depth.runner.bench_record import BENCH_FILE, load_bench_records
 from fusion_depth.runner.record import METRICS_FILE, load_runs
 
@@ -311,6 +316,17 @@ def _parser() -> argparse.ArgumentParser:
         "versions (refused by default), with a note naming them",
     )
     parser.add_argument("--wandb", action="store_true", help="also log the table to W&B")
+    return _add_tables(parser)
+
+
+def _add_tables(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options that choose another table than the grid of the runs."""
+    parser.add_argument(
+        "--published",
+        action="store_true",
+        help="a released model's scores beside its paper's, per depth cap, with the difference "
+        "(fusion_depth/report/published.py)",
+    )
     return parser
 
 
@@ -443,6 +459,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.time and (args.by or args.compare):
         parser.error("--time adds a column to the plain table; leave out --by and --compare")
+    if args.published and (args.by or args.compare or args.time or args.plot):
+        parser.error("--published is a table of its own; leave out --by, --compare, --time, --plot")
     metric = args.metric or "rmse"
     by_model = args.by == BY_MODEL
     section = SECTION if by_model else args.by  # the metrics.json breakdown of the columns
@@ -476,6 +494,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
 
         def render(fmt: str) -> str:
+            if args.published:
+                return build_published_table(runs, fmt)
             if by_model:
                 return build_model_report(groups, comparisons, metric, fmt, first, preset)
             if comparisons is not None:

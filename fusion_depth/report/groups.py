@@ -27,6 +27,7 @@ from fusion_depth.models._registry import DEFAULT_MODEL, MODELS
 from fusion_depth.models.fusion import FUSION_LABELS
 from fusion_depth.models.prior_alignment import LABEL as ALIGNMENT_LABEL
 from fusion_depth.models.prior_alignment import MODEL_NAME as ALIGNMENT_MODEL
+from fusion_depth.models.released import released_entry
 from fusion_depth.runner.protocol import BEFORE_PRESETS, protocol_differences
 from fusion_depth.runner.record import BREAKDOWNS, RunRecord
 from fusion_depth.utils.tables import format_table
@@ -148,6 +149,7 @@ def key_label(key: str, value: str) -> str:
         if value == ALIGNMENT_MODEL:  # scored by evaluate, never trained: not in the table
             return ALIGNMENT_LABEL
         entry = MODELS.get(value) if isinstance(value, str) else None
+        entry = entry if entry is not None else released_entry(value)
         return entry.label if entry is not None else value
     return {"fusion": FUSION_LABELS, "loss": PIXEL_LOSS_LABELS}.get(key, {}).get(value, value)
 
