@@ -149,8 +149,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torchvision.ops import roi_pool
 
-from fusion_depth.errors import ArgumentError, ArgumentFileError, check_choice
-from fusion_depth.utils.checkpoint_file import CheckpointError, load_weights_only
+from fusion_depth.errors import ArgumentError, check_choice
+from fusion_depth.models.released_weights import (
+    ReleasedWeightsError,
+    matched_state,
+    read_released,
+    released_error,
+)
 
 LEAKY_SLOPE = 0.2  # src/net_utils.py activation_func('leaky_relu')
 ACTIVATIONS = ("leaky_relu", "relu", "elu")  # the hidden activations activation_func names
@@ -171,11 +176,6 @@ RADARNET_DECODER_FILTERS = (256, 128, 64, 32, 16)
 FUSIONNET_IMAGE_FILTERS = (32, 64, 128, 256, 256, 256)
 FUSIONNET_DEPTH_FILTERS = (16, 32, 64, 128, 128, 128)
 FUSIONNET_DECODER_FILTERS = (256, 256, 128, 64, 64, 32)
-
-
-class ReleasedWeightsError(ArgumentError, CheckpointError):
-    """A file that is not one of RadarNet's released networks as built here: one line naming the
-    file and the first key (or entry) that is missing, unexpected or of another shape."""
 
 
 def _activation(name: str) -> nn.Module:
@@ -798,7 +798,7 @@ _ENTRIES: dict[type, tuple[str, dict[str, str]]] = {
 
 
 def _error(path: object, message: str, argument: str = "path") -> ReleasedWeightsError:
-    return ReleasedWeightsError(f"{{{argument}}}={path}: {message}", argument, owner=load_released)
+    return released_error(path, message, argument, owner=load_released)
 
 
 def released_state(
@@ -822,6 +822,10 @@ def released_state(
         raise _error(
             path, f"not {what}: expected {' and '.join(entries.values())}; {held}", argument
         )
+
+    def fail(message: str) -> ReleasedWeightsError:
+        return _error(path, f"not {what} as built here: {message}", argument)
+
     expected = net.state_dict()
     state: dict[str, Tensor] = {}
     for part, entry in entries.items():
@@ -830,28 +834,12 @@ def released_state(
             raise _error(
                 path, f"not {what}: {entry} is a {type(stored).__name__}, not a dict", argument
             )
-        prefix = DATA_PARALLEL_PREFIX if any(str(k).startswith("module.") for k in stored) else ""
-        for key, value in stored.items():
-            name = f"{part}.{str(key).removeprefix(prefix)}"
-            where = f"{entry}[{key!r}]"
-            if name not in expected:
-                raise _error(path, f"not {what} as built here: unexpected key {where}", argument)
-            if not isinstance(value, Tensor):
-                raise _error(path, f"not {what}: {where} is a {type(value).__name__}", argument)
-            if value.shape != expected[name].shape:
-                raise _error(
-                    path,
-                    f"not {what} as built here: {where} is {list(value.shape)}, expected "
-                    f"{list(expected[name].shape)}",
-                    argument,
-                )
-            state[name] = value
-        for name in expected:
-            if name.startswith(f"{part}.") and name not in state:
-                key = prefix + name[len(part) + 1 :]
-                raise _error(
-                    path, f"not {what} as built here: missing key {entry}[{key!r}]", argument
-                )
+        prefix = DATA_PARALLEL_PREFIX
+        prefix = prefix if any(str(k).startswith(prefix) for k in stored) else ""
+        own = f"{part}."
+        below = {k.removeprefix(own): v for k, v in expected.items() if k.startswith(own)}
+        matched = matched_state(stored, below, entry, fail, prefix)
+        state.update({f"{part}.{name}": value for name, value in matched.items()})
     return state
 
 
@@ -873,15 +861,7 @@ def load_released(
         ReleasedWeightsError: a file that cannot be read with weights only, or not of this
             network as built (one line naming the file and the first wrong key).
     """
-    try:
-        checkpoint = load_weights_only(path)
-    except FileNotFoundError:
-        raise ArgumentFileError(
-            f"{{{argument}}}={path}: no such file", argument, owner=load_released
-        ) from None
-    except CheckpointError as err:
-        # load_weights_only names the file as ckpt_path=...; here it is this argument's.
-        raise _error(path, str(err).split(": ", 1)[-1], argument) from None
+    checkpoint = read_released(path, argument, owner=load_released)
     net.load_state_dict(released_state(checkpoint, net, path, argument), strict=True)
     step = checkpoint.get("train_step", -1)
     return step if isinstance(step, int) else -1

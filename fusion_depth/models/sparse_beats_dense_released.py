@@ -178,8 +178,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fusion_depth.errors import ArgumentError, ArgumentFileError
-from fusion_depth.utils.checkpoint_file import CheckpointError, load_weights_only
+from fusion_depth.errors import ArgumentError
+from fusion_depth.models.released_weights import (
+    ReleasedWeightsError,
+    matched_state,
+    read_released,
+    released_error,
+)
 
 PAD_MULTIPLE = 256  # model.py Network.padding(int=256)
 RADAR_PTS_NUM = 200  # eval.py Vidar.RADAR_PTS_NUM
@@ -215,11 +220,6 @@ NUMPY_FLOAT64_GLOBALS = [
     np.dtype,
     type(np.dtype(np.float64)),
 ]
-
-
-class ReleasedWeightsError(ArgumentError, CheckpointError):
-    """A file that is not Sparse Beats Dense's released network as built here: one line naming
-    the file and the first key (or entry) that is missing, unexpected or of another shape."""
 
 
 class Conv(nn.Module):
@@ -724,7 +724,7 @@ def valid_label(seg_mask: Tensor) -> Tensor:
 
 
 def _error(path: object, message: str, argument: str = "path") -> ReleasedWeightsError:
-    return ReleasedWeightsError(f"{{{argument}}}={path}: {message}", argument, owner=load_released)
+    return released_error(path, message, argument, owner=load_released)
 
 
 _WHAT = "Sparse Beats Dense's released checkpoint"
@@ -754,24 +754,11 @@ def released_state(
         raise _error(
             path, f"not {_WHAT}: expected a dict with a '{NETWORK_ENTRY}' dict; {held}", argument
         )
-    expected = net.state_dict()
-    for key, value in stored.items():
-        where = f"{NETWORK_ENTRY}[{key!r}]"
-        if key not in expected:
-            raise _error(path, f"not {_WHAT}: unexpected key {where}", argument)
-        if not isinstance(value, Tensor):
-            raise _error(path, f"not {_WHAT}: {where} is a {type(value).__name__}", argument)
-        if value.shape != expected[key].shape:
-            raise _error(
-                path,
-                f"not {_WHAT}: {where} is {list(value.shape)}, expected "
-                f"{list(expected[key].shape)}",
-                argument,
-            )
-    for key in expected:
-        if key not in stored:
-            raise _error(path, f"not {_WHAT}: missing key {NETWORK_ENTRY}[{key!r}]", argument)
-    return dict(stored)
+
+    def fail(message: str) -> ReleasedWeightsError:
+        return _error(path, f"not {_WHAT}: {message}", argument)
+
+    return matched_state(stored, net.state_dict(), NETWORK_ENTRY, fail)
 
 
 def load_released(net: SparseBeatsDense, path: str | os.PathLike, argument: str = "path") -> int:
@@ -788,16 +775,7 @@ def load_released(net: SparseBeatsDense, path: str | os.PathLike, argument: str 
         ReleasedWeightsError: a file that cannot be read with weights only, or not of this
             network (one line naming the file and the first wrong key).
     """
-    try:
-        with torch.serialization.safe_globals(NUMPY_FLOAT64_GLOBALS):
-            checkpoint = load_weights_only(path)
-    except FileNotFoundError:
-        raise ArgumentFileError(
-            f"{{{argument}}}={path}: no such file", argument, owner=load_released
-        ) from None
-    except CheckpointError as err:
-        # load_weights_only names the file as ckpt_path=...; here it is this argument's.
-        raise _error(path, str(err).split(": ", 1)[-1], argument) from None
+    checkpoint = read_released(path, argument, load_released, NUMPY_FLOAT64_GLOBALS)
     net.load_state_dict(released_state(checkpoint, net, path, argument), strict=True)
     clock = checkpoint.get("clock")
     step = clock.get("step", -1) if isinstance(clock, Mapping) else -1
