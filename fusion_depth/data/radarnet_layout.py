@@ -38,7 +38,8 @@ Line *i* of every list of a split is frame *i*.
 
 Resolution: at ``1600×900`` (``height=900 width=1600``, with ``size_multiple=1``) the frames are
 the files, pixel for pixel. At another size the image is scaled and cropped as nuScenes' reader
-does (:func:`~fusion_depth.data.nuscenes.resize_geometry`), points move centre-aware with it, the
+does (:func:`~fusion_depth.data.nuscenes.resize_and_crop`; importing that module needs no
+devkit), points move centre-aware with it, the
 ground truth's measured pixels are moved as points (the nearer winning), and ``filled`` is
 resized by nearest neighbour. Val and test keep the files' full-resolution ground truth as
 ``depth_points`` for ``eval.resolution=full``.
@@ -69,8 +70,9 @@ from fusion_depth.data.cache import (
 )
 from fusion_depth.data.depth_io import DataFileError, read_depth_png, read_npy, read_rgb
 from fusion_depth.data.folders import fingerprint
+from fusion_depth.data.nuscenes import resize_and_crop, resize_geometry, splat_nearest
 from fusion_depth.data.radar_points import DEFAULT_MAX_RADAR_POINTS, in_image, point_rows
-from fusion_depth.errors import ArgumentError
+from fusion_depth.errors import check_choice
 
 FORMAT_VERSION = 1
 # split -> (the folder of its lists, their prefix): setup/setup_dataset_nuscenes(_test).py
@@ -113,21 +115,6 @@ def read_list(path: Path, root: Path) -> list[Path]:
     return [Path(line) if Path(line).is_absolute() else root / line for line in lines if line]
 
 
-def _moved(u: np.ndarray, scale: float, offset: int) -> np.ndarray:
-    """Full-resolution coordinates (pixel centres at integers) in the resized, cropped frame."""
-    return scale * (u + 0.5) - 0.5 - offset
-
-
-def _nearest_map(u: np.ndarray, v: np.ndarray, z: np.ndarray, height: int, width: int):
-    """Points (continuous u, v) on a (height, width) float32 map, the nearer winning a pixel."""
-    out = np.zeros((height, width), dtype=np.float32)
-    keep = in_image(u, v, height, width)
-    u, v, z = u[keep], v[keep], z[keep]
-    order = np.argsort(-z, kind="stable")  # farthest first: the nearest is written last
-    out[np.rint(v[order]).astype(int), np.rint(u[order]).astype(int)] = z[order]
-    return out
-
-
 class RadarNetLayout(PreparedDataset):
     """One split of RadarNet's derived nuScenes files (module docstring), served from the
     prepared cache as :class:`~fusion_depth.data.Sample` dicts with ``radar_points``.
@@ -166,12 +153,7 @@ class RadarNetLayout(PreparedDataset):
         max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
         size_multiple: int = SIZE_MULTIPLE,
     ) -> None:
-        if condition not in CONDITIONS:
-            raise ArgumentError(
-                f"{{condition}}={condition!r}: expected one of {list(CONDITIONS)}",
-                "condition",
-                owner=RadarNetLayout,
-            )
+        check_choice(condition, CONDITIONS, "condition", owner=RadarNetLayout)
         self.condition = condition
         super().__init__(
             split, root, cache_root, height, width, on_error, max_radar_points, size_multiple
@@ -232,30 +214,26 @@ class RadarNetLayout(PreparedDataset):
             raise DataFileError(
                 frame["lidar"], f"a {lidar.shape} map for a {(h0, w0)} image ({frame['image']})"
             )
-        # The scale and crop of nuScenes' reader (resize_geometry), inlined to keep the devkit out.
-        scale = max(self.width / w0, self.height / h0)
-        new_w, new_h = max(self.width, round(w0 * scale)), max(self.height, round(h0 * scale))
-        top, left = new_h - self.height, (new_w - self.width) // 2
-        sx, sy = new_w / w0, new_h / h0
-        if (new_h, new_w) != (h0, w0):
-            image = np.asarray(Image.fromarray(image).resize((new_w, new_h), Image.BILINEAR))
-        image = np.ascontiguousarray(image[top : top + self.height, left : left + self.width])
-        u, v = _moved(radar[:, 0], sx, left), _moved(radar[:, 1], sy, top)
+        # nuScenes' scale and crop; the matrix maps a full-resolution pixel into the frame.
+        image, to_frame = resize_and_crop(image, np.eye(3), self.height, self.width)
+        (sx, _, ox), (_, sy, oy) = to_frame[:2]
+        u, v = sx * radar[:, 0] + ox, sy * radar[:, 1] + oy
         inside = in_image(u, v, self.height, self.width)
-        rows = point_rows(u[inside], v[inside], radar[inside, 2])
-        sparse = _nearest_map(u[inside], v[inside], radar[inside, 2], self.height, self.width)
+        u, v, z = u[inside], v[inside], radar[inside, 2]
+        rows = point_rows(u, v, z)
+        sparse = splat_nearest(u, v, z, self.height, self.width)
         gy, gx = np.nonzero(lidar)
-        gz = lidar[gy, gx]
-        gu, gv = _moved(gx.astype(np.float64), sx, left), _moved(gy.astype(np.float64), sy, top)
-        depth = _nearest_map(gu, gv, gz, self.height, self.width)
+        gu, gv, gz = sx * gx + ox, sy * gy + oy, lidar[gy, gx]
+        kept = in_image(gu, gv, self.height, self.width)  # rows a crop cut hold no prediction
+        gu, gv, gz = gu[kept], gv[kept], gz[kept]
+        depth = splat_nearest(gu, gv, gz, self.height, self.width)
         filled = None
         if "ground_truth_interp" in frame:
+            new_h, new_w, top, left = resize_geometry(h0, w0, self.height, self.width)
             dense = Image.fromarray(read_depth_png(frame["ground_truth_interp"]))
             dense = np.asarray(dense.resize((new_w, new_h), Image.NEAREST))
             filled = dense[top : top + self.height, left : left + self.width]
-        scored = split != "train"
-        kept = in_image(gu, gv, self.height, self.width)  # rows a crop cut hold no prediction
-        full = np.stack([gv, gu, gz], axis=1)[kept].astype(np.float32) if scored else None
+        full = np.stack([gv, gu, gz], axis=1).astype(np.float32) if split != "train" else None
         return PreparedFrame(
             image=image,
             sparse=sparse,
