@@ -178,19 +178,24 @@ def test_the_fixtures_outputs_depend_on_the_radar_inputs(net, record, cases) -> 
         assert not torch.allclose(depth, theirs, rtol=100 * RTOL, atol=0)
 
 
-def test_the_inputs_built_here_are_their_eval_pys(record, cases) -> None:
-    """From the radar sweep as the devkit read it, the records and the RGB image: their
-    ``Vidar.__getitem__``'s image, radar map (whole columns, the later point of a column, a
-    point behind the camera, the borders), padded points and count."""
-    case = cases["eval"]
+def _camera_points(record: dict, case: dict) -> torch.Tensor:
+    """The fixture sweep's points in the camera frame, from the records their eval.py reads."""
     records = record["records"]
-    points = radar_to_camera(
+    return radar_to_camera(
         case["points_radar"],
         records["radar_calibrated_sensor"],
         records["radar_ego_pose"],
         records["camera_calibrated_sensor"],
         records["camera_ego_pose"],
     )
+
+
+def test_the_inputs_built_here_are_their_eval_pys(record, cases) -> None:
+    """From the radar sweep as the devkit read it, the records and the RGB image: their
+    ``Vidar.__getitem__``'s image, radar map (whole columns, the later point of a column, a
+    point behind the camera, the borders), padded points and count."""
+    case = cases["eval"]
+    points = _camera_points(record, case)
     count = int(case["valid_radar_pts_cnt"])
     torch.testing.assert_close(points, case["radar_pts"][0, :count], rtol=0, atol=POINTS_ATOL)
     ours = released_inputs(case["img"][0].flip(0), points, torch.tensor(record["intrinsic"]))
@@ -214,14 +219,7 @@ def test_the_fixture_frame_holds_the_cases_the_inputs_must_get_right(record, cas
 
 def test_end_to_end_from_a_users_inputs_equals_the_authors(net, record, cases) -> None:
     case = cases["eval"]
-    records = record["records"]
-    points = radar_to_camera(
-        case["points_radar"],
-        records["radar_calibrated_sensor"],
-        records["radar_ego_pose"],
-        records["camera_calibrated_sensor"],
-        records["camera_ego_pose"],
-    )
+    points = _camera_points(record, case)
     inputs = released_inputs(case["img"][0].flip(0), points, torch.tensor(record["intrinsic"]))
     with _threads(record["threads"]):
         depth, _ = released_depth(net, **inputs)
