@@ -31,7 +31,7 @@ from fusion_depth.export.runtime import ExportedModel, check_source, engine_iden
 from fusion_depth.models.alignment import FallbackCount
 from fusion_depth.models.depth_prior import NO_PRIOR
 from fusion_depth.models.prior_alignment import GlobalAlignment, prior_alignment_config
-from fusion_depth.models.released import build_released, record_model_name
+from fusion_depth.models.released import RELEASED, build_released, record_model_name
 from fusion_depth.runner.callbacks import ProgressLog
 from fusion_depth.runner.checkpoints import LoadedModel, dataset_config, load_model, make_reader
 from fusion_depth.runner.datamodule import DepthDataModule, check_scorable
@@ -169,7 +169,7 @@ def evaluate_released(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
         "seed": cfg.seed,
         "trainer": {"precision": "32-true"},  # as their code runs it: bf16 moves its depths
     }
-    first = next(k for k in settings if k != "name")
+    first = RELEASED[settings["name"]].arguments[0]  # the file the record names
     loaded = LoadedModel(
         net=net, config=config, path=Path(settings[first]), key=f"released.{first}"
     )

@@ -135,12 +135,8 @@ class ReleasedRadarNetDepth(DepthModel):
                 owner=ReleasedRadarNetDepth,
             )
         association, fusion = RadarNetV1(), FusionNet()
-        self.steps = {
-            "association": load_released(
-                association, association_weights, argument="association_weights"
-            ),
-            "fusion": load_released(fusion, fusion_weights, argument="fusion_weights"),
-        }
+        load_released(association, association_weights, argument="association_weights")
+        load_released(fusion, fusion_weights, argument="fusion_weights")
         self.pipeline = ReleasedRadarNet(association, fusion, threshold=float(threshold))
         self.fusion = InputMode("concat", uses_sparse=True)  # image and radar in
 
@@ -162,7 +158,8 @@ class ReleasedEntry:
     build: Callable[..., DepthModel]
     label: str  # how tables name it
     paper: str  # the publication whose numbers ``report --published`` gives beside it
-    arguments: tuple[str, ...]  # the ``released.<key>`` settings it takes besides ``name``
+    arguments: tuple[str, ...]  # the ``released.<key>`` settings besides ``name``; the first
+    # names the file a record says it scored
 
 
 RELEASED: dict[str, ReleasedEntry] = {
