@@ -69,8 +69,8 @@ def matched_state(
     no other, each a tensor of its shape.
 
     Raises:
-        What ``fail(message)`` returns, for the first key that is unexpected, not a tensor, of
-        another shape or missing (named as in the file: ``entry['key']``).
+        Exception: what ``fail(message)`` returns, for the first key that is unexpected, not a
+            tensor, of another shape or missing (named as in the file: ``entry['key']``).
     """
     state: dict[str, Tensor] = {}
     for key, value in stored.items():

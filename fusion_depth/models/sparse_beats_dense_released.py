@@ -599,10 +599,11 @@ def radar_to_camera(
 
     Args:
         points: (N, 3) x, y, z in the radar's frame, metres (a ``.pcd``'s first three fields).
-        radar_calibrated_sensor, radar_ego_pose, camera_calibrated_sensor, camera_ego_pose:
-            nuScenes records (``calibrated_sensor``, ``ego_pose``; their info files'
-            ``sensor2ego_*``/``ego2global_*``): ``translation`` (3,) in metres and ``rotation``
-            (w, x, y, z).
+        radar_calibrated_sensor: the radar's nuScenes ``calibrated_sensor`` record (their info
+            files' ``sensor2ego_*``): ``translation`` (3,) in metres, ``rotation`` (w, x, y, z).
+        radar_ego_pose: the ``ego_pose`` record at the radar's timestamp (``ego2global_*``).
+        camera_calibrated_sensor: the camera's ``calibrated_sensor`` record.
+        camera_ego_pose: the ``ego_pose`` record at the camera's timestamp.
 
     Returns:
         (N, 3) float64, (x right, y down, z forward) in the camera frame, metres.
