@@ -41,10 +41,11 @@ def test_a_perfect_prior_aligns_to_the_true_depth_and_frames_without_returns_fal
     out = net(torch.rand(3, 3, 32, 48), sparse)
     torch.testing.assert_close(out, depth, rtol=1e-5, atol=0)  # frame 1 too: same affine map
     assert net.fit_summary() == {
-        "space": "inverse",
-        "ransac_iterations": 0,
+        "kind": "relative",
+        "ransac_iterations": 100,  # RANSAC by default
         "fits": 3,
         "fallbacks": 1,
+        "reversed": 0,  # frame 1 had no returns: too few, not reversed
     }
     # A batch with no return at all takes the mean of the batches' fits so far: 3 and 0.25.
     torch.testing.assert_close(net.fit_mean, torch.tensor([1 / 3, -0.25 / 3], dtype=torch.float64))
@@ -55,8 +56,8 @@ def test_a_perfect_prior_aligns_to_the_true_depth_and_frames_without_returns_fal
 
 def test_alignment_settings_are_checked_when_built(tiny_folder):
     prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
-    with pytest.raises(ArgumentError, match=r"^space='metres': expected one of"):
-        GlobalAlignment(prior, space="metres")
+    with pytest.raises(ArgumentError, match=r"^ransac_threshold=-0.1: expected a relative"):
+        GlobalAlignment(prior, ransac_threshold=-0.1)
     with pytest.raises(ArgumentError, match=r"^ransac_iterations=1.5: expected an integer ≥ 0"):
         GlobalAlignment(prior, ransac_iterations=1.5)
     with pytest.raises(ArgumentError, match=r"^name=none: the global alignment needs a prior"):
@@ -76,32 +77,35 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
         "experiment=smoke",
         "dataset=procedural",
         *prior,
-        "alignment.space=inverse,depth",
+        "alignment.ransac_iterations=0,100",
         f"hydra.sweep.dir={tmp_path}/sweep",
     )
     assert sweep.returncode == 0, sweep.stderr[-2000:]
     assert "2 ok" in sweep.stdout + sweep.stderr  # the sweep's summary counts both
     written = sorted((tmp_path / "sweep").glob("*/metrics.json"))
     records = [json.loads(path.read_text()) for path in written]
-    records.sort(key=lambda record: record["alignment"]["space"] != "inverse")
-    assert [r["alignment"]["space"] for r in records] == ["inverse", "depth"]
+    records.sort(key=lambda record: record["alignment"]["ransac_iterations"])
+    assert [r["alignment"]["ransac_iterations"] for r in records] == [0, 100]
     for record in records:
         assert record["run"]["model"] == "prior_alignment"
         assert record["run"]["backbone"] == "depth_anything_v2"
         assert record["alignment"]["fits"] == record["test"]["num_images"] > 0
         assert 0 <= record["alignment"]["fallbacks"] < record["alignment"]["fits"]
+        assert 0 <= record["alignment"]["reversed"] <= record["alignment"]["fallbacks"]
+        assert record["alignment"]["kind"] == "relative"
         assert 0 < record["test"]["rmse"] < 80
-    assert records[0]["alignment"]["fallbacks"] == 0  # every smoke frame has returns
     assert records[0]["test"]["rmse"] != records[1]["test"]["rmse"]
     # Each fit is its own row in report: its settings are the record's overrides.
-    assert "alignment.space=inverse" in records[0]["run"]["overrides"]
-    assert "alignment.space=depth" in records[1]["run"]["overrides"]
+    assert "alignment.ransac_iterations=0" in records[0]["run"]["overrides"]
+    assert "alignment.ransac_iterations=100" in records[1]["run"]["overrides"]
     # report tabulates them: one row per fit, named by its settings, no training time ("–", the
     # last column) and no training loss (one value in every row: "none", under the table).
     assert report_main([str(tmp_path / "sweep"), "--time"]) == 0
-    # (its settings shortened: space=inverse; what both fits share is named under the table)
+    # (its settings shortened: ransac_iterations=0; what both share is named under the table)
     out = capsys.readouterr().out
-    rows = [line for line in out.splitlines() if line.startswith("|") and " space=" in line]
+    rows = [
+        line for line in out.splitlines() if line.startswith("|") and " ransac_iterations=" in line
+    ]
     assert len(rows) == 2 and all(row.rstrip(" |").endswith("–") for row in rows), rows
     assert "Loss none" in out
     ceiling = _evaluate(
@@ -121,8 +125,8 @@ def test_evaluate_scores_the_alignment_and_sweeps_its_settings(tmp_path, tiny_fo
     [
         (["dataset=procedural", "prior.weights=/no/such"], "prior.weights=/no/such: no such file"),
         (
-            ["dataset=procedural", "prior.weights={tiny}", "alignment.space=metres"],
-            "alignment.space='metres': expected one of",
+            ["dataset=procedural", "prior.weights={tiny}", "alignment.ransac_threshold=0"],
+            "alignment.ransac_threshold=0: expected a relative error > 0",
         ),
         (["prior.weights={tiny}"], "choose the dataset to fit and score it on with dataset="),
     ],

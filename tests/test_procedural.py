@@ -447,3 +447,48 @@ def test_a_bad_frame_count_is_one_line_naming_the_key_before_any_work(
         with pytest.raises(ArgumentError, match=rf"^{key}=.*: expected an integer ≥ 1"):
             ProceduralDepth("train", tmp_path / "cache", **{key: value})
     assert not (tmp_path / "cache").exists()
+
+
+def test_other_cameras_change_the_view_and_the_defaults_keep_the_built_in_frames(tmp_path):
+    """``camera_height`` and ``fov_range`` (a source pool of other cameras): at their defaults
+    the frames and the cache folder are the built-in ones; a higher camera sees the road nearer
+    the bottom of the image farther away, a wider field of view shows more of the street."""
+    default = render_frame(0, "test", 3, H, W, 70.0, "day", "radar")
+    stated = render_frame(
+        0, "test", 3, H, W, 70.0, "day", "radar", camera_height=(1.4, 1.7), fov_range=None
+    )
+    for a, b in zip(default, stated, strict=True):
+        np.testing.assert_array_equal(a, b)
+    high = render_frame(0, "test", 3, H, W, 70.0, "day", "radar", camera_height=(3.0, 3.0))
+    low = render_frame(0, "test", 3, H, W, 70.0, "day", "radar", camera_height=(1.2, 1.2))
+    bottom = slice(H - 4, H)  # the road just ahead: twice as far from a camera 2.5 times higher
+    ratio = np.median(high[1][bottom] / np.maximum(low[1][bottom], 1e-3))
+    assert 2.0 < ratio < 3.0, ratio
+    narrow = render_frame(0, "test", 3, H, W, 70.0, "day", "radar", fov_range=(30.0, 30.0))
+    wide = render_frame(0, "test", 3, H, W, 70.0, "day", "radar", fov_range=(110.0, 110.0))
+    assert np.median(narrow[1][bottom]) > 1.5 * np.median(wide[1][bottom])
+    drawn = {
+        float(np.median(render_frame(0, "test", i, H, W, 70.0, "day", "radar",
+                                     fov_range=(40.0, 110.0))[1][bottom]))
+        for i in range(4)
+    }  # fmt: skip
+    assert len(drawn) == 4  # a field of view per frame
+    base = ProceduralDepth("test", tmp_path, **SMALL)
+    same = ProceduralDepth("test", tmp_path, **SMALL, camera_height=[1.4, 1.7], fov_range=None)
+    assert same.cache_dir == base.cache_dir
+    other = ProceduralDepth("test", tmp_path, **SMALL, camera_height=[1.2, 3.0])
+    assert other.cache_dir != base.cache_dir and other.params["camera_height"] == [1.2, 3.0]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "named"),
+    [
+        ({"camera_height": [3.0, 1.2]}, "camera_height"),
+        ({"camera_height": 1.5}, "camera_height"),
+        ({"fov_range": [5.0, 90.0]}, "fov_range"),
+    ],
+)
+def test_camera_ranges_out_of_bounds_are_refused_naming_the_key(tmp_path, kwargs, named):
+    with pytest.raises(ValueError, match=rf"^{named}=.*: expected"):
+        ProceduralDepth("train", tmp_path, **SMALL, **kwargs)
+    assert not any(tmp_path.iterdir())

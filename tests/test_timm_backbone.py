@@ -236,3 +236,51 @@ def test_onnx_export_matches_pytorch(tmp_path: Path) -> None:
     with torch.no_grad():
         expected = predict_depth(net, image, sparse).numpy()
     np.testing.assert_allclose(depth, expected, rtol=1e-4, atol=1e-3)
+
+
+def _train_checkpoint(path: Path, net: DepthNet) -> Path:
+    """A file as train writes it, as far as the encoder's reader looks: the run config and the
+    module's state dict (``net.*``)."""
+    from fusion_depth.utils.checkpoint_file import CONFIG_KEY
+
+    state = {f"net.{k}": v for k, v in net.state_dict().items()}
+    config = {"model": {"net": {"name": "densedepth", "fusion": "rgb"}}}
+    torch.save({"state_dict": state, CONFIG_KEY: config}, path)
+    return path
+
+
+def test_a_train_checkpoint_as_weights_starts_the_encoder_from_its_encoder(tmp_path) -> None:
+    """Transfer learning (backbone.weights=<a .ckpt train wrote>): the encoder, and nothing
+    else, comes from the checkpoint's network, whatever its fusion was."""
+    torch.manual_seed(1)
+    source = DepthNet("resnet10t", "rgb")
+    with torch.no_grad():
+        for p in source.parameters():
+            p.add_(0.1)  # not what a fresh init gives
+    file = _train_checkpoint(tmp_path / "source.ckpt", source)
+    torch.manual_seed(2)
+    target = DepthNet("resnet10t", "concat", weights=str(file))
+    for key, value in source.encoder.state_dict().items():
+        torch.testing.assert_close(target.encoder.state_dict()[key], value)
+    fresh = DepthNet("resnet10t", "concat")
+    decoder = next(iter(target.decoder.state_dict()))
+    assert not torch.equal(
+        target.decoder.state_dict()[decoder], source.decoder.state_dict()[decoder]
+    )
+    assert target.fusion.mix.weight.shape == fresh.fusion.mix.weight.shape
+
+
+def test_a_checkpoint_of_another_backbone_is_refused_in_one_line(tmp_path) -> None:
+    from fusion_depth.errors import ArgumentError
+
+    file = _train_checkpoint(tmp_path / "other.ckpt", DepthNet("resnet18", "rgb"))
+    with pytest.raises(
+        ArgumentError, match=r"^weights=.*other.ckpt: its encoder has no .*backbone=resnet10t"
+    ):
+        DepthNet("resnet10t", "rgb", weights=str(file))
+    with pytest.raises(ArgumentError, match=r"^weights=.*missing.ckpt: no such file"):
+        DepthNet("resnet10t", "rgb", weights=str(tmp_path / "missing.ckpt"))
+    (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ArgumentError, match=r"^weights=.*junk.ckpt: ") as caught:
+        DepthNet("resnet10t", "rgb", weights=str(tmp_path / "junk.ckpt"))
+    assert "\n" not in str(caught.value)

@@ -160,8 +160,15 @@ class _Boxes:
         self.param.append(list(param) + [0.0] * (N_PARAM - len(param)))
 
 
-def _camera(rng: np.random.Generator, height: int, width: int, fov_deg: float) -> Camera:
-    """A dash camera ~1.5 m up with a little random pitch, yaw and roll."""
+def _camera(
+    rng: np.random.Generator,
+    height: int,
+    width: int,
+    fov_deg: float,
+    camera_height: tuple[float, float] = (1.4, 1.7),
+) -> Camera:
+    """A dash camera ``camera_height`` metres up (drawn uniformly; a car's 1.4-1.7 m by
+    default) with a little random pitch, yaw and roll."""
     pitch, yaw, roll = np.radians(
         [rng.uniform(-1.0, 2.5), rng.uniform(-4.0, 4.0), rng.uniform(-1.0, 1.0)]
     )
@@ -174,7 +181,7 @@ def _camera(rng: np.random.Generator, height: int, width: int, fov_deg: float) -
     flip = np.diag([1.0, -1.0, 1.0])  # camera y points down, world Y up
     rotation = (r_yaw @ flip @ r_pitch @ r_roll).astype(np.float32)
     focal = width / 2 / np.tan(np.radians(fov_deg) / 2)
-    position = np.array([0.0, rng.uniform(1.4, 1.7), 0.0], dtype=np.float32)
+    position = np.array([0.0, rng.uniform(*camera_height), 0.0], dtype=np.float32)
     return Camera(height, width, float(focal), position, rotation, float(yaw))
 
 
@@ -462,12 +469,19 @@ def _verge_and_sun(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     return verge, sun
 
 
-def sample_scene(rng: np.random.Generator, height: int, width: int, fov_deg: float) -> Scene:
-    """Samples one street: lanes, sidewalks, facades, parked and moving cars, furniture, sun."""
+def sample_scene(
+    rng: np.random.Generator,
+    height: int,
+    width: int,
+    fov_deg: float,
+    camera_height: tuple[float, float] = (1.4, 1.7),
+) -> Scene:
+    """Samples one street: lanes, sidewalks, facades, parked and moving cars, furniture, sun,
+    seen from a camera ``camera_height`` metres up (the range it is drawn from)."""
     # Every helper draws from ``rng`` in turn; this order fixes the built-in dataset's frames.
     boxes = _Boxes()
     lamps: list[tuple[float, float, float]] = []
-    camera = _camera(rng, height, width, fov_deg)
+    camera = _camera(rng, height, width, fov_deg, camera_height)
     lanes = _lanes(rng)
     road = lanes.road
     marks, mark_colors = _markings(rng, lanes)

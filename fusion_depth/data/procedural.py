@@ -84,6 +84,21 @@ DEPTH_SCALE = DEPTH_PNG_SCALE  # cache stores uint16 depth * 256, as the prepare
 _ARRAYS = ("image", "depth", "sparse")  # every split's; a radar split adds RADAR_ARRAY
 RADAR_ARRAY = "radar_points"
 DEFAULT_MAX_RADAR_POINTS = 64  # the simulated radar has tens of returns in view
+DEFAULT_CAMERA_HEIGHT = (1.4, 1.7)  # metres: a car's dash camera
+
+
+def _is_range(low: float, high: float):
+    """A rule's test: two numbers ``low ≤ a ≤ b ≤ high``."""
+
+    def ok(value: object) -> bool:
+        try:
+            a, b = value  # type: ignore[misc]
+        except (TypeError, ValueError):
+            return False
+        return is_number(a) and is_number(b) and low <= a <= b <= high
+
+    return ok
+
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +120,8 @@ def render_frame(
     radar_height_extension: float = ...,
     *,
     with_points: Literal[False] = ...,
+    camera_height: tuple[float, float] = ...,
+    fov_range: tuple[float, float] | None = ...,
 ) -> Frame3: ...
 
 
@@ -121,6 +138,8 @@ def render_frame(
     radar_height_extension: float = ...,
     *,
     with_points: Literal[True],
+    camera_height: tuple[float, float] = ...,
+    fov_range: tuple[float, float] | None = ...,
 ) -> Frame4: ...
 
 
@@ -136,6 +155,8 @@ def render_frame(
     radar_height_extension: float = 0.0,
     *,
     with_points: bool = False,
+    camera_height: tuple[float, float] = DEFAULT_CAMERA_HEIGHT,
+    fov_range: tuple[float, float] | None = None,
 ) -> Frame3 | Frame4:
     """Frame ``index`` of ``split``: image uint8 (H, W, 3), depth and sparse float32 (H, W).
 
@@ -144,10 +165,17 @@ def render_frame(
     fourth item: the radar's returns in the image as float32 (M, K) rows
     (:func:`~fusion_depth.data.radar_points.point_rows`, nearest first; ``rcs``, ``velocity``
     0), None for lidar; the other three are the same either way.
+
+    ``camera_height`` is the range (metres) the camera's height is drawn from; ``fov_range``, a
+    range of horizontal fields of view (degrees) drawn per frame from a fourth stream in place
+    of ``fov_deg``. At their defaults the frames are those of earlier versions.
     """
     stream = np.random.SeedSequence(seed, spawn_key=(SPLITS.index(split), index))
-    scene_rng, weather_rng, sensor_rng = (np.random.default_rng(s) for s in stream.spawn(3))
-    scene = sample_scene(scene_rng, height, width, fov_deg)
+    children = stream.spawn(4)  # the first three as before: the camera's stream is new
+    scene_rng, weather_rng, sensor_rng = (np.random.default_rng(s) for s in children[:3])
+    if fov_range is not None:
+        fov_deg = float(np.random.default_rng(children[3]).uniform(*fov_range))
+    scene = sample_scene(scene_rng, height, width, fov_deg, tuple(camera_height))
     dirs = scene.camera.rays()
     t, ids = cast_primary(scene, dirs)
     depth = np.where(ids == SKY_ID, 0.0, t).astype(np.float32)
@@ -182,6 +210,11 @@ class ProceduralDepth(Dataset):
     returns; see the module docstring), with ``"lidar"`` not. Frame ``i`` has condition
     ``conditions[i % len(conditions)]``, so every split holds each condition in equal shares.
 
+    ``camera_height`` (a range in metres, the car's 1.4-1.7 by default) and ``fov_range`` (a
+    range of horizontal fields of view in degrees drawn per frame, replacing ``fov_deg``; null
+    by default) vary the camera: a pool of other cameras for a prior to learn from
+    (``conf/dataset/procedural_source.yaml``).
+
     Raises:
         ValueError: an option out of range, naming it.
         DataFileError: a generated array that is damaged (truncated, another dtype or shape),
@@ -207,6 +240,13 @@ class ProceduralDepth(Dataset):
             lambda v: is_number(v) and 0.0 <= v <= 10.0,
             "a height in [0, 10] metres (0 keeps each radar return a single pixel)",
         ),
+        "camera_height": Rule(
+            _is_range(0.5, 5.0), "a range [low, high] of heights in metres, 0.5 ≤ low ≤ high ≤ 5"
+        ),
+        "fov_range": Rule(
+            lambda v: v is None or _is_range(10.0, 150.0)(v),
+            "null, or a range [low, high] of horizontal fields of view in [10, 150] degrees",
+        ),
     }
 
     def __init__(
@@ -224,6 +264,8 @@ class ProceduralDepth(Dataset):
         fov_deg: float = 70.0,
         radar_height_extension: float = 0.0,
         max_radar_points: int = DEFAULT_MAX_RADAR_POINTS,
+        camera_height: Sequence[float] = DEFAULT_CAMERA_HEIGHT,
+        fov_range: Sequence[float] | None = None,
     ) -> None:
         check_split(split)
         _check_choice("sparse", sparse, SENSORS)
@@ -236,6 +278,8 @@ class ProceduralDepth(Dataset):
             "seed": seed,
             "fov_deg": fov_deg,
             "radar_height_extension": radar_height_extension,
+            "camera_height": camera_height,
+            "fov_range": fov_range,
         }
         for name, value in given.items():  # null, inf, nan, a list or a string too
             if not self.ARGUMENT_RULES[name].ok(value):
@@ -260,6 +304,11 @@ class ProceduralDepth(Dataset):
             "seed": int(seed),
             "fov_deg": float(fov_deg),
         }
+        # A camera other than the car's only when asked for: the built-in frames keep their folder.
+        if tuple(camera_height) != DEFAULT_CAMERA_HEIGHT:
+            self.params["camera_height"] = [float(v) for v in camera_height]
+        if fov_range is not None:
+            self.params["fov_range"] = [float(v) for v in fov_range]
         if sparse == "radar":
             self.params["radar_height_extension"] = float(radar_height_extension)
             self.params["max_radar_points"] = max_radar_points
@@ -472,6 +521,8 @@ def _render_range(
             params["sparse"],
             params.get("radar_height_extension", 0.0),
             with_points=True,
+            camera_height=tuple(params.get("camera_height", DEFAULT_CAMERA_HEIGHT)),
+            fov_range=params.get("fov_range"),
         )
         out["image"][i] = image
         out["depth"][i] = _encode_depth(depth)

@@ -184,7 +184,8 @@ ALIGNMENT_TARGETS = ("sparse", "ground_truth")
 
 class GroundTruthAsSparse(Dataset):
     """A split whose samples carry their ground truth as the sparse input too (the encoded or
-    float form, as the split serves it): what ``alignment.target=ground_truth`` fits to."""
+    float form, as the split serves it), and no radar points: what
+    ``alignment.target=ground_truth`` fits to, pixel by pixel."""
 
     def __init__(self, frames: Dataset) -> None:
         self.frames = frames
@@ -199,7 +200,9 @@ class GroundTruthAsSparse(Dataset):
 
     @staticmethod
     def _swap(sample: dict) -> dict:
-        return {**sample, "sparse": sample["depth"]}
+        swapped = {**sample, "sparse": sample["depth"]}
+        swapped.pop("radar_points", None)  # else the fit would sample the radar's returns
+        return swapped
 
 
 def evaluate_checkpoint(
@@ -308,8 +311,8 @@ def _scored_source(loaded: LoadedModel, frames: Callable | None) -> dict:
         ceiling = frames is GroundTruthAsSparse
         source["alignment"]["target"] = "ground_truth" if ceiling else "sparse"
         log.info(
-            "alignment: %(fallbacks)d of %(fits)d frame fits fell back (fewer than 2 "
-            "returns, or a fit that would reverse the order of depths)",
+            "alignment: %(fallbacks)d of %(fits)d frame fits fell back, %(reversed)d of them "
+            "with returns enough but no fit that keeps the order of depths",
             source["alignment"],
         )
     return source

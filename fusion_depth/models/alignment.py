@@ -1,23 +1,35 @@
-"""Global alignment of a relative depth prior to sparse metric depth: the least-squares scale and
-shift that make a monocular foundation model's affine-invariant inverse depth metric, frame by
-frame, from the radar or lidar returns of the same frame.
+"""Global alignment of a depth prior to sparse metric depth: per frame, the scale (and shift)
+that make a monocular foundation model's output metric, from the radar or lidar returns of the
+same frame.
 
-Follows the global scale-and-shift alignment stage of RadarCam-Depth (Li et al., ICRA 2024),
-which fits the relative inverse depth to the radar depth. The fit has a closed form
-(ordinary least squares of one regressor); the RANSAC option (Fischler & Bolles 1981) fits
-minimal two-point samples and refits on the best sample's inliers, for returns that miss the
-object the pixel shows (radar multipath, lidar through glass).
+Follows the global alignment stage of RadarCam-Depth (Li et al., ICRA 2024, Sec. III-B): a
+least-squares fit of the relative inverse depth to the sparse metric inverse depth. The model
+fitted depends on what the prior gives (its ``kind``, :mod:`fusion_depth.models.depth_prior`):
 
-Two spaces are offered:
+* ``relative`` (Depth Anything V2's relative models, MiDaS): an inverse depth up to an unknown
+  scale *and shift*, so ``s · prior + t ≈ 1 / depth``, fitted in inverse depth. This is the
+  only space where that model is exact: a shifted inverse depth ``a / d + b`` has no scale and
+  shift in metres that map it onto ``d``.
+* ``metric`` (Depth Anything V2's metric models): metres already, off by a scale at most (a
+  camera other than the training one), so ``s · prior ≈ depth``, scale only, in metres.
 
-* ``inverse`` (the default): ``s · prior + t ≈ 1 / depth``. The prior is an inverse depth up to
-  an affine map (Depth Anything V2's relative output), so this is the model's own space.
-* ``depth``: ``s / prior + t ≈ depth``: the prior inverted first, the fit in metres, weighting
-  far returns as the metric errors (MAE, RMSE) do.
+Radar returns are noisy: multipath, a wide vertical beam drawn as a line of pixels, returns
+that miss the object the pixel shows. So the default fit is RANSAC (Fischler & Bolles 1981):
+``ransac_iterations`` minimal samples (two returns for a scale and shift, one for a scale), the
+hypotheses that would reverse the order of depths (a scale ≤ 0) rejected, the one with the most
+inliers kept, and a least-squares refit on its inliers. Samples are drawn **per return**: given
+the batch's ``radar_points``, each return is one sample, at the pixel it projects to; a return
+drawn as a vertical line of pixels counts once, so two pixels of one line (one depth, two prior
+values: scale 0) are never a sample. Without points (lidar), each pixel with a return is one.
 
-A frame with too few returns for a fit (fewer than two, or all at one prior value) takes its
-batch's median fit; a batch without any takes ``fallback`` (each such frame counted in
-:attr:`Alignment.fallback`): never NaN.
+The hypotheses are a fixed table of draws (made once from ``seed``), not a random stream: the
+fit of a frame depends on its samples alone, is the same on every call and every device, and
+the whole fit is tensor operations with no loop over frames.
+
+A frame whose fit cannot be made falls back to its batch's median fit, or in a batch
+without any to ``fallback`` (its caller's running fit), and :class:`Alignment` says why: too
+few samples (fewer than two, one for a scale), or no hypothesis and no fit that keeps the
+order of depths (``reversed``). Never NaN.
 """
 
 from __future__ import annotations
@@ -28,8 +40,11 @@ import torch
 
 from fusion_depth.errors import ArgumentError, check_choice
 
-ALIGNMENT_SPACES = ("inverse", "depth")
-_TINY = 1e-12  # a variance below this is no spread of prior values to fit a shift on
+PRIOR_KINDS = ("relative", "metric")  # what a prior gives: fusion_depth.models.depth_prior
+DEFAULT_RANSAC_ITERATIONS = 100
+DEFAULT_RANSAC_THRESHOLD = 0.1
+_TINY = 1e-12  # a difference of prior values below this is no spread to fit a scale on
+_U, _V, _DEPTH, _VALID = 0, 1, 2, 5  # columns of fusion_depth.data.RADAR_POINT_FIELDS
 
 
 @dataclass(frozen=True)
@@ -38,87 +53,44 @@ class Alignment:
 
     Attributes:
         scale: (B,) the fitted scale ``s`` (float64).
-        shift: (B,) the fitted shift ``t`` (float64; in 1/m for ``inverse``, m for ``depth``).
-        points: (B,) the returns each fit used (RANSAC: its inliers).
-        fallback: (B,) True where the frame had too few returns and took the batch's median fit
-            or ``fallback``.
+        shift: (B,) the fitted shift ``t`` (float64, 1/m; 0 for a metric prior's fit).
+        points: (B,) the samples each fit used (RANSAC: its best hypothesis's inliers).
+        fallback: (B,) True where the frame took its batch's median fit (or ``fallback``)
+            instead of a fit of its own.
+        reversed: (B,) True where it did so although it had samples enough: every hypothesis,
+            and the least-squares fit, had a scale ≤ 0 (they would reverse the depth order).
     """
 
     scale: torch.Tensor
     shift: torch.Tensor
     points: torch.Tensor
     fallback: torch.Tensor
+    reversed: torch.Tensor
 
 
-def _regressor(prior: torch.Tensor, space: str) -> torch.Tensor:
-    """What the fit scales: the prior itself (``inverse``) or its reciprocal (``depth``)."""
-    return prior if space == "inverse" else 1.0 / prior.clamp_min(_TINY)
+def prior_kind(prior: object) -> str:
+    """What ``prior`` gives: its ``kind`` attribute (``relative`` or ``metric``,
+    :mod:`fusion_depth.models.depth_prior`), ``relative`` for a prior that declares none.
 
-
-def least_squares_fit(
-    x: torch.Tensor, y: torch.Tensor, valid: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per frame, ``(s, t)`` minimising ``Σ (s x + t − y)²`` over its ``valid`` pixels, in
-    closed form (no loop over frames, so a network that calls it exports).
-
-    Args:
-        x: (B, 1, H, W) the regressor.
-        y: (B, 1, H, W) the target; any finite value where ``valid`` is False.
-        valid: (B, 1, H, W) bool.
-
-    Returns:
-        ``scale`` (B,), ``shift`` (B,) and ``fitted`` (B,) bool: False for a frame with fewer
-        than two valid pixels, no spread of ``x`` among them, or a best scale ≤ 0, which would
-        reverse the order of depths (its scale is 0 and its shift the mean of ``y``, or 0), in
-        ``x``'s dtype.
+    Raises:
+        ArgumentError: a ``kind`` that is neither.
     """
-    count = valid.sum(dim=(1, 2, 3))
-    weight = count.clamp_min(1).to(x.dtype)
-
-    def mean(values: torch.Tensor) -> torch.Tensor:
-        return torch.where(valid, values, 0.0).sum(dim=(1, 2, 3)) / weight
-
-    x_mean, y_mean = mean(x), mean(y)
-    x_offset = x - x_mean.view(-1, 1, 1, 1)
-    variance = mean(x_offset * x_offset)
-    covariance = mean(x_offset * (y - y_mean.view(-1, 1, 1, 1)))
-    fitted = (count >= 2) & (variance > _TINY * x_mean.square().clamp_min(1.0))
-    scale = torch.where(fitted, covariance / variance.clamp_min(_TINY), 0.0)
-    fitted = fitted & (scale > 0)  # a prior of inverse depth, or of depth, grows with it
-    scale = torch.where(fitted, scale, 0.0)
-    return scale, y_mean - scale * x_mean, fitted
+    kind = getattr(prior, "kind", "relative")
+    check_choice(kind, PRIOR_KINDS, "kind", owner=prior_kind)
+    return kind
 
 
-def _ransac(
-    x: torch.Tensor, y: torch.Tensor, iterations: int, threshold: float, generator: torch.Generator
-) -> torch.Tensor:
-    """The inlier mask of the best of ``iterations`` two-point fits: a point is an inlier when
-    ``|s x + t − y| ≤ threshold · |y|`` (a relative error, so near and far returns count alike).
-    Ties go to the first sample drawn, so the fit is reproducible for a given generator."""
-    count = x.numel()
-    first = torch.randint(count, (iterations,), generator=generator)
-    second = (first + torch.randint(1, count, (iterations,), generator=generator)) % count
-    dx = x[second] - x[first]
-    ok = dx.abs() > _TINY
-    scale = torch.where(ok, (y[second] - y[first]) / torch.where(ok, dx, 1.0), 0.0)
-    shift = y[first] - scale * x[first]
-    residual = (scale[:, None] * x[None] + shift[:, None] - y[None]).abs()
-    inliers = (residual <= threshold * y.abs()[None]) & ok[:, None]
-    return inliers[int(inliers.sum(dim=1).argmax())]
-
-
-def check_alignment_arguments(space: str, ransac_iterations: int, ransac_threshold: float) -> None:
+def check_alignment_arguments(ransac_iterations: int, ransac_threshold: float) -> None:
     """Fail on settings :func:`fit_scale_shift` cannot take, before any frame is read.
 
     Raises:
-        ArgumentError: an unknown ``space``, ``ransac_iterations`` not an integer ≥ 0, or
-            ``ransac_threshold ≤ 0``.
+        ArgumentError: ``ransac_iterations`` not an integer ≥ 0, or ``ransac_threshold ≤ 0``.
     """
-    check_choice(space, ALIGNMENT_SPACES, "space", owner=fit_scale_shift)
     whole = isinstance(ransac_iterations, int) and not isinstance(ransac_iterations, bool)
     if not whole or ransac_iterations < 0:
         raise ArgumentError(
-            f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0",
+            f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0 (0: least "
+            "squares on every return)",
             "ransac_iterations",
             owner=fit_scale_shift,
         )
@@ -126,122 +98,250 @@ def check_alignment_arguments(space: str, ransac_iterations: int, ransac_thresho
         isinstance(ransac_threshold, int | float) and ransac_threshold > 0
     ):
         raise ArgumentError(
-            f"{{ransac_threshold}}={ransac_threshold}: expected a number > 0",
+            f"{{ransac_threshold}}={ransac_threshold}: expected a relative error > 0",
             "ransac_threshold",
             owner=fit_scale_shift,
         )
 
 
-class FallbackCount:
-    """Counts a network's per-frame fits and those that fell back (too few returns), for the
-    run's log and record (``alignment`` in ``metrics.json``): :meth:`reset_fits` before a
-    stage, :meth:`count_fits` per batch, :meth:`fit_summary` after it."""
+def alignment_samples(
+    prior: torch.Tensor, sparse: torch.Tensor, points: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each frame's samples for the fit: the prior's value and the metric depth, one per radar
+    return where ``points`` are given (at the pixel the return projects to, rounded and kept in
+    the image), else one per pixel with a return.
 
-    def reset_fits(self) -> None:
-        """Start counting again (at the test stage's start)."""
-        self._fits, self._fallbacks = 0, 0
+    Args:
+        prior: (B, 1, H, W) the prior at the frame's resolution.
+        sparse: (B, 1, H, W) metres, 0 = no return.
+        points: (B, P, 6) the batch's ``radar_points`` (columns
+            :data:`~fusion_depth.data.RADAR_POINT_FIELDS`, ``u, v`` in pixels of this frame),
+            or None.
 
-    def count_fits(self, fallback: torch.Tensor) -> None:
-        """Count a batch's fits; ``fallback`` (B,) is True where a frame fell back."""
-        self._fits = getattr(self, "_fits", 0) + int(fallback.numel())
-        self._fallbacks = getattr(self, "_fallbacks", 0) + int(fallback.sum())
+    Returns:
+        ``x`` (B, N) prior values, ``depth`` (B, N) metres and ``valid`` (B, N) bool, float64;
+        N is P, or the most pixels with a return of any frame.
+    """
+    batch, _, height, width = prior.shape
+    flat = prior.double().reshape(batch, -1)
+    if points is not None:
+        u = points[..., _U].round().long().clamp(0, width - 1)
+        v = points[..., _V].round().long().clamp(0, height - 1)
+        depth = points[..., _DEPTH].double()
+        valid = (points[..., _VALID] > 0) & (depth > 0)
+        return flat.gather(1, v * width + u), torch.where(valid, depth, 0.0), valid
+    depth = sparse.double().reshape(batch, -1)
+    valid = depth > 0
+    # The pixels with a return first (a stable sort keeps their order), then as many columns as
+    # the frame with most of them needs.
+    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)
+    keep = max(int(valid.sum(dim=1).max()) if valid.numel() else 0, 1)
+    order = order[:, :keep]
+    return flat.gather(1, order), depth.gather(1, order), valid.gather(1, order)
 
-    def fit_summary(self) -> dict[str, int]:
-        """``{"fits": n, "fallbacks": k}`` since :meth:`reset_fits`: one fit per frame and
-        forward pass (two per frame with ``eval.flip_tta``)."""
-        return {"fits": getattr(self, "_fits", 0), "fallbacks": getattr(self, "_fallbacks", 0)}
+
+_TABLES: dict[tuple[int, int], torch.Tensor] = {}
+
+
+def _hypothesis_table(iterations: int, seed: int) -> torch.Tensor:
+    """(iterations, 2) fixed draws in [0, 1): which samples each hypothesis takes."""
+    key = (iterations, seed)
+    if key not in _TABLES:
+        generator = torch.Generator().manual_seed(seed)
+        _TABLES[key] = torch.rand((iterations, 2), generator=generator, dtype=torch.float64)
+    return _TABLES[key]
+
+
+def _least_squares(
+    x: torch.Tensor, y: torch.Tensor, weight: torch.Tensor, with_shift: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per frame, ``(s, t)`` minimising ``Σ w (s x + t − y)²`` (``t = 0`` without shift), and
+    whether a fit with ``s > 0`` was made (two samples with spread, one for a scale)."""
+    count = weight.sum(dim=1)
+    if not with_shift:
+        xx = (weight * x * x).sum(dim=1)
+        scale = (weight * x * y).sum(dim=1) / xx.clamp_min(_TINY)
+        made = (count >= 1) & (xx > _TINY)
+        return torch.where(made, scale, 0.0), torch.zeros_like(scale), made
+    n = count.clamp_min(1.0)
+    x_mean, y_mean = (weight * x).sum(dim=1) / n, (weight * y).sum(dim=1) / n
+    x_offset = x - x_mean[:, None]
+    variance = (weight * x_offset * x_offset).sum(dim=1) / n
+    covariance = (weight * x_offset * (y - y_mean[:, None])).sum(dim=1) / n
+    made = (count >= 2) & (variance > _TINY * x_mean.square().clamp_min(1.0))
+    scale = torch.where(made, covariance / variance.clamp_min(_TINY), 0.0)
+    return scale, y_mean - scale * x_mean, made
+
+
+def _ransac(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    valid: torch.Tensor,
+    iterations: int,
+    threshold: float,
+    seed: int,
+    with_shift: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The best order-keeping hypothesis of each frame: its ``(s, t)``, its inliers (B, N) and
+    whether it exists. A sample is an inlier when ``|s x + t − y| ≤ threshold · |y|`` (a
+    relative error: near and far returns count alike); ties go to the first hypothesis."""
+    count = valid.sum(dim=1)
+    # The frame's valid samples first, so that a draw in [0, count) picks one of them.
+    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)
+    table = _hypothesis_table(iterations, seed).to(x.device)
+    first = (table[None, :, 0] * count[:, None]).long()
+    second = (table[None, :, 1] * (count[:, None] - 1).clamp_min(1)).long()
+    second = second + (second >= first).long()  # another sample than the first
+    first, second = order.gather(1, first), order.gather(1, second.clamp_max(x.shape[1] - 1))
+    x1, y1 = x.gather(1, first), y.gather(1, first)
+    if with_shift:
+        x2, y2 = x.gather(1, second), y.gather(1, second)
+        dx = x2 - x1
+        usable = (count[:, None] >= 2) & (dx.abs() > _TINY)
+        scale = (y2 - y1) / torch.where(usable, dx, 1.0)
+        shift = y1 - scale * x1
+    else:
+        usable = (count[:, None] >= 1) & (x1.abs() > _TINY)
+        scale = y1 / torch.where(usable, x1, 1.0)
+        shift = torch.zeros_like(scale)
+    usable = usable & (scale > 0) & torch.isfinite(scale) & torch.isfinite(shift)
+    residual = (scale[..., None] * x[:, None] + shift[..., None] - y[:, None]).abs()
+    inliers = (residual <= threshold * y.abs()[:, None]) & valid[:, None] & usable[..., None]
+    best = inliers.sum(dim=2).argmax(dim=1)  # the first of the most
+    pick = best[:, None]
+    return (
+        scale.gather(1, pick)[:, 0],
+        shift.gather(1, pick)[:, 0],
+        inliers[torch.arange(len(best), device=best.device), best],
+        usable.gather(1, pick)[:, 0],
+    )
 
 
 def fit_scale_shift(
     prior: torch.Tensor,
     sparse: torch.Tensor,
-    space: str = "inverse",
-    ransac_iterations: int = 0,
-    ransac_threshold: float = 0.1,
+    kind: str = "relative",
+    ransac_iterations: int = DEFAULT_RANSAC_ITERATIONS,
+    ransac_threshold: float = DEFAULT_RANSAC_THRESHOLD,
     fallback: tuple[float, float] = (1.0, 0.0),
     seed: int = 0,
+    points: torch.Tensor | None = None,
 ) -> Alignment:
-    """The scale and shift that map each frame's ``prior`` onto its sparse metric depth.
+    """The scale (and shift) that map each frame's ``prior`` onto its sparse metric depth.
 
     Args:
-        prior: (B, 1, H, W) relative inverse depth (≥ 0, larger is nearer), e.g. Depth Anything
-            V2's relative output resized to the frame.
+        prior: (B, 1, H, W) a ``relative`` prior's inverse depth (larger is nearer, any scale
+            and shift) or a ``metric`` prior's depth in metres.
         sparse: (B, 1, H, W) metres, 0 = no return (the batch's ``sparse``).
-        space: ``inverse`` (fit ``s · prior + t`` to 1/depth) or ``depth`` (fit ``s / prior +
-            t`` to metres); see the module docstring.
-        ransac_iterations: 0 fits all returns; N > 0 draws N two-point samples and refits on
-            the best one's inliers.
-        ransac_threshold: a return is an inlier of a sample when its relative error in the
-            fitted space is at most this.
-        fallback: ``(s, t)`` for a frame with too few returns when no frame of its batch has
-            enough.
-        seed: the RANSAC samples' seed (fits are reproducible).
+        kind: ``relative`` (fit ``s · prior + t ≈ 1/depth``) or ``metric`` (fit ``s · prior ≈
+            depth``); see the module docstring.
+        ransac_iterations: N > 0: RANSAC with N minimal samples and a least-squares refit on
+            the best one's inliers; 0: least squares on every sample.
+        ransac_threshold: a sample is an inlier of a hypothesis when its relative error (in
+            inverse depth, or in metres for a metric prior) is at most this.
+        fallback: ``(s, t)`` for a frame without a fit of its own in a batch without any (else
+            it takes the batch's median fit).
+        seed: which fixed table of hypotheses RANSAC draws from.
+        points: (B, P, 6) the batch's ``radar_points``: one sample per return
+            (:func:`alignment_samples`); None: one per pixel with a return.
 
     Returns:
         :class:`Alignment`, one fit per frame.
 
     Raises:
-        ArgumentError: an unknown ``space``, ``ransac_iterations < 0`` or ``ransac_threshold ≤
+        ArgumentError: an unknown ``kind``, ``ransac_iterations < 0`` or ``ransac_threshold ≤
             0``.
         ValueError: ``prior`` and ``sparse`` differ in shape.
     """
-    check_alignment_arguments(space, ransac_iterations, ransac_threshold)
+    check_choice(kind, PRIOR_KINDS, "kind", owner=fit_scale_shift)
+    check_alignment_arguments(ransac_iterations, ransac_threshold)
     if prior.shape != sparse.shape:
         raise ValueError(f"prior {tuple(prior.shape)} and sparse {tuple(sparse.shape)} differ")
-    valid = sparse.double() > 0
-    if space == "depth":  # a prior of 0 (the sky, by a ReLU) has no finite reciprocal to fit
-        valid = valid & (prior.double() > _TINY)
-    x = _regressor(prior.double(), space)
-    depth = torch.where(valid, sparse.double(), 1.0)
-    y = torch.where(valid, 1.0 / depth if space == "inverse" else depth, 0.0)
-    if ransac_iterations:  # keep each frame's inliers of its best two-point sample
-        generator = torch.Generator().manual_seed(seed)
-        inliers = torch.zeros_like(valid)
-        for frame in range(len(valid)):
-            where = valid[frame]
-            if int(where.sum()) >= 2:
-                best = _ransac(
-                    x[frame][where], y[frame][where], ransac_iterations, ransac_threshold, generator
-                )
-                inliers[frame][where] = best
-        valid = inliers
-    scale, shift, fitted = least_squares_fit(x, y, valid)
-    if fitted.any():
-        default = (scale[fitted].median(), shift[fitted].median())
+    x, depth, valid = alignment_samples(prior, sparse, points)
+    with_shift = kind == "relative"
+    if with_shift:
+        y = torch.where(valid, 1.0 / torch.where(valid, depth, 1.0), 0.0)
+    else:  # a metric prior of 0 (a ReLU's sky) has no scale to fit on
+        valid = valid & (x > _TINY)
+        y = depth
+    enough = valid.sum(dim=1) >= (2 if with_shift else 1)
+    scale, shift, made = _least_squares(x, y, valid.double(), with_shift)
+    inliers = valid
+    if ransac_iterations:
+        h_scale, h_shift, h_inliers, found = _ransac(
+            x, y, valid, ransac_iterations, ransac_threshold, seed, with_shift
+        )
+        r_scale, r_shift, r_made = _least_squares(x, y, h_inliers.double(), with_shift)
+        refit = r_made & (r_scale > 0)
+        # The refit on the inliers; the hypothesis itself where the refit reverses the order.
+        scale = torch.where(refit, r_scale, h_scale)
+        shift = torch.where(refit, r_shift, h_shift)
+        made, inliers = found, h_inliers
+    fitted = made & (scale > 0)
+    if fitted.any():  # the batch's median fit
+        default = torch.stack([scale[fitted].median(), shift[fitted].median()])
     else:
-        default = tuple(torch.tensor(v, dtype=torch.float64) for v in fallback)
+        default = torch.tensor(fallback, dtype=torch.float64, device=scale.device)
     return Alignment(
         scale=torch.where(fitted, scale, default[0]).cpu(),
-        shift=torch.where(fitted, shift, default[1]).cpu(),
-        points=torch.where(fitted, valid.sum(dim=(1, 2, 3)), 0).cpu(),
+        shift=torch.where(fitted, shift, default[1] if with_shift else 0.0).cpu(),
+        points=torch.where(fitted, (inliers & valid).sum(dim=1), 0).cpu(),
         fallback=~fitted.cpu(),
+        reversed=(enough & ~fitted).cpu(),
     )
 
 
 def apply_alignment(
     prior: torch.Tensor,
     alignment: Alignment,
-    space: str,
+    kind: str,
     min_depth: float,
     max_depth: float,
 ) -> torch.Tensor:
     """Metric depth from ``prior`` and its per-frame fits, clipped to the depth range.
 
     Args:
-        prior: (B, 1, H, W) relative inverse depth, as given to :func:`fit_scale_shift`.
+        prior: (B, 1, H, W) the prior, as given to :func:`fit_scale_shift`.
         alignment: its fits.
-        space: the space they were fitted in.
+        kind: the prior's kind, as given to :func:`fit_scale_shift`.
         min_depth: the range's lower end in metres (> 0).
         max_depth: its upper end in metres.
 
     Returns:
-        (B, 1, H, W) metres in ``[min_depth, max_depth]``, in ``prior``'s dtype. An inverse
-        depth at or below 0 (a fit that puts a pixel beyond infinity) maps to ``max_depth``.
+        (B, 1, H, W) metres in ``[min_depth, max_depth]``, in ``prior``'s dtype. A relative
+        prior's fitted inverse depth at or below ``1 / max_depth`` (beyond the range, or
+        beyond infinity) maps to ``max_depth``.
     """
-    check_choice(space, ALIGNMENT_SPACES, "space", owner=apply_alignment)
+    check_choice(kind, PRIOR_KINDS, "kind", owner=apply_alignment)
     scale = alignment.scale.to(prior.device, torch.float64)[:, None, None, None]
     shift = alignment.shift.to(prior.device, torch.float64)[:, None, None, None]
-    fitted = scale * _regressor(prior.double(), space) + shift
-    if space == "inverse":
+    fitted = scale * prior.double() + shift
+    if kind == "relative":
         fitted = 1.0 / fitted.clamp_min(1.0 / max_depth)
     return fitted.clamp(min_depth, max_depth).to(prior.dtype)
+
+
+class FallbackCount:
+    """Counts a network's per-frame fits and those that fell back, for the run's log and
+    record (``alignment`` in ``metrics.json``): :meth:`reset_fits` before a stage,
+    :meth:`count_fits` per batch, :meth:`fit_summary` after it."""
+
+    def reset_fits(self) -> None:
+        """Start counting again (at the test stage's start)."""
+        self._fits, self._fallbacks, self._reversed = 0, 0, 0
+
+    def count_fits(self, fit: Alignment) -> None:
+        """Count a batch's fits (:class:`Alignment`)."""
+        self._fits = getattr(self, "_fits", 0) + int(fit.fallback.numel())
+        self._fallbacks = getattr(self, "_fallbacks", 0) + int(fit.fallback.sum())
+        self._reversed = getattr(self, "_reversed", 0) + int(fit.reversed.sum())
+
+    def fit_summary(self) -> dict[str, int]:
+        """``{"fits": n, "fallbacks": k, "reversed": r}`` since :meth:`reset_fits`: one fit per
+        frame and forward pass (two per frame with ``eval.flip_tta``); ``reversed`` counts the
+        fallbacks of frames that had samples enough but no fit keeping the depth order."""
+        return {
+            "fits": getattr(self, "_fits", 0),
+            "fallbacks": getattr(self, "_fallbacks", 0),
+            "reversed": getattr(self, "_reversed", 0),
+        }

@@ -112,8 +112,7 @@ class DepthModel(nn.Module):
         batch's ``radar_points``) reach only a network that :attr:`takes_points`; ``prior``
         (the batch's cached prior, :mod:`fusion_depth.runner.prior_cache`) only a network
         built with one, which then does not run its own."""
+        given = {} if prior is None else {"prior": prior}  # a network without one takes none
         if self.takes_points:
-            return self.to_depth(self.forward(image, sparse, points))
-        if prior is not None:
-            return self.to_depth(self.forward(image, sparse, prior=prior))
-        return self.to_depth(self.forward(image, sparse))
+            return self.to_depth(self.forward(image, sparse, points, **given))
+        return self.to_depth(self.forward(image, sparse, **given))

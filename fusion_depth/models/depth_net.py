@@ -20,6 +20,7 @@ from fusion_depth.models.depth_prior import (
 )
 from fusion_depth.models.encoder import Encoder
 from fusion_depth.models.fusion import FUSION_MODES, InputFusion
+from fusion_depth.models.prior_branch import PriorBranch
 
 
 # The paper's recipe (Siddiqui et al., Sec. IV): DenseNet-169 from ImageNet, SSIM + edge + L1 on
@@ -45,8 +46,9 @@ class DepthNet(DepthModel):
     metres, clipped to ``[min_depth, max_depth]``, for everything outside training.
 
     ``prior`` (the ``prior`` config node: ``name``, ``weights``, ``input_size``, ``dropout``)
-    adds a frozen monocular prior's relative depth as a further input (:class:`InputFusion`,
-    TacoDepth's plug-in mode), computed from the image (or given: a cached prior); in training
+    adds a frozen monocular prior's relative depth as a further input, through its own branch
+    (:class:`~fusion_depth.models.prior_branch.PriorBranch`, TacoDepth's plug-in mode), computed
+    from the image (or given: a cached prior); in training
     a share ``dropout`` of the frames gets none, so that the network learns to work without it,
     and ``enabled: false`` serves it so (the prior is not built; its channel gets zeros). The
     prior's weights stay in their own files: a checkpoint holds the network's, and names the
@@ -115,8 +117,9 @@ class DepthNet(DepthModel):
             sparse_encoding=sparse_encoding,
             mean=self.encoder.mean,
             std=self.encoder.std,
-            prior=has_channel,
         )
+        # The prior's own encoder, added to the image encoder's features (zero at the start).
+        self.prior_branch = PriorBranch(self.encoder.channels) if has_channel else None
         self.decoder = DenseDepthDecoder(self.encoder.channels)
         if self.prior is not None:
             keep_prior_out_of_checkpoints(self)
@@ -143,7 +146,12 @@ class DepthNet(DepthModel):
         prior: torch.Tensor | None = None,
     ) -> torch.Tensor:
         self.check_input_size(image)
-        fused = self.fusion(image, sparse, self.prior_input(image, prior))
+        features = self.encoder(self.fusion(image, sparse))
+        if self.prior_branch is not None:  # no prior (dropped, or served without): zeros
+            channel = self.prior_input(image, prior)
+            if channel is None:
+                channel = image.new_zeros((image.shape[0], 1, *image.shape[2:]))
+            features = self.prior_branch(channel, features)
         # fp32 out even under autocast: depth = scale / reciprocal, the loss and the metrics
         # need more than bf16's 3 significant digits.
-        return self.decoder(self.encoder(fused)).float()
+        return self.decoder(features).float()

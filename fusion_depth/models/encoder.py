@@ -191,6 +191,47 @@ def create_timm_model(name: str, pretrained: bool, weights: str | None, **kwargs
     return _create_from_hub(name, **kwargs)
 
 
+CHECKPOINT_SUFFIX = ".ckpt"  # what train writes: backbone.weights=<it> starts from its encoder
+
+
+def encoder_state_from_checkpoint(weights: str) -> tuple[dict[str, torch.Tensor], str]:
+    """The encoder's weights of a checkpoint ``train`` wrote (read weights-only): the
+    ``net.encoder.*`` entries of its state dict, unprefixed, for transfer learning from a
+    network trained on other data (``backbone.weights=<file>.ckpt``).
+
+    Returns:
+        The state dict and ``weights`` as given (for messages).
+
+    Raises:
+        ArgumentFileError: no such file.
+        ArgumentError: not a readable checkpoint, or one whose network has no encoder.
+    """
+    from fusion_depth.utils.checkpoint_file import CheckpointError, read_checkpoint
+
+    path = Path(weights).expanduser()
+    if not path.is_file():
+        raise ArgumentFileError(f"{{weights}}={weights}: no such file", "weights", owner=Encoder)
+    try:
+        checkpoint = read_checkpoint(path)
+    except CheckpointError as err:
+        problem = str(err).partition(": ")[2] or str(err)
+        raise ArgumentError(f"{{weights}}={weights}: {problem}", "weights", owner=Encoder) from None
+    prefix = "net.encoder."
+    state = {
+        k.removeprefix(prefix): v
+        for k, v in checkpoint["state_dict"].items()
+        if k.startswith(prefix)
+    }
+    if not state:
+        raise ArgumentError(
+            f"{{weights}}={weights}: its network has no encoder (no {prefix}* weights); expected "
+            "a checkpoint of an encoder-decoder network (model=densedepth)",
+            "weights",
+            owner=Encoder,
+        )
+    return state, str(weights)
+
+
 def _hub_reachable(timeout: float = 3.0) -> bool:
     """A TCP connect to the hub: huggingface_hub retries with back-off for minutes offline."""
     host = urlparse(os.environ.get("HF_ENDPOINT", "https://huggingface.co")).hostname
@@ -289,7 +330,9 @@ class Encoder(nn.Module):
         name: a timm model name (``paper``: a key of :data:`ENCODER_SPECS`).
         pretrained: ImageNet weights from the local hub cache, else the hub.
         weights: a local ``.safetensors``/``.pth``/``.pt``/``.bin`` state dict of ``name``
-            (timm/torchvision layout; the classifier may be in it).
+            (timm/torchvision layout; the classifier may be in it), or a ``.ckpt`` that
+            ``train`` wrote, whose encoder (of the same ``name`` and taps) is loaded: transfer
+            learning from a network trained on other data.
         taps: ``paper`` or ``pyramid`` (see above).
 
     Shape:
@@ -315,6 +358,9 @@ class Encoder(nn.Module):
     ) -> None:
         super().__init__()
         check_backbone_name(name, taps)
+        trained = None  # a checkpoint train wrote: its encoder's weights, loaded once built
+        if weights and Path(weights).suffix == CHECKPOINT_SUFFIX:
+            trained, weights, pretrained = encoder_state_from_checkpoint(weights), None, False
         self.name = name
         self.body: nn.Module | None = None  # pyramid: timm's features_only model
         self.stem: nn.Module | None = None  # pyramid without a stride-2 level: the learned stem
@@ -358,6 +404,36 @@ class Encoder(nn.Module):
                 owner=Encoder,
             )
         self.channels: tuple[int, ...] = tuple(f.shape[1] for f in feats)
+        if trained is not None:
+            self._load_trained(trained[0], trained[1])
+
+    def _load_trained(self, state: dict[str, torch.Tensor], weights: str) -> None:
+        """Load the encoder of a checkpoint ``train`` wrote (strict: the same backbone)."""
+        expected = self.state_dict()
+        for key, value in expected.items():
+            if key not in state:
+                raise ArgumentError(
+                    f"{{weights}}={weights}: its encoder has no {key}; expected a checkpoint of "
+                    f"a network with backbone={self.name} (the same taps)",
+                    "weights",
+                    owner=Encoder,
+                )
+            if state[key].shape != value.shape:
+                raise ArgumentError(
+                    f"{{weights}}={weights}: its encoder's {key} is {list(state[key].shape)}, "
+                    f"expected {list(value.shape)} (backbone={self.name})",
+                    "weights",
+                    owner=Encoder,
+                )
+        extra = sorted(set(state) - set(expected))
+        if extra:
+            raise ArgumentError(
+                f"{{weights}}={weights}: its encoder has {extra[0]}, which backbone={self.name} "
+                "has not; expected a checkpoint of a network with that backbone",
+                "weights",
+                owner=Encoder,
+            )
+        self.load_state_dict(state)
 
     def _build_pyramid(self, name: str, pretrained: bool, weights: str | None) -> nn.Module:
         """Set :attr:`body` (and :attr:`stem`, :attr:`taps`, :attr:`nhwc`) from timm's

@@ -45,13 +45,8 @@ class InputFusion(nn.Module):
       waiting for a zero-initialised weight to grow (with Adam at 1e-4 it barely moves in a
       short run).
 
-    With ``prior=True`` a fourth input follows: a relative depth prior normalised to [0, 1] per
-    frame (:func:`fusion_depth.models.depth_prior.normalized_prior`), mixed into the 3 channels
-    above by a learned 1×1 conv that starts as ``add`` does (identity on the channels, ``1 /
-    std`` on the prior), the way TacoDepth's plug-in mode takes a foundation model's relative
-    depth as an extra input. No prior reads as all zeros, as a prior dropped in training does
-    (``prior_dropout`` of the network), so one network serves with or without it; at the
-    start, zeros leave the input as it would be without a prior.
+    A depth prior is not mixed in here: it has its own branch
+    (:class:`~fusion_depth.models.prior_branch.PriorBranch`).
     """
 
     def __init__(
@@ -62,7 +57,6 @@ class InputFusion(nn.Module):
         sparse_encoding: str = "log",
         mean: Sequence[float] = (0.485, 0.456, 0.406),
         std: Sequence[float] = (0.229, 0.224, 0.225),
-        prior: bool = False,
     ) -> None:
         super().__init__()
         check_choice(mode, FUSION_MODES, "mode", owner=InputFusion)
@@ -78,7 +72,6 @@ class InputFusion(nn.Module):
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         if mode == "concat":
             self.mix = self._additive_mix()
-        self.prior_mix = self._additive_mix() if prior else None
 
     def _additive_mix(self) -> nn.Conv2d:
         """A 1×1 conv from 3 channels and one more to 3 that starts as ``add``: identity on the
@@ -103,24 +96,7 @@ class InputFusion(nn.Module):
     def uses_sparse(self) -> bool:
         return self.mode != "rgb"
 
-    @property
-    def uses_prior(self) -> bool:
-        return self.prior_mix is not None
-
-    def forward(
-        self,
-        image: torch.Tensor,
-        sparse: torch.Tensor | None = None,
-        prior: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        fused = self._fuse(image, sparse)
-        if self.prior_mix is None:
-            return fused
-        if prior is None:  # no prior: the zeros a prior dropped in training reads as
-            prior = fused.new_zeros((fused.shape[0], 1, *fused.shape[2:]))
-        return self.prior_mix(torch.cat([fused, prior.to(fused.dtype)], dim=1))
-
-    def _fuse(self, image: torch.Tensor, sparse: torch.Tensor | None) -> torch.Tensor:
+    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
         if self.mode == "rgb":
             return (image - self.mean) / self.std
         if sparse is None:

@@ -148,11 +148,10 @@ def predict_depth(
 
     def run(image: torch.Tensor, sparse: torch.Tensor | None, points, prior) -> torch.Tensor:
         # Only what is given is passed: a network without a prior need not accept one.
+        given = {} if prior is None else {"prior": prior}
         if points is not None:
-            return net.predict_depth(image, sparse, points)
-        if prior is not None:
-            return net.predict_depth(image, sparse, prior=prior)
-        return net.predict_depth(image, sparse)
+            return net.predict_depth(image, sparse, points, **given)
+        return net.predict_depth(image, sparse, **given)
 
     depth = run(image, sparse, points, prior)
     if flip_tta:

@@ -1,7 +1,8 @@
 """The global alignment of a frozen prior, scored as a network with nothing learned: the first
-stage of RadarCam-Depth (Li et al., ICRA 2024) and SA-RCD, and POLAR's (CVPR 2026) affine
-baseline: each frame's relative inverse depth scaled and shifted to its own sparse returns by
-least squares (:func:`~fusion_depth.models.alignment.fit_scale_shift`).
+stage of RadarCam-Depth (Li et al., ICRA 2024, Sec. III-B) and SA-RCD, and POLAR's (CVPR 2026)
+affine baseline: each frame's relative inverse depth scaled and shifted to its own sparse
+returns (a metric prior's depth scaled), by RANSAC over the returns and a least-squares refit
+(:func:`~fusion_depth.models.alignment.fit_scale_shift`).
 
 ``python -m fusion_depth.evaluate prior=<name> prior.weights=<file> dataset=<name>`` scores it
 (:mod:`fusion_depth.evaluate.scoring`); ``alignment.*`` sets the fit.
@@ -16,10 +17,13 @@ import torch
 
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models.alignment import (
+    DEFAULT_RANSAC_ITERATIONS,
+    DEFAULT_RANSAC_THRESHOLD,
     FallbackCount,
     apply_alignment,
     check_alignment_arguments,
     fit_scale_shift,
+    prior_kind,
 )
 from fusion_depth.models.base import DepthModel
 from fusion_depth.models.depth_prior import NO_PRIOR, build_prior
@@ -32,22 +36,28 @@ LABEL = "Prior + alignment"  # how report's tables name it
 class GlobalAlignment(FallbackCount, DepthModel):
     """A frozen prior made metric frame by frame by the frame's sparse returns.
 
-    A frame with fewer than two returns to fit takes its batch's median fit, or, in a batch
-    with none, the mean of the batches' median fits so far (:class:`FallbackCount` counts
-    them); the first batches of a run, before any fit, take scale 1 and shift 0.
+    What is fitted follows the prior's ``kind``: a relative prior's scale and shift in inverse
+    depth, a metric prior's scale in metres. Given the batch's ``radar_points``, each return is
+    one sample of the fit; without them (lidar), each pixel with a return. A frame without a
+    fit of its own (too few returns, or none that keeps the depth order) takes its batch's
+    median fit, or, in a batch with none, the mean of the batches' median fits so far
+    (:class:`FallbackCount` counts them, and those whose fits all reversed the depth order);
+    the first batches of a run, before any fit, take scale 1 and shift 0.
 
     Args:
-        prior: the ``prior`` config node (``name``, ``weights``, ``input_size``; ``dropout`` is
-            ignored). Required: ``name`` is not ``none``.
-        space: fit in ``inverse`` depth or in ``depth``
-            (:func:`~fusion_depth.models.alignment.fit_scale_shift`).
-        ransac_iterations: 0 fits every return; N > 0: RANSAC with N two-point samples.
-        ransac_threshold: RANSAC's inlier bound, a relative error in the fitted space.
+        prior: the ``prior`` config node (``name``, ``weights``, ``input_size``, ``kind``,
+            ``max_depth``; ``dropout`` and ``cache`` are ignored). Required: ``name`` is not
+            ``none``.
+        ransac_iterations: N > 0: RANSAC with N minimal samples (the default, 100); 0: least
+            squares on every return.
+        ransac_threshold: RANSAC's inlier bound, a relative error (of inverse depth for a
+            relative prior, of depth for a metric one).
         min_depth: the depth range's lower end in metres.
         max_depth: its upper end in metres.
 
     Shape:
-        - image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) metres, 0 = no return.
+        - image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) metres, 0 = no return;
+          points: (B, P, 6) ``radar_points`` or None.
         - output: (B, 1, H, W) metres in ``[min_depth, max_depth]`` (its output space is
           depth).
 
@@ -57,18 +67,19 @@ class GlobalAlignment(FallbackCount, DepthModel):
     """
 
     output_space = "depth"
+    takes_points = True  # one sample per radar return where the batch has them
 
     def __init__(
         self,
         prior: Mapping[str, Any],
-        space: str = "inverse",
-        ransac_iterations: int = 0,
-        ransac_threshold: float = 0.1,
+        ransac_iterations: int = DEFAULT_RANSAC_ITERATIONS,
+        ransac_threshold: float = DEFAULT_RANSAC_THRESHOLD,
         min_depth: float = 0.5,
         max_depth: float = 80.0,
     ) -> None:
         super().__init__(min_depth, max_depth, depth_scale=1.0)
-        spec = {key: prior.get(key) for key in ("name", "weights", "input_size")}
+        # What builds the prior; dropout and cache are a trained network's and the runner's.
+        spec = {k: v for k, v in prior.items() if k not in ("dropout", "cache", "enabled")}
         if spec["name"] in (None, NO_PRIOR):
             raise ArgumentError(
                 f"{{name}}={spec['name']}: the global alignment needs a prior "
@@ -76,9 +87,9 @@ class GlobalAlignment(FallbackCount, DepthModel):
                 "name",
                 owner=build_prior,
             )
-        check_alignment_arguments(space, ransac_iterations, ransac_threshold)
+        check_alignment_arguments(ransac_iterations, ransac_threshold)
         self.prior = build_prior(**spec)
-        self.space = space
+        self.kind = prior_kind(self.prior)
         self.ransac_iterations, self.ransac_threshold = ransac_iterations, ransac_threshold
         self.fusion = InputMode("concat", uses_sparse=True)  # image and sparse returns in
         # (scale, shift) of the batches before: the fit of a batch with no frame to fit
@@ -86,29 +97,34 @@ class GlobalAlignment(FallbackCount, DepthModel):
         self.fitted_batches = 0
         self.reset_fits()
 
-    def forward(self, image: torch.Tensor, sparse: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        image: torch.Tensor,
+        sparse: torch.Tensor | None = None,
+        points: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         if sparse is None:
             raise ValueError("the global alignment needs the sparse depth map")
-        # The prior as it gives it: the depth space's fit takes its reciprocal, so no shift
-        # may be added to it (it is never read from the cache, which normalises).
-        relative = self.prior(image).float()
+        # The prior as it gives it (never from the cache, which normalises a relative one).
+        given = self.prior(image).float()
         # In float64 whatever the autocast (fit_scale_shift): bf16 moves a shift by 10 %.
         with torch.autocast(image.device.type, enabled=False):
             fit = fit_scale_shift(
-                relative,
+                given,
                 sparse.float(),
-                self.space,
+                self.kind,
                 self.ransac_iterations,
                 self.ransac_threshold,
                 fallback=tuple(self.fit_mean.tolist()),
+                points=points,
             )
             self._remember(fit.scale[~fit.fallback], fit.shift[~fit.fallback])
-            self.count_fits(fit.fallback)
-            return apply_alignment(relative, fit, self.space, self.min_depth, self.max_depth)
+            self.count_fits(fit)
+            return apply_alignment(given, fit, self.kind, self.min_depth, self.max_depth)
 
     def fit_summary(self) -> dict[str, Any]:
         """The fit's settings, and its fits and fallbacks since :meth:`reset_fits`."""
-        settings = {"space": self.space, "ransac_iterations": self.ransac_iterations}
+        settings = {"kind": self.kind, "ransac_iterations": self.ransac_iterations}
         return {**settings, **super().fit_summary()}
 
     def _remember(self, scale: torch.Tensor, shift: torch.Tensor) -> None:

@@ -5,10 +5,10 @@ DenseDepth encoder-decoder as the learner (the authors' nuScenes code is unrelea
 
 1. ``prior=...`` gives relative inverse depth (frozen; :mod:`fusion_depth.models.depth_prior`).
 2. Mapped to [0, 1] per frame (:func:`~fusion_depth.models.depth_prior.normalized_prior`, which
-   changes no affine fit), its scale and shift are fitted to the frame's sparse returns by least
-   squares in inverse depth (:func:`~fusion_depth.models.alignment.least_squares_fit`); a frame
-   with fewer than two
-   returns (or a fit whose scale is not positive) takes the running median fit of training (a
+   changes no affine fit), its scale and shift are fitted to the frame's radar returns in
+   inverse depth by RANSAC with a least-squares refit
+   (:func:`~fusion_depth.models.alignment.fit_scale_shift`); a frame without a fit (too few
+   returns, or none keeping the depth order) takes the running median fit of training (a
    buffer, like batch norm's).
 3. The learner sees the image, the sparse returns and the aligned depth (the last two
    log-encoded as :class:`~fusion_depth.models.fusion.InputFusion` encodes sparse depth) and
@@ -28,7 +28,11 @@ from torch import nn
 
 from fusion_depth.errors import ArgumentError
 from fusion_depth.models._registry import Recipe, check_model_takes, register_model
-from fusion_depth.models.alignment import FallbackCount, least_squares_fit
+from fusion_depth.models.alignment import (
+    DEFAULT_RANSAC_ITERATIONS,
+    FallbackCount,
+    fit_scale_shift,
+)
 from fusion_depth.models.depth_net import DepthNet
 from fusion_depth.models.depth_prior import normalized_prior
 
@@ -77,6 +81,8 @@ class PriorCorrection(FallbackCount, DepthNet):
         ArgumentError: no prior (``prior=none``), or a fusion mode other than ``concat``.
     """
 
+    takes_points = True  # the global fit samples each radar return once, where the batch has them
+
     def __init__(
         self,
         prior: Mapping[str, Any] | None = None,
@@ -124,40 +130,47 @@ class PriorCorrection(FallbackCount, DepthNet):
         self.register_buffer("fit_mean", torch.tensor([1.0, 0.0]))  # (scale, shift) of training
 
     @torch.no_grad()
-    def global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
-        """Inverse depth in 1/m: ``relative`` scaled and shifted to each frame's returns, the
-        running fit where a frame has none (fewer than two returns, or a scale ≤ 0); updates
-        the running fit in training with the batch's median fit. Computed in fp32 whatever
-        the autocast: bf16's 8 bits of mantissa move the fitted shift by 10 % and more.
+    def global_fit(
+        self, relative: torch.Tensor, sparse: torch.Tensor, points: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Inverse depth in 1/m: ``relative`` scaled and shifted to each frame's returns by
+        RANSAC (:func:`~fusion_depth.models.alignment.fit_scale_shift`, one sample per return
+        where ``points`` are given), the running fit where a frame has none; updates the
+        running fit in training with the batch's median fit. Computed in float64 whatever the
+        autocast: bf16's 8 bits of mantissa move the fitted shift by 10 % and more.
 
         Shape:
-            - relative, sparse: (B, 1, H, W); output: (B, 1, H, W), fp32.
+            - relative, sparse: (B, 1, H, W); points: (B, P, 6) or None; output: (B, 1, H, W),
+              fp32.
         """
         with torch.autocast(relative.device.type, enabled=False):
-            return self._global_fit(relative.float(), sparse.float())
-
-    def _global_fit(self, relative: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
-        valid = sparse > 0
-        target = torch.where(valid, 1.0 / sparse.clamp_min(1e-6), 0.0)
-        scale, shift, fitted = least_squares_fit(relative, target, valid)
-        self.count_fits(~fitted)
+            fit = fit_scale_shift(
+                relative.float(),
+                sparse.float(),
+                "relative",
+                fallback=tuple(self.fit_mean.tolist()),
+                points=points,
+            )
+        self.count_fits(fit)
+        fitted = ~fit.fallback
         if self.training and bool(fitted.any()):
-            batch = torch.stack([scale[fitted].median(), shift[fitted].median()])
-            batch = batch.to(self.fit_mean)
-            self.fit_mean.lerp_(batch, self.fit_momentum)
-        scale = torch.where(fitted, scale, self.fit_mean[0]).view(-1, 1, 1, 1)
-        shift = torch.where(fitted, shift, self.fit_mean[1]).view(-1, 1, 1, 1)
+            batch = torch.stack([fit.scale[fitted].median(), fit.shift[fitted].median()])
+            self.fit_mean.lerp_(batch.to(self.fit_mean), self.fit_momentum)
+        scale = fit.scale.to(relative.device, torch.float32).view(-1, 1, 1, 1)
+        shift = fit.shift.to(relative.device, torch.float32).view(-1, 1, 1, 1)
         # In the depth range: a fit extrapolated to the frame's nearest pixels may say 1 cm.
-        return (scale * relative + shift).clamp(1.0 / self.max_depth, 1.0 / self.min_depth)
+        return (scale * relative.float() + shift).clamp(1.0 / self.max_depth, 1.0 / self.min_depth)
 
     def fit_summary(self) -> dict[str, Any]:
-        """The fit's space, and its frame fits and fallbacks since :meth:`reset_fits`."""
-        return {"space": "inverse", "ransac_iterations": 0, **super().fit_summary()}
+        """The fit's settings, and its frame fits and fallbacks since :meth:`reset_fits`."""
+        settings = {"kind": "relative", "ransac_iterations": DEFAULT_RANSAC_ITERATIONS}
+        return {**settings, **super().fit_summary()}
 
     def forward(
         self,
         image: torch.Tensor,
         sparse: torch.Tensor | None = None,
+        points: torch.Tensor | None = None,
         prior: torch.Tensor | None = None,
     ) -> torch.Tensor:
         self.check_input_size(image)
@@ -166,9 +179,10 @@ class PriorCorrection(FallbackCount, DepthNet):
         # The fit is affine, so normalising the prior per frame changes no fit, and keeps an
         # SSI-trained prior's 1e5-sized values in range (and the cache's form, [0, 1]).
         relative = normalized_prior(self.prior(image) if prior is None else prior.float())
-        inverse = self.global_fit(relative, sparse)
+        inverse = self.global_fit(relative, sparse, points)
         aligned = self.fusion.encode_sparse((1.0 / inverse).clamp(self.min_depth, self.max_depth))
-        raw = self.decoder(self.encoder(self.fusion(image, sparse, aligned))).float()
+        features = self.prior_branch(aligned, self.encoder(self.fusion(image, sparse)))
+        raw = self.decoder(features).float()
         # Bounded softly (slope 1 at 0): an unbounded exp(r) overflowed within an epoch at the
         # built-in recipe's learning rate (training loss 1.5e5, then every depth at a clip).
         log_scale = MAX_LOG_SCALE * torch.tanh(raw / MAX_LOG_SCALE)

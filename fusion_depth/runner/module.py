@@ -224,11 +224,11 @@ class DepthModule(L.LightningModule):
 
     def _network_output(self, batch: dict) -> torch.Tensor:
         sparse = batch["sparse"] if self.net.fusion.uses_sparse else None
+        # The cached prior (fusion_depth.runner.prior_cache) where the batch has one.
+        given = {} if batch.get("prior") is None else {"prior": batch["prior"]}
         if getattr(self.net, "takes_points", False):  # radar points from the batch when it has them
-            return self.net(batch["image"], sparse, batch.get("radar_points"))
-        if batch.get("prior") is not None:  # the cached prior (fusion_depth.runner.prior_cache)
-            return self.net(batch["image"], sparse, prior=batch["prior"])
-        return self.net(batch["image"], sparse)
+            return self.net(batch["image"], sparse, batch.get("radar_points"), **given)
+        return self.net(batch["image"], sparse, **given)
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         """Every stage's batch on the device: the loaders' encoded form (uint8 image, uint16

@@ -323,8 +323,8 @@ def fit_and_test(job: RankJob) -> RunRecord | None:
         alignment = model.net.fit_summary() if counting else None
         if alignment is not None:
             log.info(
-                "alignment: %(fallbacks)d of %(fits)d test frame fits fell back (fewer than 2 "
-                "returns, or a fit that would reverse the order of depths)",
+                "alignment: %(fallbacks)d of %(fits)d test frame fits fell back, %(reversed)d "
+                "of them with returns enough but no fit that keeps the order of depths",
                 alignment,
             )
         record = RunRecord.from_result(
