@@ -30,7 +30,15 @@ def _differences(expected: object, got: object, at: str = "") -> list[str]:
 
 # Keys that features after the fixtures added, with the value each must hold when the command
 # does not ask for the feature: dropped from the comparison once checked.
-NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0, "cache": False}
+NO_PRIOR = {
+    "name": "none",
+    "weights": None,
+    "input_size": None,
+    "kind": None,
+    "max_depth": None,
+    "dropout": 0.0,
+    "cache": False,
+}
 ADDED_SINCE = {"prior": NO_PRIOR}  # the prior group (prior=none); DenseDepth reads it too
 # The augmentation's geometry and saturation (each model's own augmentation): the paper's has
 # none. A fixture that holds one of these keys (its recipe sets it) compares it as any other.
@@ -50,6 +58,8 @@ ADDED_IF_PRESENT = {
     ("model", "net", "fake_point_probability"): 0.0,  # RadarNet's fake points: none
     ("model", "net", "lidar_loss_weight"): 0.0,
     ("model", "net", "fake_column_noise"): None,  # RadarNet's second loss term: none
+    ("dataset", "reader", "camera_height"): [1.4, 1.7],  # the built-in dataset's car camera
+    ("dataset", "reader", "fov_range"): None,
     **{("augment", key): value for key, value in NO_GEOMETRY.items()},
     **{("model", "augmentation", key): value for key, value in NO_GEOMETRY.items()},
 }

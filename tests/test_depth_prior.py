@@ -8,18 +8,23 @@ import json
 import re
 import shutil
 
+import numpy as np
 import pytest
 import torch
 import transformers
 from helpers.prior import KnownPrior, offline_environment, refuse_network, tiny_depth_anything
 from safetensors.torch import load_file
+from torch.nn import functional as F
 
 from fusion_depth.errors import ArgumentError, ArgumentFileError
-from fusion_depth.models.alignment import apply_alignment, fit_scale_shift
 from fusion_depth.models.depth_prior import (
     OUT_INDICES,
     DepthAnythingPrior,
+    authors_network_size,
+    build_prior,
     load_depth_anything_v2,
+    normalized_prior,
+    short_side,
 )
 
 
@@ -37,19 +42,22 @@ def tiny_folder(tmp_path_factory):
 
 def test_folder_loads_offline_and_predicts_at_the_input_size(tiny_folder):
     prior = DepthAnythingPrior(tiny_folder, input_size=None)
+    assert (prior.kind, prior.max_depth) == ("relative", None)  # from its config.json
     image = torch.rand(2, 3, 64, 96)
     relative = prior(image)
     assert relative.shape == (2, 1, 64, 96)
     assert (relative >= 0).all() and relative.std() > 0
-    # the same network straight from transformers, at the size the prior feeds it (70 × 98)
+    # the same network straight from transformers, at the size the prior feeds it (70 × 98):
+    # resized bicubically (antialiased), normalised, and its output resized back bilinearly
+    # with align_corners, as the authors' infer_image does
     network = transformers.DepthAnythingForDepthEstimation.from_pretrained(tiny_folder)
     assert prior.network_size(64, 96) == (70, 98)
     mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
     std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
-    pixels = torch.nn.functional.interpolate((image - mean) / std, (70, 98), mode="bilinear")
+    resized = F.interpolate(image, (70, 98), mode="bicubic", antialias=True, align_corners=False)
     with torch.no_grad():
-        expected = network(pixel_values=pixels).predicted_depth[:, None]
-    expected = torch.nn.functional.interpolate(expected, (64, 96), mode="bilinear")
+        expected = network(pixel_values=(resized - mean) / std).predicted_depth[:, None]
+    expected = F.interpolate(expected, (64, 96), mode="bilinear", align_corners=True)
     torch.testing.assert_close(relative, expected.clamp_min(0))
 
 
@@ -188,73 +196,276 @@ def test_bad_weights_are_one_line_naming_weights(tmp_path, official_checkpoint, 
         DepthAnythingPrior(tiny_folder, input_size=7)
 
 
-# --- alignment --------------------------------------------------------------------------------
+# --- preprocessing: the authors' sizes, transformers' resize ---------------------------------
 
 
-def synthetic(scale=2.5, shift=0.03, points=200, outliers=0.0, seed=0):
-    """A relative prior and sparse depth that it maps to exactly: 1/depth = s·prior + t."""
-    generator = torch.Generator().manual_seed(seed)
-    prior = torch.rand(1, 1, 40, 60, generator=generator, dtype=torch.float64) + 0.05
-    depth = 1.0 / (scale * prior + shift)
-    sparse = torch.zeros_like(prior)
-    flat = torch.randperm(prior.numel(), generator=generator)[:points]
-    sparse.view(-1)[flat] = depth.view(-1)[flat]
-    bad = flat[: int(outliers * points)]  # returns that miss: 3× to 10× off
-    factor = 3 + 7 * torch.rand(len(bad), generator=generator, dtype=torch.float64)
-    nearer = torch.rand(len(bad), generator=generator) < 0.5
-    sparse.view(-1)[bad] *= torch.where(nearer, factor, 1 / factor)
-    return prior, sparse, depth
+def authors_get_size(height, width, target, multiple=14):
+    """The authors' ``Resize.get_size`` (``depth_anything_v2/util/transform.py``) for
+    ``keep_aspect_ratio=True, resize_method="lower_bound"``, spelt out in numpy as they wrote it."""
+
+    def constrain(x, min_val):
+        y = (np.round(x / multiple) * multiple).astype(int)
+        if y < min_val:
+            y = (np.ceil(x / multiple) * multiple).astype(int)
+        return int(y)
+
+    scale_height, scale_width = target / height, target / width
+    if scale_width > scale_height:
+        scale_height = scale_width
+    else:
+        scale_width = scale_height
+    return constrain(scale_height * height, target), constrain(scale_width * width, target)
 
 
-@pytest.mark.parametrize("space", ["inverse", "depth"])
-def test_alignment_recovers_scale_and_shift(space):
-    prior, sparse, depth = synthetic()
-    if space == "depth":  # depth = s / prior + t exactly
-        depth = 7.0 / prior + 1.5
-        sparse = torch.where(sparse > 0, depth, 0.0)
-    fit = fit_scale_shift(prior, sparse, space=space)
-    expected = (2.5, 0.03) if space == "inverse" else (7.0, 1.5)
-    assert abs(fit.scale.item() - expected[0]) < 1e-6
-    assert abs(fit.shift.item() - expected[1]) < 1e-6
-    assert fit.points.item() == 200 and not fit.fallback.any()
-    aligned = apply_alignment(prior, fit, space, 1e-3, 1e3)
-    torch.testing.assert_close(aligned, depth, rtol=1e-6, atol=0)
+def test_network_size_is_the_authors_lower_bound():
+    sizes = [(h, w) for h in range(5, 240, 9) for w in range(5, 700, 23)]
+    sizes += [(64, 192), (900, 1600), (375, 1242), (97, 131), (518, 518), (259, 1777)]
+    for target in (14, 28, 100, 500, 510, 518):
+        for height, width in sizes:
+            ours = authors_network_size(height, width, target)
+            assert ours == authors_get_size(height, width, target), (height, width, target)
+            assert min(ours) >= target and ours[0] % 14 == ours[1] % 14 == 0
+    # Rounded half to even, and up where the nearest multiple falls below the target: 21 is
+    # 1.5 patches (to 28), 35 is 2.5 (to 28, then up to 42 as below the target 35).
+    assert authors_network_size(21, 21, 21) == (28, 28)
+    assert authors_network_size(35, 35, 35) == (42, 42)
+    # transformers' processor (keep_aspect_ratio: "scale as little as possible") agrees where the
+    # image is scaled down, and puts a small image's long side at 518 where the authors put its
+    # short side: 64 × 192 is 168 × 518 there, 518 × 1554 here.
+    from transformers.models.dpt.image_processing_dpt import get_resize_output_image_size
+
+    def processor_size(height, width):
+        image = np.zeros((3, height, width), dtype=np.uint8)
+        got = get_resize_output_image_size(image, (518, 518), True, 14)
+        return (got.height, got.width) if hasattr(got, "height") else tuple(got)  # 5 | 4.x
+
+    for height, width in [(900, 1600), (375, 1242), (600, 800), (1080, 1920)]:
+        assert processor_size(height, width) == authors_network_size(height, width, 518)
+    assert processor_size(64, 192) == (168, 518)
+    assert authors_network_size(64, 192, 518) == (518, 1554)
 
 
-def test_ransac_holds_with_30_percent_outliers():
-    prior, sparse, _ = synthetic(outliers=0.3)
-    plain = fit_scale_shift(prior, sparse)
-    robust = fit_scale_shift(prior, sparse, ransac_iterations=200, ransac_threshold=0.05)
-    assert abs(plain.scale.item() / 2.5 - 1) > 0.05  # least squares alone is pulled off
-    assert abs(robust.scale.item() / 2.5 - 1) < 0.01
-    assert abs(robust.shift.item() - 0.03) < 0.01 * 0.03 + 0.01 * 2.5 * prior.mean().item()
-    assert robust.points.item() == 140  # exactly the returns that were not moved
-    again = fit_scale_shift(prior, sparse, ransac_iterations=200, ransac_threshold=0.05)
-    assert again.scale.item() == robust.scale.item()  # reproducible for a seed
+def test_the_short_side_each_input_size_gives():
+    assert short_side(64, 192, 518) == 518
+    assert short_side(64, 192, None) == 64
+    assert short_side(64, 192, "auto") == 64  # a small frame at its own resolution
+    assert short_side(900, 1600, "auto") == 518  # a large one as the authors see it
+    assert short_side(1600, 900, None) == 900
 
 
-def test_too_few_returns_fall_back_never_nan():
-    prior, sparse, _ = synthetic()
-    frames = torch.cat([prior, prior, prior]), torch.cat([sparse, torch.zeros_like(sparse), sparse])
-    single = frames[1].clone()
-    single[1].view(-1)[0] = 5.0  # one return: no shift can be fitted
-    fit = fit_scale_shift(frames[0], single)
-    assert fit.fallback.tolist() == [False, True, False]
-    assert fit.scale[1] == fit.scale[0] and fit.points[1] == 0  # the batch's median fit
-    alone = fit_scale_shift(prior, torch.zeros_like(sparse), fallback=(3.0, 0.1))
-    assert alone.fallback.item() and (alone.scale.item(), alone.shift.item()) == (3.0, 0.1)
-    aligned = apply_alignment(frames[0], fit, "inverse", 0.5, 80.0)
-    assert torch.isfinite(aligned).all() and aligned.min() >= 0.5 and aligned.max() <= 80.0
+def _processor():
+    """transformers' processor as the Hub's Depth-Anything-V2-*-hf preprocessor_config.json sets
+    it (built here: nothing downloaded)."""
+    return transformers.DPTImageProcessor(
+        do_resize=True,
+        size={"height": 518, "width": 518},
+        keep_aspect_ratio=True,
+        ensure_multiple_of=14,
+        resample=3,  # PIL's BICUBIC
+        do_rescale=True,
+        rescale_factor=1 / 255,
+        do_normalize=True,
+        image_mean=[0.485, 0.456, 0.406],
+        image_std=[0.229, 0.224, 0.225],
+        do_pad=False,
+    )
 
 
-def test_alignment_arguments_are_named():
-    prior, sparse, _ = synthetic()
-    with pytest.raises(ArgumentError, match=r"^space='metres': expected one of"):
-        fit_scale_shift(prior, sparse, space="metres")
-    with pytest.raises(ArgumentError, match=r"^ransac_iterations=-1: expected an integer ≥ 0"):
-        fit_scale_shift(prior, sparse, ransac_iterations=-1)
-    with pytest.raises(ArgumentError, match=r"^ransac_threshold=0: expected a number > 0"):
-        fit_scale_shift(prior, sparse, ransac_threshold=0)
+@pytest.mark.parametrize("input_size", [518, "auto", None])
+def test_preprocessing_matches_transformers_processor(tiny_folder, input_size):
+    processor = _processor()
+    prior = DepthAnythingPrior(tiny_folder, input_size=input_size)
+    generator = torch.Generator().manual_seed(0)
+    for height, width in [(64, 192), (97, 131), (33, 47), (375, 1242), (900, 1600)]:
+        image = torch.rand(2, 3, height, width, generator=generator)
+        ours = prior.preprocess(image)
+        size = prior.network_size(height, width)
+        assert ours.shape == (2, 3, *size)
+        theirs = processor(
+            images=list(image * 255),
+            size={"height": size[0], "width": size[1]},  # the authors' size, given
+            keep_aspect_ratio=False,
+            return_tensors="pt",
+        )["pixel_values"]
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-4)
+        if input_size == 518 and min(height, width) > 518:  # scaled down: its own size too
+            own = processor(images=list(image * 255), return_tensors="pt")["pixel_values"]
+            torch.testing.assert_close(ours, own, rtol=0, atol=1e-4)
+
+
+# --- relative and metric Depth Anything ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def metric_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiny_metric")
+    tiny_depth_anything(kind="metric", max_depth=80).save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def metric_pth(official_checkpoint, tmp_path_factory):
+    """The authors' layout under a metric name: the same tensors as a relative .pth (their
+    metric head's sigmoid has no weights), as their metric checkpoints are."""
+    _, _, state = official_checkpoint
+    folder = tmp_path_factory.mktemp("metric_pth")
+    torch.save(state, folder / "depth_anything_v2_metric_vkitti_vits.pth")
+    torch.save(state, folder / "depth_anything_v2_vits.pth")  # the authors' relative name
+    torch.save(state, folder / "finetuned.pth")  # a name that says neither
+    return folder
+
+
+def test_a_metric_folder_outputs_metres(metric_folder, tmp_path):
+    prior = DepthAnythingPrior(metric_folder, input_size=28)
+    assert (prior.kind, prior.max_depth) == ("metric", 80.0)  # from its config.json
+    image = torch.rand(2, 3, 32, 48)
+    metres = prior(image)
+    assert metres.shape == (2, 1, 32, 48)
+    assert (metres > 0).all() and (metres <= 80).all() and metres.std() > 1
+    # transformers' own metric head (sigmoid × 80), at the size the prior feeds it
+    network = transformers.DepthAnythingForDepthEstimation.from_pretrained(metric_folder)
+    with torch.no_grad():
+        expected = network(pixel_values=prior.preprocess(image)).predicted_depth[:, None]
+    expected = F.interpolate(expected, (32, 48), mode="bilinear", align_corners=True)
+    torch.testing.assert_close(metres, expected)
+    # Given, the folder's own settings are accepted; a range the folder has none of is used.
+    assert DepthAnythingPrior(metric_folder, 28, kind="metric", max_depth=80).kind == "metric"
+    config = json.loads((metric_folder / "config.json").read_text())
+    del config["max_depth"]
+    unranged = tmp_path / "unranged"
+    shutil.copytree(metric_folder, unranged)
+    (unranged / "config.json").write_text(json.dumps(config))
+    fifty = DepthAnythingPrior(unranged, 28, max_depth=50)
+    torch.testing.assert_close(fifty(image), metres * 50 / 80)
+
+
+def test_a_metric_pth_loads_as_metric_with_its_range(metric_pth, official_checkpoint):
+    path = metric_pth / "depth_anything_v2_metric_vkitti_vits.pth"
+    prior = build_prior("depth_anything_v2", str(path), 28, kind="metric", max_depth=80)
+    assert (prior.kind, prior.max_depth) == ("metric", 80.0)
+    metres = prior(torch.rand(1, 3, 32, 48))
+    assert (metres > 0).all() and (metres <= 80).all()
+    # The same tensors read as relative (the authors' relative name): ReLU(z) there, and
+    # 80 · sigmoid(z) here, the metric head of metric_depth/depth_anything_v2/dpt.py.
+    relative = load_depth_anything_v2(metric_pth / "depth_anything_v2_vits.pth")
+    metric = load_depth_anything_v2(path, "metric", 80)
+    pixels = torch.randn(1, 3, 56, 84)
+    with torch.no_grad():
+        z = relative(pixel_values=pixels).predicted_depth
+        depth = metric(pixel_values=pixels).predicted_depth
+    assert (z > 0).float().mean() > 0.2
+    torch.testing.assert_close(depth[z > 0], 80 * torch.sigmoid(z[z > 0]))
+    assert metric.config.depth_estimation_type == "metric" and metric.config.max_depth == 80
+    # A name that says neither is what kind says: 12.5 m, a range no integer config can hold.
+    odd = load_depth_anything_v2(metric_pth / "finetuned.pth", "metric", 12.5)
+    with torch.no_grad():
+        assert odd(pixel_values=pixels).predicted_depth.max() <= 12.5
+
+
+def one_line(raised, pattern):
+    message = str(raised.value)
+    assert re.match(pattern, message), message
+    assert "\n" not in message and len(message) < 500, message
+    return message
+
+
+def test_a_metric_pth_cannot_be_read_as_relative(metric_pth):
+    path = metric_pth / "depth_anything_v2_metric_vkitti_vits.pth"
+    for kind in (None, "relative"):
+        with pytest.raises(ArgumentError) as raised:
+            DepthAnythingPrior(path, kind=kind)
+        message = one_line(raised, rf"^kind={kind or 'null'}: {re.escape(str(path))} is named as")
+        assert "expected kind=metric max_depth=80" in message
+    with pytest.raises(ArgumentError) as raised:  # no range: the file holds none
+        DepthAnythingPrior(path, kind="metric")
+    one_line(raised, r"^max_depth=null: .*records no range: expected max_depth=80 \(vkitti")
+    with pytest.raises(ArgumentError) as raised:  # the authors' outdoor model, given indoor's
+        DepthAnythingPrior(path, kind="metric", max_depth=20)
+    one_line(raised, r"^max_depth=20: .*expected max_depth=80")
+    hypersim = metric_pth / "depth_anything_v2_metric_hypersim_vits.pth"
+    shutil.copy(path, hypersim)
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(hypersim, kind="metric", max_depth=80)
+    one_line(raised, r"^max_depth=80: .*expected max_depth=20 \(hypersim")
+    with pytest.raises(ArgumentError) as raised:  # the reverse: a relative name read as metric
+        DepthAnythingPrior(metric_pth / "depth_anything_v2_vits.pth", kind="metric", max_depth=80)
+    one_line(raised, r"^kind=metric: .*depth_anything_v2_vits.pth is named as the authors' rel")
+    with pytest.raises(ArgumentError) as raised:  # a relative prior has no range
+        DepthAnythingPrior(metric_pth / "finetuned.pth", max_depth=80)
+    one_line(raised, r"^max_depth=80: a relative prior \(kind=relative\) .*expected null")
+    # The commands name the config keys.
+    from fusion_depth.config.arguments import config_message
+
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(path)
+    message = config_message(raised.value)
+    assert message.startswith("prior.kind=null: ")
+    assert "expected prior.kind=metric prior.max_depth=80" in message
+
+
+def test_a_folder_of_one_kind_refuses_the_other(metric_folder, tiny_folder):
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(metric_folder, kind="relative")
+    file = re.escape(str(metric_folder / "config.json"))
+    one_line(raised, rf'^kind=relative: {file} sets depth_estimation_type="metric"')
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(tiny_folder, kind="metric", max_depth=80)
+    file = re.escape(str(tiny_folder / "config.json"))
+    one_line(raised, rf'^kind=metric: {file} sets depth_estimation_type="relative"')
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(metric_folder, max_depth=20)
+    one_line(raised, r"^max_depth=20: .*config.json sets max_depth=80, .*expected null .* or 80")
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(tiny_folder, max_depth=80)
+    one_line(raised, r"^max_depth=80: a relative prior")
+    for kind, max_depth, pattern in [
+        ("metres", None, r"^kind='metres': expected one of \[None, 'relative', 'metric'\]"),
+        (None, -1, r"^max_depth=-1: expected a number of metres > 0, or null"),
+        (None, float("inf"), r"^max_depth=inf: expected a number of metres > 0"),
+    ]:
+        with pytest.raises(ArgumentError) as raised:
+            DepthAnythingPrior(tiny_folder, kind=kind, max_depth=max_depth)
+        one_line(raised, pattern)
+    with pytest.raises(ArgumentError) as raised:
+        DepthAnythingPrior(tiny_folder, input_size="big")
+    one_line(raised, r"^input_size='big': expected an integer ≥ 14, null .* or auto")
+
+
+def test_the_prior_settings_rules():
+    from fusion_depth.models.depth_prior import ARGUMENT_RULES
+
+    rules = ARGUMENT_RULES
+    assert all(rules["input_size"].ok(v) for v in (14, 518, None, "auto"))
+    assert not any(rules["input_size"].ok(v) for v in (13, "big", 20.0, True))
+    assert all(rules["kind"].ok(v) for v in (None, "relative", "metric"))
+    assert not rules["kind"].ok("metres")
+    assert all(rules["max_depth"].ok(v) for v in (None, 20, 80.0))
+    assert not any(rules["max_depth"].ok(v) for v in (0, -5, True, "80", float("nan")))
+
+
+def test_a_checkpoint_records_and_checks_the_kind_of_its_prior(metric_pth, tiny_folder):
+    from fusion_depth.models.depth_prior import check_prior_record, prior_record
+    from fusion_depth.utils.checkpoint_file import CheckpointError
+
+    path = metric_pth / "finetuned.pth"  # a name that says neither: read either way
+    net = torch.nn.Module()
+    net.prior = DepthAnythingPrior(path, input_size=28, kind="metric", max_depth=80)
+    record = prior_record(net)
+    assert (record["kind"], record["max_depth"]) == ("metric", 80.0)
+    check_prior_record(net, record, "ckpt_path=x.ckpt")  # the same reading
+    trained = {**record, "kind": "relative", "max_depth": None}  # trained on the relative one
+    with pytest.raises(CheckpointError) as raised:
+        check_prior_record(net, trained, "ckpt_path=x.ckpt")
+    message = one_line(raised, r"^ckpt_path=x.ckpt: its network was trained with .* read as ")
+    assert "kind=relative, but it is now read as kind=metric max_depth=80" in message
+    assert message.endswith("give prior.kind=relative")
+    # A record from before the kind was recorded held a relative prior.
+    net.prior = DepthAnythingPrior(tiny_folder, input_size=28)
+    old = {k: v for k, v in prior_record(net).items() if k not in ("kind", "max_depth")}
+    check_prior_record(net, old, "ckpt_path=x.ckpt")
+
+
+# The global alignment's tests: tests/test_alignment.py.
 
 
 # --- the prior as a further input of DenseDepth ------------------------------------------------
@@ -277,16 +488,13 @@ def test_densedepth_takes_the_prior_and_checkpoints_leave_it_out(tiny_folder):
     assert out.shape == (2, 1, 32, 48)
     state = net.state_dict()
     assert not any(k.startswith("prior.") for k in state)  # the prior's weights stay in its files
-    assert "fusion.prior_mix.weight" in state
+    assert any(k.startswith("prior_branch.") for k in state)  # its own input branch
     again = prior_net(tiny_folder, seed=1).eval()  # other random weights, the same prior
     again.load_state_dict(state)  # strict: the prior fills its own weights in
     torch.testing.assert_close(again(image, sparse), out)
-    # The prior changes the input: the same network without its channel predicts otherwise.
-    fused = net.fusion(image, sparse, net.prior_input(image))
-    assert not torch.allclose(fused, net.fusion(image, sparse, None))
     # No prior: a network built without the argument has the keys checkpoints before it had.
     plain = DepthNet(backbone="resnet10t", fusion="concat")
-    assert plain.prior is None and not plain.fusion.uses_prior
+    assert plain.prior is None and plain.prior_branch is None
     with_none = DepthNet(backbone="resnet10t", fusion="concat", prior={"name": "none"})
     assert set(with_none.state_dict()) == set(plain.state_dict())
 
@@ -355,6 +563,11 @@ def test_smoke_run_trains_with_the_prior_evaluates_and_exports(tmp_path, tiny_fo
         (["prior.weights=/no/such/prior"], "prior.weights=/no/such/prior: no such file or folder"),
         (["prior.weights={tiny}", "prior.input_size=7"], "prior.input_size=7: expected an integer"),
         (["prior.weights={tiny}", "prior.dropout=2"], "prior.dropout=2: expected a probability"),
+        (["prior.weights={tiny}", "prior.kind=metres"], "prior.kind=metres: expected one of null"),
+        (
+            ["prior.weights={tiny}", "prior.input_size=auto", "prior.kind=metric"],
+            "prior.kind=metric: ",
+        ),
         (
             ["prior.weights={tiny}", "model=radarnet", "fusion=concat"],
             "model=radarnet cannot take prior=depth_anything_v2: it takes no prior",
@@ -374,7 +587,9 @@ def test_bad_prior_settings_fail_in_one_line(tmp_path, tiny_folder, overrides, m
 # --- model=prior_correction: the aligned prior times a learned scale map ------------------------
 
 
-def test_correction_starts_as_the_global_alignment(tiny_folder):
+def test_correction_with_a_zero_learner_output_is_the_global_alignment(tiny_folder):
+    """``d · ReLU(1 + out)``: where the learner outputs 0, the aligned prior itself; a frame
+    without returns takes the running fit, which training moves towards the batch's fits."""
     from fusion_depth.models import create_model
 
     torch.manual_seed(0)
@@ -383,20 +598,22 @@ def test_correction_starts_as_the_global_alignment(tiny_folder):
     picked = torch.rand_like(depth) < 0.05
     sparse[picked] = depth[picked]
     prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
-    net = create_model("prior_correction", prior=prior, backbone="resnet10t", fusion="concat")
+    net = create_model("prior_correction", prior=prior, fusion="concat")
     net.prior = KnownPrior(depth)
+    last = net.learner.scratch.output_conv.output_conv[4]  # the last 1×1 conv
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
     out = net.eval()(torch.rand(2, 3, 64, 96), sparse)
-    expected = net.depth_scale * torch.nn.functional.interpolate(
-        1.0 / depth, size=out.shape[-2:], mode="bilinear"
-    )
-    torch.testing.assert_close(out, expected, rtol=1e-4, atol=0)
-    # A frame without returns takes the running mean fit, which training moves towards the fits.
+    assert out.shape == depth.shape  # at the input's resolution, as their learner
+    torch.testing.assert_close(net.depth_scale / out, depth, rtol=1e-4, atol=0)
+    assert net.fit_summary()["fits"] == 2 and net.fit_summary()["fallbacks"] == 0
     assert net.fit_mean.tolist() == [1.0, 0.0]
-    net.train().global_fit(KnownPrior(depth)(None), sparse)
-    assert net.fit_mean[0].item() == pytest.approx(0.99 + 0.01 / 3.0, rel=1e-4)
-    none = net.eval().global_fit(KnownPrior(depth)(None), torch.zeros_like(sparse))
-    fallback = net.fit_mean[0] * (3.0 / depth + 0.25) + net.fit_mean[1]
-    torch.testing.assert_close(none, fallback.clamp(1 / 80.0, 1 / 0.5))
+    normalised = normalized_prior(KnownPrior(depth)(None))
+    net.train().aligned_inverse(KnownPrior(depth)(None), sparse, None)
+    fitted = net.fit_mean.clone()
+    assert fitted[0].item() != 1.0  # moved towards the batch's median fit
+    none = net.eval().aligned_inverse(KnownPrior(depth)(None), torch.zeros_like(sparse), None)
+    torch.testing.assert_close(none, (fitted[0] * normalised + fitted[1]).clamp(1 / 80.0, 1 / 0.5))
     assert not any(k.startswith("prior.") for k in net.state_dict())
 
 
@@ -434,6 +651,11 @@ def test_a_platform_checkpoint_serves_as_the_prior(tmp_path):
         tmp_path / "rgb.ckpt", "rgb", DATASET, backbone="resnet10t", spread=True
     )
     prior = CheckpointPrior(path)
+    assert (prior.kind, prior.max_depth) == ("relative", None)
+    with pytest.raises(ArgumentError, match=r"^kind=metric: prior=checkpoint is relative"):
+        build_prior("checkpoint", str(path), None, kind="metric")
+    with pytest.raises(ArgumentError, match=r"^max_depth=80: a relative prior"):
+        CheckpointPrior(path, max_depth=80)
     image = torch.rand(2, 3, 64, 96)
     relative = prior.train()(image)
     assert relative.shape == (2, 1, 64, 96) and not prior.network.training
@@ -443,6 +665,7 @@ def test_a_platform_checkpoint_serves_as_the_prior(tmp_path):
     expected = torch.nn.functional.interpolate(raw, (64, 96), mode="bilinear")
     torch.testing.assert_close(relative, expected)
     assert CheckpointPrior(path, input_size=32)(image).shape == (2, 1, 64, 96)  # sees 32 × 64
+    assert CheckpointPrior(path, input_size="auto")(image).shape == (2, 1, 64, 96)  # 64 × 96
     net = DepthNet(backbone="resnet10t", prior={"name": "checkpoint", "weights": str(path)})
     assert net(image).shape == (2, 1, 32, 48)
     assert not any(k.startswith("prior.") for k in net.state_dict())
@@ -476,18 +699,12 @@ def test_smoke_run_with_a_checkpoint_prior(tmp_path):
 
 
 def test_what_a_prior_must_be(tmp_path, tiny_folder):
-    """Refused in one line: a metric Depth Anything, a checkpoint that predicts metres, and a
-    fit that would reverse the order of depths."""
+    """Refused in one line: a checkpoint that predicts metres. (A fit that would reverse the
+    order of depths: tests/test_alignment.py; a metric Depth Anything is a prior of kind metric,
+    above.)"""
     from fusion_depth.models import create_model
-    from fusion_depth.models.alignment import least_squares_fit
     from fusion_depth.models.depth_prior import CheckpointPrior
 
-    metric = tmp_path / "metric"
-    metric.mkdir()
-    config = json.loads((tiny_folder / "config.json").read_text())
-    (metric / "config.json").write_text(json.dumps({**config, "depth_estimation_type": "metric"}))
-    with pytest.raises(ArgumentError, match=r"^weights=.*metric: a metric Depth Anything"):
-        load_depth_anything_v2(metric)
     torch.manual_seed(0)
     net = create_model("sparse_to_dense", backbone="resnet18", fusion="rgb")
     state = {f"net.{k}": v for k, v in net.state_dict().items()}
@@ -497,10 +714,6 @@ def test_what_a_prior_must_be(tmp_path, tiny_folder):
     torch.save({"state_dict": state, "fusion_depth_config": config}, tmp_path / "metres.ckpt")
     with pytest.raises(ArgumentError, match=r"model=sparse_to_dense predicts metres"):
         CheckpointPrior(tmp_path / "metres.ckpt")
-    # depth falling as the prior rises would be read as a reversed prior: no fit
-    x = torch.arange(1.0, 7.0).view(1, 1, 2, 3)
-    scale, _, fitted = least_squares_fit(x, 10.0 - x, torch.ones_like(x, dtype=torch.bool))
-    assert not fitted.item() and scale.item() == 0.0
 
 
 def test_the_fit_runs_in_fp32_under_bf16_autocast(tiny_folder):
@@ -510,12 +723,12 @@ def test_the_fit_runs_in_fp32_under_bf16_autocast(tiny_folder):
     prior = {"name": "depth_anything_v2", "weights": str(tiny_folder), "input_size": 28}
     from fusion_depth.models import create_model
 
-    net = create_model("prior_correction", prior=prior, backbone="resnet10t", fusion="concat")
+    net = create_model("prior_correction", prior=prior, fusion="concat")
     relative = (3.0 / depth + 0.01).bfloat16()
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        inverse = net.eval().global_fit(relative, sparse)
+        inverse = net.eval().aligned_inverse(relative, sparse, None)
     assert inverse.dtype == torch.float32
-    exact = net.global_fit(relative.float(), sparse)
+    exact = net.aligned_inverse(relative.float(), sparse, None)
     torch.testing.assert_close(inverse, exact)
 
 

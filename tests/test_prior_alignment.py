@@ -220,7 +220,7 @@ def test_a_network_trained_with_a_prior_serves_without_it(tiny_folder):
     trained.prior_input = lambda image, cached=None: torch.zeros_like(image[:, :1])
     torch.testing.assert_close(served(image, sparse), trained(image, sparse))
     with pytest.raises(ArgumentError, match=r"^prior=none: model=prior_correction corrects"):
-        create_model("prior_correction", prior={**spec, "enabled": False}, backbone="resnet10t")
+        create_model("prior_correction", prior={**spec, "enabled": False})
 
 
 def test_the_ceiling_fits_each_frame_to_its_ground_truth():

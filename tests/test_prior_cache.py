@@ -1,6 +1,7 @@
 """The prior computed once per frame (``prior.cache``): keyed by the weights' content, the input
-size and each frame's image; read back by the training and validation loaders, flipped with the
-image; filled ahead by ``prepare``; a missing or damaged file is one line naming it."""
+size, the prior's kind and range and each frame's image (a relative prior's normalised, a metric
+one's in metres); read back by the training and validation loaders, flipped with the image;
+filled ahead by ``prepare``; a missing or damaged file is one line naming it."""
 
 from __future__ import annotations
 
@@ -68,6 +69,77 @@ def test_a_prior_beyond_float16_is_stored_by_its_shape(tmp_path, tiny_folder):
     assert torch.isfinite(served).all() and served.min() == 0 and served.max() == 1
     shape = normalized_prior(HugePrior()(data[1]["image"][None].float() / 255))[0]
     torch.testing.assert_close(served, shape, rtol=1e-3, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def metric_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("tiny_metric")
+    tiny_depth_anything(kind="metric", max_depth=80).save_pretrained(folder)
+    return folder
+
+
+def test_a_metric_prior_is_cached_in_metres(tmp_path, metric_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(metric_folder), "input_size": 28}
+    cache = PriorCache(spec, root=tmp_path)
+    assert (cache.kind, cache.max_depth) == ("metric", 80.0)  # read from its config.json
+    meta = json.loads((cache.folder / "meta.json").read_text())
+    assert (meta["kind"], meta["max_depth"]) == ("metric", 80.0)
+    prior = DepthAnythingPrior(metric_folder, input_size=28)
+    data = frames(3)
+    assert cache.fill(prior, data, "test frames") == 3
+    served = CachedPriorFrames(data, cache)[2]["prior"]
+    metres = prior(data[2]["image"][None].float() / 255)[0]
+    assert served.dtype == torch.float16 and served.shape == (1, 32, 48)
+    assert served.max() > 1 and served.max() <= 80  # metres, not normalised to [0, 1]
+    torch.testing.assert_close(served.float(), metres, rtol=2**-11, atol=0)
+
+
+class MetricRamp(torch.nn.Module):
+    """A metric prior whose metres are known: 0.5 m to 80 m across the image's first channel."""
+
+    kind, max_depth = "metric", 80.0
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return 0.5 + 79.5 * image[:, :1]
+
+
+def test_float16_holds_metres_to_a_relative_2e_minus_11(tmp_path, metric_folder):
+    spec = {"name": "depth_anything_v2", "weights": str(metric_folder), "input_size": 28}
+    cache = PriorCache(spec, root=tmp_path)
+    data = frames(2)
+    cache.fill(MetricRamp(), data, "test frames")
+    served = CachedPriorFrames(data, cache)[1]["prior"].float()
+    exact = MetricRamp()(data[1]["image"][None].float() / 255)[0]
+    error = (served - exact).abs()
+    assert (error <= exact * 2**-11).all()  # half of float16's step: 3 cm at most, near 80 m
+    assert error.max() <= 0.0625 / 2 and exact.max() > 64
+
+
+def test_relative_and_metric_caches_never_mix(tmp_path, tiny_folder, metric_folder):
+    from fusion_depth.errors import ArgumentError
+
+    # A .pth whose name says neither kind is read as either: two caches of one file.
+    pth = tmp_path / "weights.pth"
+    torch.save({"pretrained.cls_token": torch.zeros(1)}, pth)  # only its bytes are hashed here
+    relative = {"name": "depth_anything_v2", "weights": str(pth), "input_size": 28}
+    metric = {**relative, "kind": "metric", "max_depth": 80}
+    folder = PriorCache(relative, root=tmp_path).folder
+    assert PriorCache({**relative, "kind": "relative"}, root=tmp_path).folder == folder
+    assert PriorCache(metric, root=tmp_path).folder != folder
+    ranges = {PriorCache({**metric, "max_depth": m}, root=tmp_path).folder for m in (20, 80)}
+    assert len(ranges) == 2
+    # A folder's kind comes from its config.json: null and its own kind are one cache.
+    spec = {"name": "depth_anything_v2", "weights": str(metric_folder), "input_size": 28}
+    same = PriorCache({**spec, "kind": "metric", "max_depth": 80}, root=tmp_path).folder
+    assert same == PriorCache(spec, root=tmp_path).folder
+    with pytest.raises(ArgumentError, match=r"^kind=relative: .*config.json sets"):
+        PriorCache({**spec, "kind": "relative"}, root=tmp_path)
+    # A prior of another kind cannot fill a cache: its frames would be read in another form.
+    cache = PriorCache(spec, root=tmp_path)
+    relative_prior = DepthAnythingPrior(tiny_folder, input_size=28)
+    with pytest.raises(ArgumentError, match=r"^kind=metric: the prior cache .* kind=relative"):
+        cache.fill(relative_prior, frames(1), "test frames")
+    assert not list(cache.folder.glob("*/*.npy"))
 
 
 def test_other_weights_input_size_or_image_find_no_stale_prior(tmp_path, tiny_folder):

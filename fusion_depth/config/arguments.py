@@ -36,6 +36,8 @@ ARGUMENT_KEYS: dict[str, str | Mapping[str, str]] = {
     "fusion_depth.models.depth_prior": {
         "weights": "prior.weights",
         "input_size": "prior.input_size",
+        "kind": "prior.kind",
+        "max_depth": "prior.max_depth",
         "name": "prior.name",
     },
     "fusion_depth.models.alignment": "alignment",  # evaluate's prior alignment settings

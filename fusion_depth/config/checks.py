@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fusion_depth.config.arguments import config_message
 from fusion_depth.errors import ArgumentError, ConfigError
-from fusion_depth.models._registry import check_model_takes, model_class
+from fusion_depth.models._registry import MODELS, check_model_takes, model_class
 from fusion_depth.models.encoder import TAPS, check_backbone_name
 from fusion_depth.optim import schedules
 from fusion_depth.optim.schedules import SCHEDULE_ARGUMENTS, check_schedule_arguments
@@ -31,6 +31,10 @@ def check_backbone(cfg: DictConfig) -> None:
         ConfigError: a taps value or backbone name the network cannot build, naming the key.
     """
     taps = "paper"  # a network without backbone_taps takes the backbone group's (check_model)
+    model = config_value(cfg, "model.net.name")
+    own = None  # the encoders a network builds itself (prior_correction's learner): check_model's
+    if isinstance(model, str) and model in MODELS:
+        own = MODELS[model].backbones
     for name_key, taps_key in (
         ("backbone.name", "backbone.taps"),
         ("model.net.backbone", "model.net.backbone_taps"),
@@ -38,7 +42,7 @@ def check_backbone(cfg: DictConfig) -> None:
         check_schema(cfg, {taps_key: one_of(*TAPS)})
         name, value = config_value(cfg, name_key), config_value(cfg, taps_key)
         taps = taps if value is ABSENT else value
-        if name is ABSENT:
+        if name is ABSENT or (own is not None and name in own):
             continue
         try:
             check_backbone_name(name, taps)

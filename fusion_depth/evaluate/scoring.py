@@ -20,16 +20,18 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import Dataset
 
 from fusion_depth.config.dataset_validation import check_dataset
 from fusion_depth.data import SPLITS
+from fusion_depth.data.depth_io import DEPTH_PNG_SCALE
 from fusion_depth.errors import ConfigError
 from fusion_depth.export.runtime import ExportedModel, check_source, engine_identity, load_exported
 from fusion_depth.models.alignment import FallbackCount
-from fusion_depth.models.depth_prior import NO_PRIOR
+from fusion_depth.models.depth_prior import NO_PRIOR, oracle_prior
 from fusion_depth.models.prior_alignment import GlobalAlignment, prior_alignment_config
 from fusion_depth.models.released import RELEASED, build_released, record_model_name
 from fusion_depth.runner.callbacks import ProgressLog
@@ -120,8 +122,12 @@ def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
         "dataset": OmegaConf.to_container(cfg.dataset, resolve=True),
         "seed": cfg.seed,
     }
+    weights = prior.get("weights")  # none for prior=oracle (the ground truth) and prior=zero
     loaded = LoadedModel(
-        net=net.eval(), config=config, path=Path(prior["weights"]), key="prior.weights"
+        net=net.eval(),
+        config=config,
+        path=Path(weights) if weights else None,
+        key="prior.weights",
     )
     # What the fit is, in the record's overrides: report keeps each setting its own row.
     fit = {**settings, "target": target}
@@ -129,6 +135,13 @@ def evaluate_alignment(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
         fit.pop("ransac_threshold")
     served = [f"alignment.{key}={value}" for key, value in fit.items()]
     frames = GroundTruthAsSparse if target == "ground_truth" else None
+    if prior["name"] == "oracle":  # the frames bring their prior: their own ground truth
+        if frames is not None:
+            raise ConfigError(
+                "prior=oracle with alignment.target=ground_truth fits the ground truth to "
+                "itself; give one of them"
+            )
+        frames = OracleAsPrior
     return evaluate_loaded(cfg, loaded, output_dir, served=served, frames=frames)
 
 
@@ -180,6 +193,30 @@ def evaluate_released(cfg: DictConfig, output_dir: str | Path) -> RunRecord:
 # own ground truth: the prior's ceiling, as relative depth models are scored (MiDaS, Ranftl et
 # al., TPAMI 2022, Sec. 5), not a result a model could reach without the ground truth.
 ALIGNMENT_TARGETS = ("sparse", "ground_truth")
+
+
+class OracleAsPrior(Dataset):
+    """A split whose samples carry ``prior``: their ground truth made a perfect relative prior
+    (:func:`~fusion_depth.models.depth_prior.oracle_prior`), which the global alignment takes
+    in place of running its prior: ``evaluate prior=oracle``."""
+
+    def __init__(self, frames: Dataset) -> None:
+        self.frames = frames
+        if hasattr(frames, "encoded_sample"):
+            self.encoded_sample = lambda index: self._add(frames.encoded_sample(index))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> dict:
+        return self._add(self.frames[index])
+
+    @staticmethod
+    def _add(sample: dict) -> dict:
+        depth = sample["depth"]
+        if depth.dtype == torch.uint16:  # the stored form: 1/256 m
+            depth = depth.to(torch.int32).float() / DEPTH_PNG_SCALE
+        return {**sample, "prior": oracle_prior(depth)}
 
 
 class GroundTruthAsSparse(Dataset):
@@ -303,7 +340,9 @@ def _resolved_settings(cfg: DictConfig, loaded: LoadedModel, dataset: DictConfig
 def _scored_source(loaded: LoadedModel, frames: Callable | None) -> dict:
     """Where the scores come from, as the record keeps it: the checkpoint (and the model file
     exported from it, as its sidecar records it), and an aligned prior's fit counts."""
-    source = {"checkpoint": str(loaded.path.resolve())}
+    # A prior read from no file (prior=oracle) is named as the command line names it.
+    scored = f"prior={loaded.backbone}" if loaded.path is None else str(loaded.path.resolve())
+    source = {"checkpoint": scored}
     if isinstance(loaded.net, ExportedModel):
         source = {"checkpoint": loaded.net.info.checkpoint, "model_file": source["checkpoint"]}
     if isinstance(loaded.net, FallbackCount):

@@ -1,13 +1,22 @@
-"""Frozen monocular depth priors: networks that give a relative (affine-invariant) inverse depth
-per frame, which :mod:`fusion_depth.models.alignment` makes metric with the frame's radar.
+"""Frozen monocular depth priors: networks that give, per frame, either a relative
+(affine-invariant) inverse depth, which :mod:`fusion_depth.models.alignment` makes metric with the
+frame's radar, or a metric depth in metres. Each prior module says which in its ``kind``
+attribute (:data:`KINDS`).
 
 :class:`DepthAnythingPrior` is Depth Anything V2 (Yang et al., NeurIPS 2024) as ``transformers``
 builds it (``DepthAnythingForDepthEstimation``), with weights read from local files only, never
 downloaded: a transformers folder (``config.json`` and ``model.safetensors``, as
 ``depth-anything/Depth-Anything-V2-Small-hf`` ships) or the authors' ``.pth`` checkpoint
-(``depth_anything_v2_vits.pth``, ``_vitb``, ``_vitl``), whose names are mapped to transformers'
-as its conversion script ``convert_depth_anything_to_hf.py`` does. Licences: the Small weights
-are Apache-2.0; Base and Large are CC-BY-NC-4.0 (the authors' README).
+(``depth_anything_v2_vits.pth``, ``_vitb``, ``_vitl``; metric: ``depth_anything_v2_metric_
+{hypersim,vkitti}_vit{s,b,l}.pth``), whose names are mapped to transformers' as its conversion
+script ``convert_depth_anything_to_hf.py`` does. A relative model's head ends in a ReLU; a metric
+one's in a sigmoid times ``max_depth`` (metres: 20 for the authors' Hypersim (indoor) models, 80
+for their Virtual KITTI 2 (outdoor) ones; ``metric_depth/depth_anything_v2/dpt.py`` and
+``metric_depth/README.md`` of github.com/DepthAnything/Depth-Anything-V2). Neither activation has
+weights, so the two kinds hold the same tensors: which one a file is comes from its
+``config.json`` (a folder) or from the user and the file's name (a ``.pth``; see
+:func:`depth_anything_kind`). Licences: the Small weights are Apache-2.0; Base and Large are
+CC-BY-NC-4.0 (the authors' README).
 
 ``transformers`` is an optional extra (``pip install -e ".[prior]"`` in a clone), imported on
 first use.
@@ -19,6 +28,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import math
 import os
 import re
 from collections.abc import Iterator, Mapping
@@ -36,7 +46,15 @@ from fusion_depth.errors import (
     check_choice,
 )
 from fusion_depth.utils.checkpoint_file import CheckpointError
-from fusion_depth.utils.schema import BOOLEAN, POSITIVE_INT, PROBABILITY, Rule, Schema
+from fusion_depth.utils.schema import (
+    BOOLEAN,
+    PROBABILITY,
+    Rule,
+    Schema,
+    is_int,
+    is_number,
+    one_of,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +65,20 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # (the authors' ``intermediate_layer_idx``, 1-based as transformers counts them).
 OUT_INDICES = {12: (3, 6, 9, 12), 24: (5, 12, 18, 24)}
 HEAD_WIDTH = 64  # DINOv2's attention heads are 64 wide: heads = embedding width / 64
+# What a prior outputs (its ``kind``): relative inverse depth (≥ 0, larger nearer, known up to an
+# affine map) or depth in metres.
+RELATIVE, METRIC = "relative", "metric"
+KINDS = (RELATIVE, METRIC)
+# input_size: auto: the image's own short side, but never more than the authors' 518
+AUTO = "auto"
+AUTO_SHORT_SIDE = 518
+# The authors' metric checkpoints, depth_anything_v2_metric_<data>_vit?.pth, each trained to a
+# range (metres) by its data: Hypersim (indoor) 20, Virtual KITTI 2 80 (metric_depth/README.md).
+METRIC_RANGES = {"hypersim": 20.0, "vkitti": 80.0}
+_METRIC_FILE = re.compile(r"metric", re.IGNORECASE)
+_RELATIVE_FILE = re.compile(r"^depth_anything_v2_vit[sblg]\.pth$")  # the authors' relative names
+_RANGE_FILE = re.compile(r"metric_(hypersim|vkitti)_", re.IGNORECASE)
+MAX_DEPTH = Rule(lambda v: is_number(v) and math.isfinite(v) and v > 0, "a number of metres > 0")
 
 # The authors' names → transformers' (the conversion script's rename_key list), as regexes.
 _RENAMES: tuple[tuple[str, str], ...] = (
@@ -134,16 +166,70 @@ def weights_digest(weights: str | Path) -> str:
     return _DIGESTS[key]
 
 
-def _network_size(
-    height: int, width: int, short_side: int | None, multiple: int
+def short_side(height: int, width: int, input_size: int | str | None) -> int:
+    """The short side a prior's network sees for an image of ``height`` × ``width``, before it
+    is made a multiple of the patch: ``input_size`` itself (an integer), the image's own short
+    side (None), or ``auto``: the image's own short side, at most :data:`AUTO_SHORT_SIDE` (518,
+    the authors' size), so a small frame is not upscaled into tokens that add no pixels and a
+    large one costs what the authors' setting costs."""
+    own = min(height, width)
+    if input_size is None:
+        return own
+    if input_size == AUTO:
+        return min(own, AUTO_SHORT_SIDE)
+    return int(input_size)
+
+
+def authors_network_size(
+    height: int, width: int, target: int, multiple: int = PATCH
 ) -> tuple[int, int]:
-    """``height`` × ``width`` scaled so that its short side is ``short_side`` (None: as it
-    is), each side then rounded to the nearest multiple of ``multiple`` (at least one)."""
-    scale = 1.0 if short_side is None else short_side / min(height, width)
+    """The size the authors' preprocessing gives an image of ``height`` × ``width`` for an input
+    size ``target``: ``Resize(width=target, height=target, keep_aspect_ratio=True,
+    ensure_multiple_of=multiple, resize_method="lower_bound")`` of ``depth_anything_v2/util/
+    transform.py`` (Depth-Anything-V2), as ``infer_image`` uses it. The image is scaled by the
+    larger of ``target / height`` and ``target / width`` (its short side to ``target``), each
+    side then rounded to the nearest multiple of ``multiple`` (half to even, as ``np.round``),
+    or up to the next one where that falls below ``target``.
+
+    transformers' processor (``DPTImageProcessor`` with ``keep_aspect_ratio=True``, the Hub's
+    ``Depth-Anything-V2-*-hf`` settings) gives the same size wherever the short side's scale is
+    the one nearer 1 (every image scaled down, e.g. 900 × 1600 → 518 × 924), but otherwise
+    scales as little as possible, its long side to ``target``: 64 × 192 becomes 168 × 518 there
+    and 518 × 1554 here.
+
+    Returns:
+        (height, width), multiples of ``multiple``, each ≥ ``target``.
+    """
+
+    def constrain(value: float) -> int:
+        rounded = round(value / multiple) * multiple
+        return rounded if rounded >= target else math.ceil(value / multiple) * multiple
+
+    scale_height, scale_width = target / height, target / width
+    if scale_width > scale_height:
+        scale_height = scale_width
+    else:
+        scale_width = scale_height
+    return constrain(scale_height * height), constrain(scale_width * width)
+
+
+def _nearest_size(height: int, width: int, side: int, multiple: int) -> tuple[int, int]:
+    """``height`` × ``width`` scaled so that its short side is ``side``, each side then rounded
+    to the nearest multiple of ``multiple`` (at least one): :class:`CheckpointPrior`'s."""
+    scale = side / min(height, width)
     return (
         max(multiple, round(height * scale / multiple) * multiple),
         max(multiple, round(width * scale / multiple) * multiple),
     )
+
+
+def _check_input_size(input_size: Any, owner: Any) -> None:
+    if not ARGUMENT_RULES["input_size"].ok(input_size):
+        raise ArgumentError(
+            f"{{input_size}}={input_size!r}: expected {ARGUMENT_RULES['input_size'].expected}",
+            "input_size",
+            owner=owner,
+        )
 
 
 def _transformers() -> Any:
@@ -194,6 +280,27 @@ _HUB_KEYS = {
 }
 
 
+def _config_json(folder: Path, weights: Any) -> dict:
+    """A transformers folder's ``config.json``, read as data (JSON, a mapping).
+
+    Raises:
+        ArgumentError: naming ``weights``: a folder without it, or one that is not a JSON
+            mapping.
+    """
+    file = folder / "config.json"
+    if not file.is_file():
+        raise _weights_error(
+            weights, "a folder without config.json (expected a transformers folder)"
+        )
+    try:
+        config = json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise _weights_error(weights, f"{file} is not readable JSON ({_problem(err)})") from None
+    if not isinstance(config, dict):
+        raise _weights_error(weights, f"{file} holds a {type(config).__name__}; expected a mapping")
+    return config
+
+
 def _check_local_config(folder: Path, weights: Any) -> None:
     """Refuse a ``config.json`` that names a backbone to fetch by name (:data:`_HUB_KEYS`, or a
     ``backbone_config`` that is not a mapping, e.g. a Hub id), at its top level or inside
@@ -203,12 +310,7 @@ def _check_local_config(folder: Path, weights: Any) -> None:
         ArgumentError: naming the file and the key, and the value that keeps loading local.
     """
     file = folder / "config.json"
-    try:
-        config = json.loads(file.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as err:
-        raise _weights_error(weights, f"{file} is not readable JSON ({_problem(err)})") from None
-    if not isinstance(config, dict):
-        raise _weights_error(weights, f"{file} holds a {type(config).__name__}; expected a mapping")
+    config = _config_json(folder, weights)
     nested = config.get("backbone_config")
     for where, node in (("", config), ("backbone_config.", nested)):
         if not isinstance(node, dict):
@@ -299,10 +401,25 @@ def convert_official_state_dict(
     return converted
 
 
-def depth_anything_config(state: Mapping[str, torch.Tensor], weights: Any = "weights") -> Any:
+def depth_anything_config(
+    state: Mapping[str, torch.Tensor],
+    weights: Any = "weights",
+    kind: str = RELATIVE,
+    max_depth: float | None = None,
+) -> Any:
     """transformers' ``DepthAnythingConfig`` of a converted state dict, read from its shapes:
     embedding width, depth and training size from the backbone, neck, fusion and head widths
-    from their convolutions; the blocks that feed the head from :data:`OUT_INDICES`.
+    from their convolutions; the blocks that feed the head from :data:`OUT_INDICES`. The head's
+    kind is not in the shapes (its last activation has no weights) and is ``kind``'s, as
+    :func:`depth_anything_kind` resolved it.
+
+    Args:
+        state: the converted state dict (:func:`convert_official_state_dict`).
+        weights: the file, for the error message.
+        kind: ``relative`` (a ReLU head) or ``metric`` (a sigmoid head times ``max_depth``).
+        max_depth: a metric head's range, metres. transformers 5 types the config's
+            ``max_depth`` an integer; a range that is not one is set on the head when the
+            model is built (:func:`_set_range`) and the config keeps its default.
 
     Raises:
         ArgumentError: a state dict that is not Depth Anything V2's (a missing tensor, a width
@@ -338,6 +455,9 @@ def depth_anything_config(state: Mapping[str, torch.Tensor], weights: Any = "wei
         apply_layernorm=True,
         reshape_hidden_states=False,
     )
+    ranges = {}
+    if kind == METRIC and max_depth is not None and float(max_depth).is_integer():
+        ranges = {"max_depth": int(max_depth)}  # 20 or 80, as the conversion script writes it
     return transformers.DepthAnythingConfig(
         backbone_config=backbone,
         patch_size=PATCH,
@@ -345,12 +465,189 @@ def depth_anything_config(state: Mapping[str, torch.Tensor], weights: Any = "wei
         neck_hidden_sizes=necks,
         fusion_hidden_size=fusion,
         head_hidden_size=head,
-        depth_estimation_type="relative",
+        depth_estimation_type=kind,
+        **ranges,
     )
 
 
-def _load_checkpoint_file(path: Path) -> nn.Module:
-    """The authors' ``.pth``: tensors only (``weights_only``), mapped and loaded strictly."""
+def _set_range(model: nn.Module, kind: str, max_depth: float | None) -> nn.Module:
+    """Set the head's ``max_depth`` (what its output is multiplied by) to a metric model's range;
+    a relative head whose config holds none (``"max_depth": null``, which transformers 5
+    multiplies by) to 1: its output is known only up to scale."""
+    if kind == METRIC:
+        model.head.max_depth = float(max_depth)
+    elif model.head.max_depth is None:
+        model.head.max_depth = 1.0
+    return model
+
+
+def _check_kind_arguments(kind: Any, max_depth: Any, owner: Any) -> None:
+    check_choice(kind, (None, *KINDS), "kind", owner=owner)
+    if max_depth is not None and not MAX_DEPTH.ok(max_depth):
+        raise ArgumentError(
+            f"{{max_depth}}={max_depth!r}: expected {MAX_DEPTH.expected}, or null",
+            "max_depth",
+            owner=owner,
+        )
+
+
+def _no_range(kind: str, max_depth: Any, owner: Any) -> tuple[str, None]:
+    """A relative prior, refused with a ``max_depth``: it has no depth range."""
+    if max_depth is not None:
+        raise ArgumentError(
+            f"{{max_depth}}={max_depth}: a relative prior ({{kind}}={kind}) outputs inverse "
+            "depth up to an affine map and has no depth range; expected null",
+            "max_depth",
+            "kind",
+            owner=owner,
+        )
+    return RELATIVE, None
+
+
+def _range_hint(name: str) -> str:
+    data = _RANGE_FILE.search(name)
+    if data is not None:
+        which = data.group(1).lower()
+        metres = f"{METRIC_RANGES[which]:g}"
+        return f"{metres} ({which}: the authors trained it to {metres} m)"
+    return (
+        "the metres its head was trained to (the authors': 20 for hypersim, indoor; 80 for "
+        "vkitti, outdoor)"
+    )
+
+
+def depth_anything_kind(
+    weights: str | Path, kind: str | None = None, max_depth: float | None = None
+) -> tuple[str, float | None]:
+    """Whether the Depth Anything V2 at ``weights`` is relative or metric, and a metric one's
+    range, from what tells them apart. The two kinds hold the same tensors (the head's last
+    activation, a ReLU or a sigmoid, has no weights; ``metric_depth/depth_anything_v2/dpt.py``
+    multiplies the sigmoid by ``max_depth``), so neither the names nor the shapes of the weights
+    can say which one a file is:
+
+    * a transformers folder: its ``config.json``'s ``depth_estimation_type`` (``relative``
+      where absent) and ``max_depth``. ``kind`` and ``max_depth`` may be left null; given, they
+      must agree with it. A metric folder whose ``config.json`` sets no ``max_depth`` takes
+      ``max_depth``.
+    * the authors' ``.pth``: ``kind`` says (null: relative), and a metric one needs
+      ``max_depth``. Where the file's name says which one it is, they must agree with it: a
+      name holding ``metric`` (``depth_anything_v2_metric_vkitti_vits.pth``) is metric, the
+      authors' relative names (``depth_anything_v2_vit{s,b,l,g}.pth``) relative, and the
+      authors' metric names give their range (``hypersim``: 20 m, ``vkitti``: 80 m;
+      ``metric_depth/README.md``). A ``.pth`` renamed to neither cannot be told apart: it is
+      what ``kind`` says.
+
+    Args:
+        weights: the folder or ``.pth`` file.
+        kind: ``relative``, ``metric``, or None (from the folder's ``config.json``; a ``.pth``:
+            relative).
+        max_depth: a metric prior's range, metres (> 0); None: from ``config.json``.
+
+    Returns:
+        ``(kind, max_depth)``: ``("relative", None)`` or ``("metric", metres)``.
+
+    Raises:
+        ArgumentFileError: ``weights`` does not exist.
+        ArgumentError: one line naming ``kind`` or ``max_depth`` and the file where they
+            disagree with it, or a metric prior without a range; naming ``weights`` where its
+            ``config.json`` cannot be read or sets an unknown kind.
+    """
+    owner = DepthAnythingPrior
+    _check_kind_arguments(kind, max_depth, owner)
+    path = Path(weights).expanduser()
+    if not path.exists():
+        raise ArgumentFileError(
+            f"{{weights}}={weights}: no such file or folder (expected a transformers folder, "
+            "or the authors' depth_anything_v2_vit*.pth)",
+            "weights",
+            owner=owner,
+        )
+    if path.is_dir():
+        config, file = _config_json(path, weights), path / "config.json"
+        found = config.get("depth_estimation_type", RELATIVE)
+        if found not in KINDS:
+            problem = (
+                f"{file} sets depth_estimation_type={json.dumps(found)}; expected one of "
+                f"{list(KINDS)}"
+            )
+            raise _weights_error(weights, problem)
+        if kind is not None and kind != found:
+            raise ArgumentError(
+                f"{{kind}}={kind}: {file} sets depth_estimation_type={json.dumps(found)}, a "
+                f"{found} Depth Anything ({_OUTPUTS[found]}); expected {{kind}}={found}, or null "
+                "(read from config.json)",
+                "kind",
+                owner=owner,
+            )
+        if found == RELATIVE:
+            return _no_range(RELATIVE, max_depth, owner)
+        recorded = config.get("max_depth")
+        if recorded is None:
+            if max_depth is None:
+                raise ArgumentError(
+                    f"{{max_depth}}=null: {file} sets no max_depth for its metric head (sigmoid × "
+                    f"max_depth); expected {_range_hint('')}",
+                    "max_depth",
+                    owner=owner,
+                )
+            return METRIC, float(max_depth)
+        if not MAX_DEPTH.ok(recorded):
+            problem = f"{file} sets max_depth={json.dumps(recorded)}; expected {MAX_DEPTH.expected}"
+            raise _weights_error(weights, problem)
+        if max_depth is not None and float(max_depth) != float(recorded):
+            raise ArgumentError(
+                f"{{max_depth}}={max_depth}: {file} sets max_depth={recorded}, the range its "
+                f"metric head was trained to; expected null (read from config.json) or {recorded}",
+                "max_depth",
+                owner=owner,
+            )
+        return METRIC, float(recorded)
+    named = METRIC if _METRIC_FILE.search(path.name) else None
+    named = RELATIVE if _RELATIVE_FILE.match(path.name) else named
+    if named == METRIC and kind != METRIC:
+        raise ArgumentError(
+            f"{{kind}}={kind or 'null'}: {weights} is named as a metric checkpoint, whose head "
+            "ends in a sigmoid times max_depth where a relative one's ends in a ReLU; no weights "
+            "tell them apart, and read as relative its metres would be taken for inverse depth: "
+            f"expected {{kind}}=metric {{max_depth}}={_range_hint(path.name)}",
+            "kind",
+            "max_depth",
+            owner=owner,
+        )
+    if named == RELATIVE and kind == METRIC:
+        raise ArgumentError(
+            f"{{kind}}=metric: {weights} is named as the authors' relative checkpoint "
+            "(depth_anything_v2_vit?.pth; their metric ones are depth_anything_v2_metric_"
+            "<hypersim|vkitti>_vit?.pth); expected {kind}=relative, or null",
+            "kind",
+            owner=owner,
+        )
+    if kind != METRIC:
+        return _no_range(RELATIVE, max_depth, owner)
+    data = _RANGE_FILE.search(path.name)
+    expected = METRIC_RANGES[data.group(1).lower()] if data else None
+    if max_depth is None or (expected is not None and float(max_depth) != expected):
+        shown = "null" if max_depth is None else max_depth
+        raise ArgumentError(
+            f"{{max_depth}}={shown}: {weights} is a metric .pth, which records no range: "
+            f"expected {{max_depth}}={_range_hint(path.name)}",
+            "max_depth",
+            owner=owner,
+        )
+    return METRIC, float(max_depth)
+
+
+_OUTPUTS = {
+    RELATIVE: "relative inverse depth, larger nearer",
+    METRIC: "depth in metres, sigmoid × max_depth",
+}
+
+
+def _load_checkpoint_file(
+    path: Path, kind: str = RELATIVE, max_depth: float | None = None
+) -> nn.Module:
+    """The authors' ``.pth``: tensors only (``weights_only``), mapped and loaded strictly, with
+    the head of ``kind`` (:func:`depth_anything_kind`)."""
     transformers = _transformers()
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -362,7 +659,8 @@ def _load_checkpoint_file(path: Path) -> nn.Module:
     ):
         raise _weights_error(path, "expected a flat name → tensor state dict (the authors' .pth)")
     converted = convert_official_state_dict(state, path)
-    model = transformers.DepthAnythingForDepthEstimation(depth_anything_config(converted, path))
+    config = depth_anything_config(converted, path, kind, max_depth)
+    model = transformers.DepthAnythingForDepthEstimation(config)
     expected = model.state_dict()
     if not any(name in expected for name in converted if ".attention.attention." in name):
         for old, new in _IN_MEMORY.items():
@@ -371,43 +669,40 @@ def _load_checkpoint_file(path: Path) -> nn.Module:
         model.load_state_dict(converted, strict=True)
     except RuntimeError as err:
         raise _weights_error(path, f"does not fit Depth Anything V2 ({_problem(err)})") from None
-    return model
+    return _set_range(model, kind, max_depth)
 
 
-def load_depth_anything_v2(weights: str | Path) -> nn.Module:
-    """Depth Anything V2 (relative) from local files: a transformers folder or the authors'
-    ``.pth``. Nothing is downloaded, whatever the folder says: a ``config.json`` that names a
-    backbone to fetch by name (``backbone``, ``use_pretrained_backbone``,
+def load_depth_anything_v2(
+    weights: str | Path, kind: str | None = None, max_depth: float | None = None
+) -> nn.Module:
+    """Depth Anything V2, relative or metric, from local files: a transformers folder or the
+    authors' ``.pth``. Nothing is downloaded, whatever the folder says: a ``config.json`` that
+    names a backbone to fetch by name (``backbone``, ``use_pretrained_backbone``,
     ``use_timm_backbone``, a ``backbone_config`` that is a Hub id) is refused, and the folder is
     read with the Hub's offline switch on (``HF_HUB_OFFLINE``) and ``local_files_only``.
 
     Args:
         weights: the folder (with ``config.json``) or the ``.pth`` file.
+        kind, max_depth: which head it has and a metric head's range, metres
+            (:func:`depth_anything_kind`: from the folder's ``config.json`` where None).
 
     Returns:
-        transformers' ``DepthAnythingForDepthEstimation``, in eval mode.
+        transformers' ``DepthAnythingForDepthEstimation``, in eval mode: ``predicted_depth``
+        (B, h, w) is relative inverse depth (≥ 0), or depth in metres in [0, max_depth].
 
     Raises:
         ArgumentFileError: ``weights`` does not exist.
         ArgumentError: a folder without ``config.json``, with one that names a backbone to
             fetch (naming the file and key) or of another architecture, or a file that is not
-            a Depth Anything V2 checkpoint, naming ``weights``.
+            a Depth Anything V2 checkpoint, naming ``weights``; a ``kind`` or ``max_depth``
+            that disagrees with the weights (:func:`depth_anything_kind`).
         MissingDependencyError: transformers is not installed.
     """
+    kind, max_depth = depth_anything_kind(weights, kind, max_depth)
     path = Path(weights).expanduser()
-    if not path.exists():
-        raise ArgumentFileError(
-            f"{{weights}}={weights}: no such file or folder (expected a transformers folder, "
-            "or the authors' depth_anything_v2_vit*.pth)",
-            "weights",
-            owner=DepthAnythingPrior,
-        )
     if path.is_file():
-        return _load_checkpoint_file(path).eval()
+        return _load_checkpoint_file(path, kind, max_depth).eval()
     transformers = _transformers()
-    if not (path / "config.json").is_file():
-        problem = "a folder without config.json (expected a transformers folder)"
-        raise _weights_error(weights, problem)
     _check_local_config(path, weights)
     with _hub_offline():
         try:
@@ -417,11 +712,6 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
             raise _weights_error(weights, problem) from None
         if config.model_type != "depth_anything":
             raise _weights_error(weights, f"a {config.model_type} model (expected depth_anything)")
-        if getattr(config, "depth_estimation_type", "relative") != "relative":
-            problem = (
-                "a metric Depth Anything (expected a relative one, e.g. Depth-Anything-V2-Small)"
-            )
-            raise _weights_error(weights, problem)
         try:
             model, info = transformers.DepthAnythingForDepthEstimation.from_pretrained(
                 path, config=config, local_files_only=True, output_loading_info=True
@@ -431,45 +721,62 @@ def load_depth_anything_v2(weights: str | Path) -> nn.Module:
     missing = [*info.get("missing_keys", ()), *info.get("mismatched_keys", ())]
     if missing:
         raise _weights_error(weights, f"weights do not fit its config.json ({missing[0]})")
-    return model.eval()
+    return _set_range(model, kind, max_depth).eval()
 
 
 class DepthAnythingPrior(nn.Module):
-    """A frozen Depth Anything V2: RGB in, relative inverse depth out, at the input's size.
+    """A frozen Depth Anything V2: RGB in; relative inverse depth, or depth in metres, out, at
+    the input's size.
 
-    The image is normalised with ImageNet's mean and standard deviation, resized (bilinear) so
-    that its short side is ``input_size`` and both sides are multiples of 14, and the output is
-    resized back. The network stays in eval mode and takes no gradient.
+    Preprocessing is transformers' ``DPTImageProcessor`` with the Hub's Depth Anything V2
+    settings (bicubic with antialiasing, then ImageNet's mean and standard deviation; matched to
+    1e-4 by the tests) at the authors' size (:func:`authors_network_size`, ``lower_bound``: the
+    short side to :func:`short_side` of ``input_size``, both sides multiples of 14). The output
+    is resized back bilinearly with ``align_corners=True``, as the authors' ``infer_image``
+    does (``depth_anything_v2/dpt.py``). The network stays in eval mode and takes no gradient.
 
     Args:
         weights: a transformers folder or the authors' ``.pth`` (:func:`load_depth_anything_v2`).
-        input_size: the short side the network sees; None keeps the image's. Both sides are
-            then rounded to the nearest multiple of 14, as the authors' processor does
-            (``ensure_multiple_of=14``); they infer at 518.
+        input_size: the short side the network sees, before it is made a multiple of 14: an
+            integer ≥ 14 (the authors infer at 518); None: the image's own; ``auto``: the
+            image's own, at most 518 (a 64 × 192 frame is seen at 70 × 196, a 900 × 1600 one at
+            518 × 924, as with 518).
+        kind: ``relative``, ``metric``, or None: read from a folder's ``config.json``; a
+            ``.pth`` holds no kind and is relative unless told (:func:`depth_anything_kind`).
+        max_depth: a metric prior's range, metres (the sigmoid's scale: 20 for the authors'
+            Hypersim models, 80 for their Virtual KITTI 2 ones); None: from ``config.json``. A
+            metric ``.pth`` needs it.
 
     Shape:
         - image: (B, 3, H, W) RGB in [0, 1].
-        - output: (B, 1, H, W) relative inverse depth, ≥ 0 (larger is nearer; affine-invariant).
+        - output: (B, 1, H, W): ``kind`` relative: relative inverse depth, ≥ 0 (larger is
+          nearer; affine-invariant). ``kind`` metric: depth in metres, in [0, max_depth] (the
+          sigmoid's (0, 1) times ``max_depth``).
 
     Attributes:
+        kind: ``relative`` or ``metric`` (resolved: never None).
+        max_depth: a metric prior's range, metres; None for a relative one.
         weights: the file or folder it was built from, as given.
         weights_sha256: :func:`weights_digest` of it, recorded with the checkpoints of a network
             that takes this prior (:data:`PRIOR_KEY`).
 
     Raises:
-        ArgumentError: ``weights`` cannot be loaded (see :func:`load_depth_anything_v2`), or
-            ``input_size`` is below 14.
+        ArgumentError: ``weights`` cannot be loaded (see :func:`load_depth_anything_v2`),
+            ``kind`` or ``max_depth`` disagree with it (:func:`depth_anything_kind`), or
+            ``input_size`` is not an integer ≥ 14, null or ``auto``.
     """
 
-    def __init__(self, weights: str | Path, input_size: int | None = 518) -> None:
+    def __init__(
+        self,
+        weights: str | Path,
+        input_size: int | str | None = 518,
+        kind: str | None = None,
+        max_depth: float | None = None,
+    ) -> None:
         super().__init__()
-        if input_size is not None and input_size < PATCH:
-            raise ArgumentError(
-                f"{{input_size}}={input_size}: expected an integer ≥ {PATCH}, or null",
-                "input_size",
-                owner=DepthAnythingPrior,
-            )
-        self.network = load_depth_anything_v2(weights)
+        _check_input_size(input_size, DepthAnythingPrior)
+        self.kind, self.max_depth = depth_anything_kind(weights, kind, max_depth)
+        self.network = load_depth_anything_v2(weights, self.kind, self.max_depth)
         self.network.requires_grad_(False)
         self.weights = str(weights)
         self.weights_sha256 = weights_digest(weights)  # what it was built from (PRIOR_KEY)
@@ -483,16 +790,34 @@ class DepthAnythingPrior(nn.Module):
         return self
 
     def network_size(self, height: int, width: int) -> tuple[int, int]:
-        """The size the network sees for an image of ``height`` × ``width``."""
-        return _network_size(height, width, self.input_size, PATCH)
+        """The size the network sees for an image of ``height`` × ``width``
+        (:func:`authors_network_size` of :func:`short_side`)."""
+        return authors_network_size(height, width, short_side(height, width, self.input_size))
+
+    def preprocess(self, image: torch.Tensor) -> torch.Tensor:
+        """The network's input: ``image`` resized to :meth:`network_size` (bicubic with
+        antialiasing, ``align_corners=False``: torchvision's resize, which ``DPTImageProcessor``
+        uses), then normalised with ImageNet's mean and standard deviation, in that order (the
+        processor resizes, then rescales and normalises; the authors' ``Resize``, then
+        ``NormalizeImage``).
+
+        Shape:
+            - image: (B, 3, H, W) RGB in [0, 1].
+            - output: (B, 3, h, w), (h, w) = :meth:`network_size` (H, W).
+        """
+        size = self.network_size(*image.shape[-2:])
+        if size != tuple(image.shape[-2:]):
+            image = F.interpolate(image, size, mode="bicubic", antialias=True, align_corners=False)
+        return (image - self.mean) / self.std
 
     @torch.no_grad()
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         height, width = image.shape[-2:]
-        size = self.network_size(height, width)
-        pixels = F.interpolate((image - self.mean) / self.std, size, mode="bilinear")
-        relative = self.network(pixel_values=pixels).predicted_depth[:, None].float()
-        return F.interpolate(relative, (height, width), mode="bilinear").clamp_min(0.0)
+        out = self.network(pixel_values=self.preprocess(image)).predicted_depth[:, None].float()
+        out = F.interpolate(out, (height, width), mode="bilinear", align_corners=True)
+        # the head's range: ReLU's [0, ∞) or the sigmoid's [0, max_depth], which interpolating in
+        # float32 may pass by a rounding error
+        return out.clamp_min(0.0) if self.kind == RELATIVE else out.clamp(0.0, self.max_depth)
 
 
 def _read_prior_checkpoint(path: Path, weights: Any) -> tuple[dict, dict[str, torch.Tensor]]:
@@ -533,8 +858,11 @@ class CheckpointPrior(nn.Module):
 
     Args:
         weights: the checkpoint (``fusion=rgb``: a prior sees the image alone).
-        input_size: the short side the network sees; None keeps the image's. Both sides are
-            then rounded to the nearest multiple of 32, as the encoders need.
+        input_size: the short side the network sees (:func:`short_side`): an integer, None
+            (the image's), or ``auto`` (the image's, at most 518). Both sides are then rounded
+            to the nearest multiple of 32, as the encoders need.
+        kind: ``relative`` or None: this prior is relative (``metric`` is refused).
+        max_depth: None (a relative prior has no range).
 
     Shape:
         - image: (B, 3, H, W) RGB in [0, 1].
@@ -542,6 +870,7 @@ class CheckpointPrior(nn.Module):
           give values below 0: only its affine shape is meaningful).
 
     Attributes:
+        kind: ``relative``; max_depth: None.
         weights, weights_sha256: as :class:`DepthAnythingPrior`'s (the digest of the file).
 
     Raises:
@@ -549,11 +878,19 @@ class CheckpointPrior(nn.Module):
         ArgumentError: not a checkpoint written by ``train`` (unreadable, no run config, or a
             ``state_dict`` that is not a mapping of names to tensors), a network that takes
             sparse input, or weights that do not fit the network its config names; one line
-            naming ``weights``.
+            naming ``weights``. ``kind`` metric or a ``max_depth``, naming them.
     """
 
-    def __init__(self, weights: str | Path, input_size: int | None = None) -> None:
+    def __init__(
+        self,
+        weights: str | Path,
+        input_size: int | str | None = None,
+        kind: str | None = None,
+        max_depth: float | None = None,
+    ) -> None:
         super().__init__()
+        _check_input_size(input_size, CheckpointPrior)
+        self.kind, self.max_depth = checkpoint_kind(weights, kind, max_depth)
         from fusion_depth.models._registry import network_from_checkpoint
 
         path = Path(weights).expanduser()
@@ -598,47 +935,186 @@ class CheckpointPrior(nn.Module):
     @torch.no_grad()
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         height, width = image.shape[-2:]
-        size = _network_size(height, width, self.input_size, 32)
+        size = _nearest_size(height, width, short_side(height, width, self.input_size), 32)
         resized = F.interpolate(image, size, mode="bilinear") if size != (height, width) else image
         relative = self.network(resized, None).float()
         return F.interpolate(relative, (height, width), mode="bilinear")
+
+
+def checkpoint_kind(
+    weights: Any = None, kind: str | None = None, max_depth: float | None = None
+) -> tuple[str, None]:
+    """What :class:`CheckpointPrior` outputs: relative inverse depth, whatever its file, so
+    ``("relative", None)``; ``kind`` metric or a ``max_depth`` is refused in one line."""
+    _check_kind_arguments(kind, max_depth, CheckpointPrior)
+    if kind == METRIC:
+        raise ArgumentError(
+            "{kind}=metric: prior=checkpoint is relative (a network's reciprocal depth, "
+            "known up to an affine map); expected {kind}=relative, or null",
+            "kind",
+            owner=CheckpointPrior,
+        )
+    return _no_range(RELATIVE, max_depth, CheckpointPrior)
+
+
+class ZeroPrior(nn.Module):
+    """``prior=zero``: a prior that is 0 everywhere, read from no file: the control of a study
+    of a prior as an input (``model=densedepth prior=zero``), whose network has the prior's
+    branch and parameters but gets nothing through them. A gain over it is the prior's, not
+    the branch's.
+
+    Args:
+        weights: ignored (must be null in the config: there is nothing to read).
+        input_size: ignored.
+        kind: ``relative`` or null.
+        max_depth: null.
+
+    Shape:
+        - image: (B, 3, H, W); output: (B, 1, H, W) zeros.
+    """
+
+    kind = RELATIVE
+    max_depth = None
+
+    def __init__(
+        self,
+        weights: Any = None,
+        input_size: Any = None,
+        kind: str | None = None,
+        max_depth: float | None = None,
+    ) -> None:
+        super().__init__()
+        zero_kind(weights, kind, max_depth)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return image.new_zeros((image.shape[0], 1, *image.shape[2:]))
+
+
+def zero_kind(
+    weights: Any = None, kind: str | None = None, max_depth: float | None = None
+) -> tuple[str, None]:
+    """What :class:`ZeroPrior` outputs: ``("relative", None)``; weights, ``kind`` metric or a
+    ``max_depth`` refused in one line."""
+    _check_kind_arguments(kind, max_depth, ZeroPrior)
+    if weights is not None:
+        raise ArgumentError(
+            f"{{weights}}={weights}: prior=zero reads no file; expected null",
+            "weights",
+            owner=ZeroPrior,
+        )
+    if kind == METRIC:
+        raise ArgumentError(
+            "{kind}=metric: prior=zero is no depth at all; expected null", "kind", owner=ZeroPrior
+        )
+    return _no_range(RELATIVE, max_depth, ZeroPrior)
+
+
+# The oracle prior's form: an exact relative prior with a shift, as Depth Anything's output is.
+ORACLE_SCALE, ORACLE_SHIFT = 3.0, 0.2
+
+
+class OraclePrior(ZeroPrior):
+    """``prior=oracle``: each frame's own ground truth made a perfect relative prior, ``3 /
+    depth + 0.2`` (0.2 where the ground truth has no depth: the sky, infinitely far), for
+    ``evaluate prior=oracle`` with no checkpoint: the global alignment of a prior that is
+    exact up to its scale and shift, which measures the fit (its radar, its outliers) and
+    nothing of a network. Only for datasets whose ground truth is dense (the built-in one).
+    ``evaluate`` gives it frame by frame
+    (:class:`~fusion_depth.evaluate.scoring.OracleAsPrior`); it cannot run on an image.
+
+    Raises:
+        ValueError: when run on an image (there is no ground truth in it).
+    """
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        raise ValueError(
+            "prior=oracle is each frame's ground truth: only evaluate with no ckpt_path gives "
+            "it (the global alignment of a perfect prior); it cannot run on an image"
+        )
+
+
+def oracle_prior(depth: torch.Tensor) -> torch.Tensor:
+    """:class:`OraclePrior`'s value for a ground truth ``depth`` in metres (0 = none): ``3 /
+    depth + 0.2``, and 0.2 where there is none. Shape kept; float32."""
+    depth = depth.float()
+    inverse = torch.where(depth > 0, 1.0 / depth.clamp_min(1e-6), 0.0)
+    return ORACLE_SCALE * inverse + ORACLE_SHIFT
 
 
 # The priors a network can take by name (``prior.name``): the class and the arguments it reads.
 PRIORS: dict[str, type[nn.Module]] = {
     "depth_anything_v2": DepthAnythingPrior,
     "checkpoint": CheckpointPrior,
+    "zero": ZeroPrior,
+    "oracle": OraclePrior,
+}
+# What each one outputs, from its settings alone (nothing built): (kind, max_depth).
+_KIND_OF = {
+    "depth_anything_v2": depth_anything_kind,
+    "checkpoint": checkpoint_kind,
+    "zero": zero_kind,
+    "oracle": zero_kind,
 }
 NO_PRIOR = "none"
 # What a prior's arguments accept (fusion_depth.utils.schema); ``dropout`` is the network's share
 # of training frames given none (DepthNet).
 ARGUMENT_RULES: Schema = {
     "input_size": Rule(
-        lambda v: v is None or (POSITIVE_INT.ok(v) and v >= PATCH),
-        f"an integer ≥ {PATCH}, or null (the image's own size)",
+        lambda v: v is None or v == AUTO or (is_int(v) and v >= PATCH),
+        f"an integer ≥ {PATCH}, null (the image's own size) or {AUTO} (the image's own, at "
+        f"most {AUTO_SHORT_SIDE})",
     ),
+    "kind": one_of(None, *KINDS),  # null: from the weights (a folder's config.json)
+    "max_depth": MAX_DEPTH.or_null("from the weights' config.json; a relative prior's"),
     "dropout": PROBABILITY,
     "cache": BOOLEAN,  # the runner's: computed once per frame (fusion_depth.runner.prior_cache)
 }
 
 
 def build_prior(
-    name: str = NO_PRIOR, weights: str | None = None, input_size: int | None = 518
+    name: str = NO_PRIOR,
+    weights: str | None = None,
+    input_size: int | str | None = 518,
+    kind: str | None = None,
+    max_depth: float | None = None,
 ) -> nn.Module | None:
-    """The frozen prior ``name`` (a key of :data:`PRIORS`), or None for ``none``.
+    """The frozen prior ``name`` (a key of :data:`PRIORS`), or None for ``none``: the ``prior``
+    config node's keys, less the runner's (``dropout``, ``cache``).
 
     Args:
         name: ``none`` or a key of :data:`PRIORS`.
         weights: its weights (see :class:`DepthAnythingPrior`).
-        input_size: the short side the prior sees.
+        input_size: the short side the prior sees (:func:`short_side`).
+        kind: ``relative``, ``metric`` or None (from the weights: :func:`resolve_prior_kind`).
+        max_depth: a metric prior's range, metres; None: from the weights.
+
+    Returns:
+        The prior module, whose ``kind`` attribute says what it outputs: ``relative`` (inverse
+        depth up to an affine map) or ``metric`` (metres); None for ``none``.
 
     Raises:
-        ArgumentError: an unknown ``name``, or a prior that cannot be built from ``weights``.
+        ArgumentError: an unknown ``name``, or a prior that cannot be built from ``weights``
+            with these settings.
     """
     if name == NO_PRIOR:
         return None
     check_choice(name, (NO_PRIOR, *PRIORS), "name", owner=build_prior)
-    return PRIORS[name](weights, input_size=input_size)
+    return PRIORS[name](weights, input_size=input_size, kind=kind, max_depth=max_depth)
+
+
+def resolve_prior_kind(
+    name: str, weights: Any, kind: str | None = None, max_depth: float | None = None
+) -> tuple[str, float | None]:
+    """What the prior :func:`build_prior` builds from these settings outputs, read without
+    building it: ``("relative", None)`` or ``("metric", max_depth in metres)``
+    (:func:`depth_anything_kind`, :func:`checkpoint_kind`).
+
+    Raises:
+        ArgumentError: an unknown ``name`` (``none`` included: no prior, no kind), or settings
+            that disagree with the weights (as :func:`build_prior` would).
+    """
+    check_choice(name, tuple(_KIND_OF), "name", owner=build_prior)
+    return _KIND_OF[name](weights, kind, max_depth)
 
 
 def normalized_prior(relative: torch.Tensor) -> torch.Tensor:
@@ -677,16 +1153,25 @@ def _with_own_prior(module: nn.Module, state: dict, prefix: str, *args: Any) -> 
 PRIOR_KEY = "fusion_depth_prior"
 
 
-def prior_record(net: nn.Module) -> dict[str, str] | None:
-    """What a checkpoint of ``net`` records of its prior: ``{"name", "weights", "sha256"}``
-    (the prior's file or folder and :func:`weights_digest` of it, taken when the prior was
-    built); None for a network without a prior built from files."""
+def prior_record(net: nn.Module) -> dict[str, Any] | None:
+    """What a checkpoint of ``net`` records of its prior: ``{"name", "weights", "sha256",
+    "kind", "max_depth"}`` (the prior's file or folder, :func:`weights_digest` of it, taken
+    when the prior was built, and what it outputs: the same ``.pth`` may be read as relative or
+    metric); None for a network without a prior built from files."""
     prior = getattr(net, "prior", None)
     digest = getattr(prior, "weights_sha256", None)
     if not isinstance(digest, str):
         return None
     name = next((n for n, cls in PRIORS.items() if type(prior) is cls), type(prior).__name__)
-    return {"name": name, "weights": str(prior.weights), "sha256": digest}
+    kind = getattr(prior, "kind", RELATIVE)
+    max_depth = getattr(prior, "max_depth", None)
+    return {
+        "name": name,
+        "weights": str(prior.weights),
+        "sha256": digest,
+        "kind": kind,
+        "max_depth": max_depth,
+    }
 
 
 def check_prior_record(net: nn.Module, record: Any, where: str) -> None:
@@ -703,7 +1188,9 @@ def check_prior_record(net: nn.Module, record: Any, where: str) -> None:
 
     Raises:
         CheckpointError: one line naming the prior's file and both digests (the one trained
-            with, the one found), or a record that is not what :func:`prior_record` writes.
+            with, the one found), or its kind and range trained with and now (a ``.pth`` read
+            as relative then, metric now), or a record that is not what :func:`prior_record`
+            writes.
     """
     found = prior_record(net)
     if found is None:
@@ -731,3 +1218,18 @@ def check_prior_record(net: nn.Module, record: Any, where: str) -> None:
             f"prior={found['name']} prior.weights=<a copy of the weights it was trained with>, "
             "or train again"
         )
+    # Records written before the kind was recorded hold a relative prior (metric was refused).
+    trained = (record.get("kind", RELATIVE), record.get("max_depth"))
+    if trained != (found["kind"], found["max_depth"]):
+        raise CheckpointError(
+            f"{where}: its network was trained with {found['weights']} read as "
+            f"{_reading(*trained)}, but it is now read as "
+            f"{_reading(found['kind'], found['max_depth'])}; refused, as the network would take "
+            f"another kind or scale of depth than it learnt: give {_reading(*trained, 'prior.')}"
+        )
+
+
+def _reading(kind: Any, max_depth: Any, prefix: str = "") -> str:
+    """``kind=metric max_depth=80`` (``prefix`` before each key)."""
+    shown = f"{max_depth:g}" if is_number(max_depth) else max_depth
+    return f"{prefix}kind={kind}" + (f" {prefix}max_depth={shown}" if max_depth is not None else "")

@@ -57,7 +57,8 @@ class GlobalAlignment(FallbackCount, DepthModel):
 
     Shape:
         - image: (B, 3, H, W) RGB in [0, 1]; sparse: (B, 1, H, W) metres, 0 = no return;
-          points: (B, P, 6) ``radar_points`` or None.
+          points: (B, P, 6) ``radar_points`` or None; prior: (B, 1, H, W) the prior's output
+          where the frame brings it (``prior=oracle``), else None: the prior runs.
         - output: (B, 1, H, W) metres in ``[min_depth, max_depth]`` (its output space is
           depth).
 
@@ -102,11 +103,12 @@ class GlobalAlignment(FallbackCount, DepthModel):
         image: torch.Tensor,
         sparse: torch.Tensor | None = None,
         points: torch.Tensor | None = None,
+        prior: torch.Tensor | None = None,
     ) -> torch.Tensor:
         if sparse is None:
             raise ValueError("the global alignment needs the sparse depth map")
-        # The prior as it gives it (never from the cache, which normalises a relative one).
-        given = self.prior(image).float()
+        # The prior as it gives it, or as the frame brings it (prior=oracle: its ground truth).
+        given = (self.prior(image) if prior is None else prior).float()
         # In float64 whatever the autocast (fit_scale_shift): bf16 moves a shift by 10 %.
         with torch.autocast(image.device.type, enabled=False):
             fit = fit_scale_shift(

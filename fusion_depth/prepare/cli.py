@@ -130,7 +130,13 @@ def cached_prior(cfg: DictConfig) -> Any:
     from fusion_depth.utils.config_values import check_schema
 
     check_schema(cfg, {f"prior.{key}": rule for key, rule in ARGUMENT_RULES.items()})
-    return build_prior(spec["name"], spec["weights"], spec.get("input_size"))
+    return build_prior(
+        spec["name"],
+        spec["weights"],
+        spec.get("input_size"),
+        kind=spec.get("kind"),
+        max_depth=spec.get("max_depth"),
+    )
 
 
 def prepare_prior(cfg: DictConfig, prior: Any) -> int:

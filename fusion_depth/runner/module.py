@@ -376,6 +376,7 @@ class DepthModule(L.LightningModule):
             image,
             batch["sparse"],
             points=batch.get("radar_points"),
+            prior=batch.get("prior"),  # only where the frames bring one (evaluate prior=oracle)
             flip_tta=self.protocol.flip_tta,
             size=tuple(depth.shape[-2:]),
             upsample=self.protocol.upsample,

@@ -186,7 +186,15 @@ def finished_results(output_dir: Path) -> dict | None:
 # Config keys added since a run folder may have been written, with the value that computes as
 # the run did without them: a stored config that lacks one of these is the same run.
 # The prior group (0.3.0) at prior=none, which computes as a run without it did.
-_NO_PRIOR = {"name": "none", "weights": None, "input_size": None, "dropout": 0.0, "cache": False}
+_NO_PRIOR = {
+    "name": "none",
+    "weights": None,
+    "input_size": None,
+    "kind": None,
+    "max_depth": None,
+    "dropout": 0.0,
+    "cache": False,
+}
 _NO_GEOMETRY = {
     "saturation": None,
     "color_each": False,
@@ -214,6 +222,9 @@ _ADDED_KEYS: dict[str, Any] = {
     "model.net.fake_column_noise": None,  # RadarNet's fusion loss on the measured pixels
     "dataset.reader.lidar_keyframes": 0,  # nuScenes: RadarNet's merged target, not asked for
     "dataset.reader.lidar_removed": ["vehicle", "human"],
+    # the built-in dataset's camera (a source pool's other cameras): the car's
+    "dataset.reader.camera_height": [1.4, 1.7],
+    "dataset.reader.fov_range": None,
     # the augmentation's saturation and geometry (each model's own augmentation), all off
     **{
         f"{block}.{key}": value

@@ -30,9 +30,18 @@ def offline_environment() -> dict[str, str]:
     return environment
 
 
-def tiny_depth_anything(width: int = 4, depth: int = 2, necks=(2, 2), out_indices=(1, 2)):
-    """A random Depth Anything of transformers' own test sizes (hidden size 4, 2 layers)."""
+def tiny_depth_anything(
+    width: int = 4,
+    depth: int = 2,
+    necks=(2, 2),
+    out_indices=(1, 2),
+    kind: str = "relative",
+    max_depth: int | None = None,
+):
+    """A random Depth Anything of transformers' own test sizes (hidden size 4, 2 layers):
+    relative (its head ends in a ReLU), or metric (a sigmoid times ``max_depth`` metres)."""
     torch.manual_seed(0)
+    ranges = {} if max_depth is None else {"max_depth": max_depth}
     backbone = transformers.Dinov2Config(
         image_size=28,
         patch_size=14,
@@ -51,13 +60,16 @@ def tiny_depth_anything(width: int = 4, depth: int = 2, necks=(2, 2), out_indice
         neck_hidden_sizes=list(necks),
         fusion_hidden_size=6,
         head_hidden_size=4,
-        depth_estimation_type="relative",
+        depth_estimation_type=kind,
+        **ranges,
     )
     model = transformers.DepthAnythingForDepthEstimation(config).eval()
     with torch.no_grad():  # transformers' init leaves a tiny head flat; spread the weights
         for parameter in model.parameters():
             parameter.normal_(0.0, 0.3)
-        model.head.conv3.bias.fill_(0.5)  # the head ends in ReLU: keep most pixels above 0
+        # a relative head ends in ReLU: keep most pixels above 0; a metric one in a sigmoid:
+        # centred, so its metres spread over the range
+        model.head.conv3.bias.fill_(0.5 if kind == "relative" else 0.0)
     return model
 
 
