@@ -957,3 +957,67 @@ def test_run_folders_name_prior_weights_short_and_stable(tmp_path):
     earlier = tmp_path / "outputs" / f"prior.weights-{str(weights).replace('/', '_')}"
     earlier.mkdir(parents=True)
     assert run_dir(str(tmp_path / "outputs"), overrides) == str(earlier)
+
+
+def test_a_zero_prior_reads_no_file_and_gives_the_branch_nothing():
+    """prior=zero, the control of a prior used as an input: the branch and its parameters,
+    and zeros through it."""
+    from fusion_depth.models import DepthNet
+    from fusion_depth.models.depth_prior import ZeroPrior
+
+    net = DepthNet(backbone="resnet10t", fusion="concat", prior={"name": "zero"}).eval()
+    assert isinstance(net.prior, ZeroPrior) and net.prior_branch is not None
+    image = torch.rand(2, 3, 64, 96)
+    assert net.prior_input(image).abs().max() == 0
+    with pytest.raises(ArgumentError, match=r"^weights=/some/file: prior=zero reads no file"):
+        build_prior("zero", "/some/file")
+
+
+def _association_checkpoint(path):
+    """A model=radarnet stage=association checkpoint as train writes it (weights, run config)."""
+    from fusion_depth.models.radarnet import RadarNet
+
+    torch.manual_seed(3)
+    net = RadarNet(stage="association")
+    state = {f"net.{k}": v for k, v in net.state_dict().items()}
+    config = {"model": {"net": {"name": "radarnet", "stage": "association"}}}
+    torch.save({"state_dict": state, "fusion_depth_config": config}, path)
+    return path, net
+
+
+def test_the_correction_takes_its_quasi_dense_map_from_a_radarnet_association(tmp_path):
+    from fusion_depth.models import create_model
+
+    path, association = _association_checkpoint(tmp_path / "association.ckpt")
+    prior = {"name": "zero"}  # any relative prior: the quasi-dense map is what is checked
+    net = create_model(
+        "prior_correction",
+        prior=prior,
+        quasi_dense="association",
+        association_weights=str(path),
+    ).eval()
+    for key, value in association.association.state_dict().items():
+        torch.testing.assert_close(net.association.association.state_dict()[key], value)
+    assert not any(p.requires_grad for p in net.association.parameters())  # frozen
+    image = torch.rand(1, 3, 64, 96)
+    sparse = torch.zeros(1, 1, 64, 96)
+    points = torch.zeros(1, 4, 6)
+    points[0, :, 0] = torch.tensor([10.0, 40.0, 60.0, 90.0])
+    points[0, :, 1] = 40.0
+    points[0, :, 2] = torch.tensor([5.0, 12.0, 20.0, 33.0])
+    points[0, :, 5] = 1.0
+    association.eval()
+    with torch.no_grad():
+        expected = association(image, sparse, points)
+    torch.testing.assert_close(net.quasi_dense_depth(image, sparse, points), expected)
+    net.train()
+    assert not net.association.training  # its batch norms keep their statistics
+    # Rebuilt from its own checkpoint (no association_weights): the weights come with its state.
+    again = create_model("prior_correction", prior=prior, quasi_dense="association")
+    again.load_state_dict(net.state_dict())
+    torch.testing.assert_close(again.eval().quasi_dense_depth(image, sparse, points), expected)
+    untrained = create_model("prior_correction", prior=prior, quasi_dense="association")
+    with pytest.raises(ArgumentError, match=r"^quasi_dense=association needs a trained"):
+        untrained.quasi_dense_depth(image, sparse, points)
+    with pytest.raises(ArgumentError, match=r"^quasi_dense='lidar': expected one of"):
+        create_model("prior_correction", prior=prior, quasi_dense="lidar")

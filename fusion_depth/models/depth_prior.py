@@ -683,8 +683,9 @@ def load_depth_anything_v2(
 
     Args:
         weights: the folder (with ``config.json``) or the ``.pth`` file.
-        kind, max_depth: which head it has and a metric head's range, metres
-            (:func:`depth_anything_kind`: from the folder's ``config.json`` where None).
+        kind: which head it has, ``relative`` or ``metric`` (:func:`depth_anything_kind`: from
+            the folder's ``config.json`` where None).
+        max_depth: a metric head's range, metres (from ``config.json`` where None).
 
     Returns:
         transformers' ``DepthAnythingForDepthEstimation``, in eval mode: ``predicted_depth``

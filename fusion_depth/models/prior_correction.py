@@ -186,6 +186,9 @@ class PriorCorrection(FallbackCount, DepthModel):
         self.association = None
         if quasi_dense == "association":
             self.association = self._association(association_weights, min_depth, max_depth)
+        # Whether the association network holds trained weights (loaded here, or with a state
+        # dict of this model): saved with the weights, so a rebuilt model knows it too.
+        self.register_buffer("association_loaded", torch.tensor(bool(association_weights)))
         self.ransac_iterations, self.ransac_threshold = ransac_iterations, ransac_threshold
         self.fit_momentum = fit_momentum
         self.register_buffer("fit_mean", torch.tensor([1.0, 0.0]))  # (scale, shift) of training
@@ -253,6 +256,14 @@ class PriorCorrection(FallbackCount, DepthModel):
         association network's map (:attr:`quasi_dense`)."""
         if self.association is None:
             return sparse.float()
+        if not bool(self.association_loaded):
+            raise ArgumentError(
+                "{quasi_dense}=association needs a trained association network: give "
+                "{association_weights}=<a model=radarnet stage=association checkpoint>",
+                "quasi_dense",
+                "association_weights",
+                owner=PriorCorrection,
+            )
         return self.association(image, sparse, points).float()
 
     def forward(
