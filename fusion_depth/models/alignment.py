@@ -22,9 +22,10 @@ the batch's ``radar_points``, each return is one sample, at the pixel it project
 drawn as a vertical line of pixels counts once, so two pixels of one line (one depth, two prior
 values: scale 0) are never a sample. Without points (lidar), each pixel with a return is one.
 
-The hypotheses are a fixed table of draws (made once from ``seed``), not a random stream: the
-fit of a frame depends on its samples alone, is the same on every call and every device, and
-the whole fit is tensor operations with no loop over frames.
+The hypotheses are a fixed, evenly spread sequence of draws (a Kronecker sequence started at
+``seed``), not a random stream: the fit of a frame depends on its samples alone, is the same on
+every call and every device, and the whole fit is tensor operations with no loop over frames
+(an exported network fits as ``evaluate`` does).
 
 A frame whose fit cannot be made falls back to its batch's median fit, or in a batch
 without any to ``fallback`` (its caller's running fit), and :class:`Alignment` says why: too
@@ -44,6 +45,7 @@ PRIOR_KINDS = ("relative", "metric")  # what a prior gives: fusion_depth.models.
 DEFAULT_RANSAC_ITERATIONS = 100
 DEFAULT_RANSAC_THRESHOLD = 0.1
 _TINY = 1e-12  # a difference of prior values below this is no spread to fit a scale on
+_CHUNK = 10  # RANSAC hypotheses whose inliers are counted at once
 _U, _V, _DEPTH, _VALID = 0, 1, 2, 5  # columns of fusion_depth.data.RADAR_POINT_FIELDS
 
 
@@ -132,24 +134,53 @@ def alignment_samples(
         return flat.gather(1, v * width + u), torch.where(valid, depth, 0.0), valid
     depth = sparse.double().reshape(batch, -1)
     valid = depth > 0
-    # The pixels with a return first (a stable sort keeps their order), then as many columns as
-    # the frame with most of them needs.
-    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)
+    if _tracing():  # every pixel: a shape that depends on no value (an exported network)
+        return flat, depth, valid
+    # The pixels with a return first, then as many columns as the frame with most of them needs.
+    order = _valid_first(valid)
     keep = max(int(valid.sum(dim=1).max()) if valid.numel() else 0, 1)
     order = order[:, :keep]
     return flat.gather(1, order), depth.gather(1, order), valid.gather(1, order)
 
 
-_TABLES: dict[tuple[int, int], torch.Tensor] = {}
+def _valid_first(valid: torch.Tensor) -> torch.Tensor:
+    """(B, N) indices that put each row's True entries first, each part in its own order: a
+    stable sort, as a top-k of ``N · valid + (N - 1 - index)`` (which ONNX has)."""
+    n = valid.shape[1]
+    index = torch.arange(n, device=valid.device, dtype=torch.float64)
+    score = valid.double() * n + (n - 1 - index)
+    return torch.topk(score, n, dim=1).indices
 
 
-def _hypothesis_table(iterations: int, seed: int) -> torch.Tensor:
-    """(iterations, 2) fixed draws in [0, 1): which samples each hypothesis takes."""
-    key = (iterations, seed)
-    if key not in _TABLES:
-        generator = torch.Generator().manual_seed(seed)
-        _TABLES[key] = torch.rand((iterations, 2), generator=generator, dtype=torch.float64)
-    return _TABLES[key]
+def _masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The lower median of ``values`` (B,) where ``mask`` (as :func:`torch.median`), 0 where
+    none is: each value's rank among the others, with no sort and no shape that depends on the
+    mask or on the batch (an exported network's batch is dynamic)."""
+    v = torch.where(mask, values, torch.inf)
+    index = torch.arange(v.shape[0], device=v.device)
+    before = (v[None, :] < v[:, None]) | (
+        (v[None, :] == v[:, None]) & (index[None, :] < index[:, None])
+    )
+    middle = (mask.sum() - 1).clamp_min(0) // 2
+    return torch.where(mask & (before.sum(dim=1) == middle), v, 0.0).sum()
+
+
+def _tracing() -> bool:
+    """Whether the fit is being exported or compiled: shapes may then not depend on values."""
+    return torch.compiler.is_compiling() or torch.compiler.is_exporting()
+
+
+# A 2-D Kronecker sequence (the fractional parts of i·α for two irrationals): evenly spread
+# draws in [0, 1)², the same on every call and device, computed in the graph (an exported
+# network holds no table) rather than drawn from a random stream.
+_KRONECKER = (0.6180339887498949, 0.41421356237309515)  # (√5 − 1) / 2, √2 − 1
+
+
+def _hypothesis_table(iterations: int, seed: int, device: torch.device) -> torch.Tensor:
+    """(iterations, 2) draws in [0, 1): which samples each hypothesis takes; ``seed`` starts
+    the sequence elsewhere."""
+    i = torch.arange(iterations, dtype=torch.float64, device=device) + seed * iterations + 1
+    return torch.stack([torch.frac(i * a) for a in _KRONECKER], dim=1)
 
 
 def _least_squares(
@@ -187,8 +218,8 @@ def _ransac(
     relative error: near and far returns count alike); ties go to the first hypothesis."""
     count = valid.sum(dim=1)
     # The frame's valid samples first, so that a draw in [0, count) picks one of them.
-    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)
-    table = _hypothesis_table(iterations, seed).to(x.device)
+    order = _valid_first(valid)
+    table = _hypothesis_table(iterations, seed, x.device)
     first = (table[None, :, 0] * count[:, None]).long()
     second = (table[None, :, 1] * (count[:, None] - 1).clamp_min(1)).long()
     second = second + (second >= first).long()  # another sample than the first
@@ -205,16 +236,22 @@ def _ransac(
         scale = y1 / torch.where(usable, x1, 1.0)
         shift = torch.zeros_like(scale)
     usable = usable & (scale > 0) & torch.isfinite(scale) & torch.isfinite(shift)
-    residual = (scale[..., None] * x[:, None] + shift[..., None] - y[:, None]).abs()
-    inliers = (residual <= threshold * y.abs()[:, None]) & valid[:, None] & usable[..., None]
-    best = inliers.sum(dim=2).argmax(dim=1)  # the first of the most
-    pick = best[:, None]
-    return (
-        scale.gather(1, pick)[:, 0],
-        shift.gather(1, pick)[:, 0],
-        inliers[torch.arange(len(best), device=best.device), best],
-        usable.gather(1, pick)[:, 0],
+    bound = threshold * y.abs()
+
+    def inliers_of(s: torch.Tensor, t: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+        """(B, K, N) inliers of K hypotheses per frame."""
+        residual = (s[..., None] * x[:, None] + t[..., None] - y[:, None]).abs()
+        return (residual <= bound[:, None]) & valid[:, None] & ok[..., None]
+
+    # Counted a few hypotheses at a time: (B, K, N) at once is gigabytes for every pixel of a
+    # large frame (an exported network fits on all of them).
+    chunks = [slice(i, i + _CHUNK) for i in range(0, iterations, _CHUNK)]
+    counts = torch.cat(
+        [inliers_of(scale[:, c], shift[:, c], usable[:, c]).sum(dim=2) for c in chunks], dim=1
     )
+    pick = counts.argmax(dim=1, keepdim=True)  # the first of the most
+    best = [scale.gather(1, pick), shift.gather(1, pick), usable.gather(1, pick)]
+    return best[0][:, 0], best[1][:, 0], inliers_of(*best)[:, 0], best[2][:, 0]
 
 
 def fit_scale_shift(
@@ -223,7 +260,7 @@ def fit_scale_shift(
     kind: str = "relative",
     ransac_iterations: int = DEFAULT_RANSAC_ITERATIONS,
     ransac_threshold: float = DEFAULT_RANSAC_THRESHOLD,
-    fallback: tuple[float, float] = (1.0, 0.0),
+    fallback: tuple[float, float] | torch.Tensor = (1.0, 0.0),
     seed: int = 0,
     points: torch.Tensor | None = None,
 ) -> Alignment:
@@ -239,9 +276,9 @@ def fit_scale_shift(
             the best one's inliers; 0: least squares on every sample.
         ransac_threshold: a sample is an inlier of a hypothesis when its relative error (in
             inverse depth, or in metres for a metric prior) is at most this.
-        fallback: ``(s, t)`` for a frame without a fit of its own in a batch without any (else
-            it takes the batch's median fit).
-        seed: which fixed table of hypotheses RANSAC draws from.
+        fallback: ``(s, t)`` (or a tensor of the two) for a frame without a fit of its own in
+            a batch without any (else it takes the batch's median fit).
+        seed: where RANSAC's fixed sequence of draws starts.
         points: (B, P, 6) the batch's ``radar_points``: one sample per return
             (:func:`alignment_samples`); None: one per pixel with a return.
 
@@ -278,16 +315,17 @@ def fit_scale_shift(
         shift = torch.where(refit, r_shift, h_shift)
         made, inliers = found, h_inliers
     fitted = made & (scale > 0)
-    if fitted.any():  # the batch's median fit
-        default = torch.stack([scale[fitted].median(), shift[fitted].median()])
-    else:
-        default = torch.tensor(fallback, dtype=torch.float64, device=scale.device)
+    # The batch's median fit (the lower median, as torch.median), else ``fallback``: without a
+    # shape that depends on which frames fitted.
+    given = torch.as_tensor(fallback, dtype=torch.float64).to(scale.device)
+    median = torch.stack([_masked_median(v, fitted) for v in (scale, shift)])
+    default = torch.where(fitted.any(), median, given)
     return Alignment(
-        scale=torch.where(fitted, scale, default[0]).cpu(),
-        shift=torch.where(fitted, shift, default[1] if with_shift else 0.0).cpu(),
-        points=torch.where(fitted, (inliers & valid).sum(dim=1), 0).cpu(),
-        fallback=~fitted.cpu(),
-        reversed=(enough & ~fitted).cpu(),
+        scale=torch.where(fitted, scale, default[0]),
+        shift=torch.where(fitted, shift, default[1] if with_shift else 0.0),
+        points=torch.where(fitted, (inliers & valid).sum(dim=1), 0),
+        fallback=~fitted,
+        reversed=enough & ~fitted,
     )
 
 
@@ -331,7 +369,9 @@ class FallbackCount:
         self._fits, self._fallbacks, self._reversed = 0, 0, 0
 
     def count_fits(self, fit: Alignment) -> None:
-        """Count a batch's fits (:class:`Alignment`)."""
+        """Count a batch's fits (:class:`Alignment`); nothing while exported or compiled."""
+        if _tracing():
+            return
         self._fits = getattr(self, "_fits", 0) + int(fit.fallback.numel())
         self._fallbacks = getattr(self, "_fallbacks", 0) + int(fit.fallback.sum())
         self._reversed = getattr(self, "_reversed", 0) + int(fit.reversed.sum())

@@ -234,7 +234,7 @@ class PriorCorrection(FallbackCount, DepthModel):
                 self.kind,
                 self.ransac_iterations,
                 self.ransac_threshold,
-                fallback=tuple(self.fit_mean.tolist()),
+                fallback=self.fit_mean,
                 points=points,
             )
             self.count_fits(fit)
@@ -279,7 +279,10 @@ class PriorCorrection(FallbackCount, DepthModel):
         given = self.prior(image) if prior is None else prior
         d = self.aligned_inverse(given, sparse, points)
         quasi = self.quasi_dense_depth(image, sparse, points)
-        scaffold = scale_scaffold(quasi, 1.0 / d, 0.0, self.max_depth, constant_frames="zero")
+        # d is clipped to the depth range: positive and finite, nothing to check
+        scaffold = scale_scaffold(
+            quasi, 1.0 / d, 0.0, self.max_depth, constant_frames="zero", check=False
+        )
         x = torch.cat(
             [(d - INT_DEPTH_MEAN) / INT_DEPTH_STD, (scaffold - INT_SCALES_MEAN) / INT_SCALES_STD],
             dim=1,

@@ -486,6 +486,7 @@ def scale_scaffold(
     min_valid: float = MIN_VALID_DEPTH,
     max_valid: float = MAX_VALID_DEPTH,
     constant_frames: str = "raise",
+    check: bool = True,
 ) -> Tensor:
     """Their scale-map scaffold ``int_scales`` at the input's resolution (``sml_main.py``
     lines 375-388, 173-200; module docstring, "The inputs", steps 1-2), in float32 as theirs.
@@ -500,6 +501,8 @@ def scale_scaffold(
         constant_frames: ``raise`` (theirs) for a frame whose map is constant (no valid point,
             or every point at the aligned depth), or ``zero``: such a frame's scaffold is 0
             everywhere (a platform network trains on frames without returns too).
+        check: refuse an aligned depth that is not positive and finite (False: the caller
+            guarantees it, and the function then has no value-dependent branch to export).
 
     Returns:
         (N, 1, H, W) in [0, 1]: ``1.0`` where no point, ``(1 / quasi_dense) / (1 / aligned)``
@@ -519,7 +522,7 @@ def scale_scaffold(
             "quasi_dense",
             owner=scale_scaffold,
         )
-    if not bool(((aligned > 0) & aligned.isfinite()).all()):
+    if check and not bool(((aligned > 0) & aligned.isfinite()).all()):
         raise ArgumentError(
             "{aligned}: a depth that is not positive and finite (their network then gets inf)",
             "aligned",
