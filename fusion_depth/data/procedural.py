@@ -213,7 +213,7 @@ class ProceduralDepth(Dataset):
     ``camera_height`` (a range in metres, the car's 1.4-1.7 by default) and ``fov_range`` (a
     range of horizontal fields of view in degrees drawn per frame, replacing ``fov_deg``; null
     by default) vary the camera: a pool of other cameras for a prior to learn from
-    (``conf/dataset/procedural_source.yaml``).
+    (``conf/experiment/prior_study_source_prior.yaml``).
 
     Raises:
         ValueError: an option out of range, naming it.

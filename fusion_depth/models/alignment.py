@@ -24,8 +24,10 @@ values: scale 0) are never a sample. Without points (lidar), each pixel with a r
 
 The hypotheses are a fixed, evenly spread sequence of draws (a Kronecker sequence started at
 ``seed``), not a random stream: the fit of a frame depends on its samples alone, is the same on
-every call and every device, and the whole fit is tensor operations with no loop over frames
-(an exported network fits as ``evaluate`` does).
+every call and every device, and the whole fit is tensor operations with no loop over frames,
+so a network that fits exports. An exported network takes the image and the sparse map, not
+the radar's points: it samples each pixel with a return, where ``evaluate`` and training
+sample each return once (the same where a return is one pixel, as on nuScenes).
 
 A frame whose fit cannot be made falls back to its batch's median fit, or in a batch
 without any to ``fallback`` (its caller's running fit), and :class:`Alignment` says why: too
@@ -59,8 +61,9 @@ class Alignment:
         points: (B,) the samples each fit used (RANSAC: its best hypothesis's inliers).
         fallback: (B,) True where the frame took its batch's median fit (or ``fallback``)
             instead of a fit of its own.
-        reversed: (B,) True where it did so although it had samples enough: every hypothesis,
-            and the least-squares fit, had a scale ≤ 0 (they would reverse the depth order).
+        reversed: (B,) True where it did so although it had samples enough: every RANSAC
+            hypothesis (or, with ``ransac_iterations=0``, the least-squares fit) had a scale ≤ 0
+            (it would reverse the depth order) or no spread of prior values to fit on.
     """
 
     scale: torch.Tensor
@@ -82,8 +85,11 @@ def prior_kind(prior: object) -> str:
     return kind
 
 
-def check_alignment_arguments(ransac_iterations: int, ransac_threshold: float) -> None:
-    """Fail on settings :func:`fit_scale_shift` cannot take, before any frame is read.
+def check_alignment_arguments(
+    ransac_iterations: int, ransac_threshold: float, owner: object = None
+) -> None:
+    """Fail on settings :func:`fit_scale_shift` cannot take, before any frame is read;
+    ``owner`` (default :func:`fit_scale_shift`) is what the config layer names the keys of.
 
     Raises:
         ArgumentError: ``ransac_iterations`` not an integer ≥ 0, or ``ransac_threshold ≤ 0``.
@@ -94,7 +100,7 @@ def check_alignment_arguments(ransac_iterations: int, ransac_threshold: float) -
             f"{{ransac_iterations}}={ransac_iterations}: expected an integer ≥ 0 (0: least "
             "squares on every return)",
             "ransac_iterations",
-            owner=fit_scale_shift,
+            owner=owner or fit_scale_shift,
         )
     if isinstance(ransac_threshold, bool) or not (
         isinstance(ransac_threshold, int | float) and ransac_threshold > 0
@@ -102,7 +108,7 @@ def check_alignment_arguments(ransac_iterations: int, ransac_threshold: float) -
         raise ArgumentError(
             f"{{ransac_threshold}}={ransac_threshold}: expected a relative error > 0",
             "ransac_threshold",
-            owner=fit_scale_shift,
+            owner=owner or fit_scale_shift,
         )
 
 
@@ -166,8 +172,13 @@ def _masked_median(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def _tracing() -> bool:
-    """Whether the fit is being exported or compiled: shapes may then not depend on values."""
-    return torch.compiler.is_compiling() or torch.compiler.is_exporting()
+    """Whether the fit is being exported, traced or compiled: shapes may then not depend on
+    values."""
+    return (
+        torch.compiler.is_compiling()
+        or torch.compiler.is_exporting()
+        or torch.jit.is_tracing()
+    )
 
 
 # A 2-D Kronecker sequence (the fractional parts of i·α for two irrationals): evenly spread
@@ -300,7 +311,7 @@ def fit_scale_shift(
         y = torch.where(valid, 1.0 / torch.where(valid, depth, 1.0), 0.0)
     else:  # a metric prior of 0 (a ReLU's sky) has no scale to fit on
         valid = valid & (x > _TINY)
-        y = depth
+        y = torch.where(valid, depth, 0.0)
     enough = valid.sum(dim=1) >= (2 if with_shift else 1)
     scale, shift, made = _least_squares(x, y, valid.double(), with_shift)
     inliers = valid
@@ -368,9 +379,10 @@ class FallbackCount:
         """Start counting again (at the test stage's start)."""
         self._fits, self._fallbacks, self._reversed = 0, 0, 0
 
+    @torch.compiler.disable  # counted under torch.compile too, outside the compiled graph
     def count_fits(self, fit: Alignment) -> None:
-        """Count a batch's fits (:class:`Alignment`); nothing while exported or compiled."""
-        if _tracing():
+        """Count a batch's fits (:class:`Alignment`); nothing while exported or traced."""
+        if torch.compiler.is_exporting() or torch.jit.is_tracing():
             return
         self._fits = getattr(self, "_fits", 0) + int(fit.fallback.numel())
         self._fallbacks = getattr(self, "_fallbacks", 0) + int(fit.fallback.sum())

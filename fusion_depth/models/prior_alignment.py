@@ -88,7 +88,7 @@ class GlobalAlignment(FallbackCount, DepthModel):
                 "name",
                 owner=build_prior,
             )
-        check_alignment_arguments(ransac_iterations, ransac_threshold)
+        check_alignment_arguments(ransac_iterations, ransac_threshold)  # evaluate's alignment.*
         self.prior = build_prior(**spec)
         self.kind = prior_kind(self.prior)
         self.ransac_iterations, self.ransac_threshold = ransac_iterations, ransac_threshold

@@ -166,7 +166,7 @@ class PriorCorrection(FallbackCount, DepthModel):
                 owner=type(self),
             )
         check_choice(quasi_dense, QUASI_DENSE_SOURCES, "quasi_dense", owner=type(self))
-        check_alignment_arguments(ransac_iterations, ransac_threshold)
+        check_alignment_arguments(ransac_iterations, ransac_threshold, owner=type(self))
         if not 0 <= fit_momentum <= 1:
             raise ArgumentError(
                 f"{{fit_momentum}}={fit_momentum}: expected a share in [0, 1]",
@@ -220,8 +220,9 @@ class PriorCorrection(FallbackCount, DepthModel):
     ) -> torch.Tensor:
         """The globally aligned prior as inverse depth in 1/m, clipped to the depth range, in
         fp32: a relative prior (normalised per frame) scaled and shifted in inverse depth, a
-        metric one scaled in metres; a frame without a fit takes the running fit (updated in
-        training by the batch's median fit). The fit runs in float64 whatever the autocast.
+        metric one scaled in metres; a frame without a fit takes its batch's median fit, or in
+        a batch without any the running fit (updated in training by the batch's median fit).
+        The fit runs in float64 whatever the autocast.
 
         Shape:
             - given, sparse: (B, 1, H, W); points: (B, P, 6) or None; output: (B, 1, H, W).
@@ -256,7 +257,7 @@ class PriorCorrection(FallbackCount, DepthModel):
         association network's map (:attr:`quasi_dense`)."""
         if self.association is None:
             return sparse.float()
-        if not bool(self.association_loaded):
+        if not torch.compiler.is_exporting() and not bool(self.association_loaded):
             raise ArgumentError(
                 "{quasi_dense}=association needs a trained association network: give "
                 "{association_weights}=<a model=radarnet stage=association checkpoint>",

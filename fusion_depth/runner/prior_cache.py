@@ -266,8 +266,13 @@ CACHED_SPLITS = ("train", "val")  # what the cache serves; the test stage runs t
 
 
 def uses_prior_cache(spec: Mapping[str, Any] | None) -> bool:
-    """Whether a ``prior`` node asks for a cached prior (a prior, and ``cache`` not false)."""
-    return bool(spec) and spec.get("name", "none") != "none" and bool(spec.get("cache", True))
+    """Whether a ``prior`` node asks for a cached prior (a prior read from a file, and ``cache``
+    not false; ``prior=zero`` and ``prior=oracle`` read none and are never cached)."""
+    return (
+        bool(spec)
+        and spec.get("name", "none") not in ("none", "zero", "oracle")
+        and bool(spec.get("cache", True))
+    )
 
 
 def attach_prior_cache(
