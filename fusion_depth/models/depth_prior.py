@@ -516,6 +516,50 @@ def _range_hint(name: str) -> str:
     )
 
 
+def _folder_kind(
+    path: Path, weights: Any, kind: str | None, max_depth: float | None, owner: Any
+) -> tuple[str, float | None]:
+    """:func:`depth_anything_kind` of a transformers folder: its ``config.json`` decides."""
+    config, file = _config_json(path, weights), path / "config.json"
+    found = config.get("depth_estimation_type", RELATIVE)
+    if found not in KINDS:
+        problem = (
+            f"{file} sets depth_estimation_type={json.dumps(found)}; expected one of {list(KINDS)}"
+        )
+        raise _weights_error(weights, problem)
+    if kind is not None and kind != found:
+        raise ArgumentError(
+            f"{{kind}}={kind}: {file} sets depth_estimation_type={json.dumps(found)}, a "
+            f"{found} Depth Anything ({_OUTPUTS[found]}); expected {{kind}}={found}, or null "
+            "(read from config.json)",
+            "kind",
+            owner=owner,
+        )
+    if found == RELATIVE:
+        return _no_range(RELATIVE, max_depth, owner)
+    recorded = config.get("max_depth")
+    if recorded is None:
+        if max_depth is None:
+            raise ArgumentError(
+                f"{{max_depth}}=null: {file} sets no max_depth for its metric head (sigmoid × "
+                f"max_depth); expected {_range_hint('')}",
+                "max_depth",
+                owner=owner,
+            )
+        return METRIC, float(max_depth)
+    if not MAX_DEPTH.ok(recorded):
+        problem = f"{file} sets max_depth={json.dumps(recorded)}; expected {MAX_DEPTH.expected}"
+        raise _weights_error(weights, problem)
+    if max_depth is not None and float(max_depth) != float(recorded):
+        raise ArgumentError(
+            f"{{max_depth}}={max_depth}: {file} sets max_depth={recorded}, the range its "
+            f"metric head was trained to; expected null (read from config.json) or {recorded}",
+            "max_depth",
+            owner=owner,
+        )
+    return METRIC, float(recorded)
+
+
 def depth_anything_kind(
     weights: str | Path, kind: str | None = None, max_depth: float | None = None
 ) -> tuple[str, float | None]:
@@ -534,8 +578,7 @@ def depth_anything_kind(
       name holding ``metric`` (``depth_anything_v2_metric_vkitti_vits.pth``) is metric, the
       authors' relative names (``depth_anything_v2_vit{s,b,l,g}.pth``) relative, and the
       authors' metric names give their range (``hypersim``: 20 m, ``vkitti``: 80 m;
-      ``metric_depth/README.md``). A ``.pth`` renamed to neither cannot be told apart: it is
-      what ``kind`` says.
+      ``metric_depth/README.md``). A ``.pth`` named neither way is what ``kind`` says.
 
     Args:
         weights: the folder or ``.pth`` file.
@@ -563,45 +606,7 @@ def depth_anything_kind(
             owner=owner,
         )
     if path.is_dir():
-        config, file = _config_json(path, weights), path / "config.json"
-        found = config.get("depth_estimation_type", RELATIVE)
-        if found not in KINDS:
-            problem = (
-                f"{file} sets depth_estimation_type={json.dumps(found)}; expected one of "
-                f"{list(KINDS)}"
-            )
-            raise _weights_error(weights, problem)
-        if kind is not None and kind != found:
-            raise ArgumentError(
-                f"{{kind}}={kind}: {file} sets depth_estimation_type={json.dumps(found)}, a "
-                f"{found} Depth Anything ({_OUTPUTS[found]}); expected {{kind}}={found}, or null "
-                "(read from config.json)",
-                "kind",
-                owner=owner,
-            )
-        if found == RELATIVE:
-            return _no_range(RELATIVE, max_depth, owner)
-        recorded = config.get("max_depth")
-        if recorded is None:
-            if max_depth is None:
-                raise ArgumentError(
-                    f"{{max_depth}}=null: {file} sets no max_depth for its metric head (sigmoid × "
-                    f"max_depth); expected {_range_hint('')}",
-                    "max_depth",
-                    owner=owner,
-                )
-            return METRIC, float(max_depth)
-        if not MAX_DEPTH.ok(recorded):
-            problem = f"{file} sets max_depth={json.dumps(recorded)}; expected {MAX_DEPTH.expected}"
-            raise _weights_error(weights, problem)
-        if max_depth is not None and float(max_depth) != float(recorded):
-            raise ArgumentError(
-                f"{{max_depth}}={max_depth}: {file} sets max_depth={recorded}, the range its "
-                f"metric head was trained to; expected null (read from config.json) or {recorded}",
-                "max_depth",
-                owner=owner,
-            )
-        return METRIC, float(recorded)
+        return _folder_kind(path, weights, kind, max_depth, owner)
     named = METRIC if _METRIC_FILE.search(path.name) else None
     named = RELATIVE if _RELATIVE_FILE.match(path.name) else named
     if named == METRIC and kind != METRIC:
